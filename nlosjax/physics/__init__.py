@@ -1,0 +1,29 @@
+"""Confocal NLOS physics: capture geometry, forward model, SPAD noise, classic reconstructions.
+
+Public API::
+
+    Setup                      frozen capture geometry (metres, seconds, bins)
+    render, render_points      albedo volume -> noise-free transient (fast LCT form; brute force)
+    add_spad_noise             SPAD detector model (paper Eq. 2)
+    reconstruct                transient -> volume with "fbp" | "lct" | "fk" | "phasor" | "rsd"
+    fbp, lct, fk, phasor, rsd  the same methods as plain functions
+    illumination_wavelet       the phasor-field wavelet P(t) for a Setup
+    intensity_depth            volume -> intensity image [0, 1] and depth map (metres)
+"""
+
+from nlosjax.physics.forward import render, render_points
+from nlosjax.physics.project import intensity_depth
+from nlosjax.physics.reconstruct import METHODS, fbp, fk, lct, phasor, reconstruct, rsd
+from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
+from nlosjax.physics.wavelet import Wavelet, convolve_time, illumination_wavelet
+
+try:  # written in parallel; optional until it lands
+  from nlosjax.physics.noise import add_spad_noise, expected_counts, jitter_kernel
+except ImportError:  # pragma: no cover
+  pass
+
+__all__ = [
+    "Setup", "SPEED_OF_LIGHT", "render", "render_points", "add_spad_noise", "expected_counts",
+    "jitter_kernel", "reconstruct", "METHODS", "fbp", "lct", "fk", "phasor", "rsd",
+    "illumination_wavelet", "Wavelet", "convolve_time", "intensity_depth",
+]

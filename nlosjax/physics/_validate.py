@@ -1,0 +1,64 @@
+"""Input checks shared by the physics functions (run before any compilation)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from nlosjax.physics.setup import Setup
+
+
+def is_concrete(x) -> bool:
+  """True when ``x`` holds values (not a tracer inside ``jit``/``vmap``)."""
+  return not isinstance(x, jax.core.Tracer)
+
+
+def working_dtype(x) -> jnp.dtype:
+  """float64 when the input is float64 and x64 is on, else float32."""
+  if jnp.dtype(getattr(x, "dtype", np.float32)) == jnp.float64 and jax.config.jax_enable_x64:
+    return jnp.dtype(jnp.float64)
+  return jnp.dtype(jnp.float32)
+
+
+def check_counts(x, name: str) -> None:
+  """Raise ValueError if concrete ``x`` holds NaN, inf or negative values."""
+  if not is_concrete(x):
+    return
+  arr = jnp.asarray(x)
+  if not (jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.integer)):
+    raise ValueError(f"{name} must be a real array of counts, got dtype {arr.dtype}")
+  bad_nan, bad_neg = (bool(v) for v in jax.device_get(
+      (jnp.any(~jnp.isfinite(arr)), jnp.any(arr < 0))))
+  if bad_nan:
+    raise ValueError(f"{name} holds NaN or infinite values")
+  if bad_neg:
+    raise ValueError(f"{name} holds negative values; photon counts must be >= 0")
+
+
+def prepare_transient(transient, setup: Setup, name: str = "transient"):
+  """Validate ``[..., T, H, W]`` against ``setup``; return ``(x [B, T, H, W], batch_shape)``."""
+  if not isinstance(setup, Setup):
+    raise ValueError(f"setup must be a nlosjax.physics.Setup, got {type(setup).__name__}")
+  setup.check_transient(transient, name)
+  check_counts(transient, name)
+  x = jnp.asarray(transient)
+  x = x.astype(working_dtype(x))
+  batch_shape = x.shape[:-3]
+  return x.reshape((-1,) + x.shape[-3:]), batch_shape
+
+
+def unbatch(y, batch_shape):
+  """``[B, ...]`` -> ``[*batch_shape, ...]``."""
+  return y.reshape(tuple(batch_shape) + y.shape[1:])
+
+
+def check_positive(value, name: str) -> float:
+  """A finite float > 0, or ValueError naming ``name``."""
+  try:
+    v = float(value)
+  except (TypeError, ValueError):
+    raise ValueError(f"{name} must be a number, got {value!r}") from None
+  if not np.isfinite(v) or v <= 0:
+    raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+  return v

@@ -1,0 +1,126 @@
+"""The phasor-field illumination wavelet ``P(t) = exp(i Omega t) exp(-t^2 / (2 sigma^2))``.
+
+One definition, used by the ``phasor`` and ``rsd`` reconstructions and (later)
+by the phasor-field loss and the network's feature transform.
+
+Parameters follow the public phasor-field code (nlos-fk ``waveconv.m``, LFE,
+USM, NLOST): virtual wavelength ``lambda_v = 2 * sampling_coeff * Delta``
+(``Delta`` the coarser scan spacing; ``lambda_v >= 4 Delta`` avoids spatial
+aliasing), ``cycles`` periods under the envelope, a Gaussian envelope with
+``sigma = 0.15 (L - 1)`` samples (MATLAB ``gausswin(L, 1/0.3)``). ``lambda_v``
+lives on the round-trip path axis, so in depth its wavelength is ``lambda_v / 2``.
+
+Difference from the public code: ``L`` is made odd and the samples are centred
+on ``t = 0`` so a ``"same"`` convolution has no +-1-bin delay.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.fft
+
+from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
+
+
+@dataclasses.dataclass(frozen=True)
+class Wavelet:
+  """A sampled illumination wavelet.
+
+  Attributes:
+    wavelength: virtual wavelength ``lambda_v``, metres of round-trip path.
+    omega: carrier angular frequency ``Omega = 2 pi c / lambda_v``, rad/s.
+    sigma: envelope standard deviation, seconds.
+    bin_width: sample spacing, seconds.
+    num_samples: ``L`` (odd); sample ``k`` sits at ``t = (k - L // 2) * bin_width``.
+  """
+
+  wavelength: float
+  omega: float
+  sigma: float
+  bin_width: float
+  num_samples: int
+
+  @property
+  def times(self) -> np.ndarray:
+    """``[L]`` float64 sample times, seconds, centred on 0."""
+    return (np.arange(self.num_samples) - self.num_samples // 2) * self.bin_width
+
+  @property
+  def samples(self) -> np.ndarray:
+    """``[L]`` complex128 values ``P(t_k)`` (peak modulus 1)."""
+    t = self.times
+    return np.exp(1j * self.omega * t) * np.exp(-0.5 * (t / self.sigma) ** 2)
+
+  def spectrum(self, omega) -> np.ndarray:
+    """``|P_hat(omega)|`` of the continuous wavelet, normalised to peak 1.
+
+    ``P_hat(w) = int P(t) exp(-i w t) dt = sigma sqrt(2 pi) exp(-sigma^2 (w - Omega)^2 / 2)``.
+    """
+    omega = np.asarray(omega, np.float64)
+    return np.exp(-0.5 * (self.sigma * (omega - self.omega)) ** 2)
+
+  def frequencies(self, num_bins: int, ratio: float = 0.1) -> np.ndarray:
+    """Angular frequencies ``2 pi k / (num_bins * bin_width)`` where the spectrum exceeds ``ratio``."""
+    if not 0 < ratio < 1:
+      raise ValueError(f"ratio must be in (0, 1), got {ratio!r}")
+    step = 2 * math.pi / (num_bins * self.bin_width)
+    k = np.arange(1, num_bins // 2 + 1)
+    w = k * step
+    return w[self.spectrum(w) > ratio]
+
+
+@functools.lru_cache(maxsize=64)
+def illumination_wavelet(setup: Setup, *, cycles: float = 5.0, sampling_coeff: float = 2.0) -> Wavelet:
+  """The virtual illumination wavelet for a Setup.
+
+  Args:
+    setup: the capture (scan spacing and bin width set the wavelet).
+    cycles: periods under the envelope (public codes: 4-6; nlos-fk 5).
+    sampling_coeff: ``lambda_v = 2 * sampling_coeff * Delta``; 2 (nlos-fk
+      default), 3 for noisy scenes. Must be >= 1 (Nyquist).
+  Returns:
+    A :class:`Wavelet`.
+  """
+  if not cycles > 0:
+    raise ValueError(f"cycles must be > 0, got {cycles!r}")
+  if not sampling_coeff >= 1:
+    raise ValueError(f"sampling_coeff must be >= 1 (lambda_v >= 2 x scan spacing), got {sampling_coeff!r}")
+  spacing = max(setup.spacing)
+  wavelength = 2.0 * sampling_coeff * spacing
+  length = max(3, int(round(cycles * wavelength / setup.bin_length)))
+  length += 1 - length % 2
+  omega = 2 * math.pi * SPEED_OF_LIGHT / wavelength
+  sigma = 0.15 * (length - 1) * setup.bin_width
+  if omega * setup.bin_width >= math.pi:
+    raise ValueError(
+        f"the wavelet's carrier ({wavelength:.4g} m) is not resolved by bins of"
+        f" {setup.bin_length:.4g} m; raise sampling_coeff or use finer bins")
+  return Wavelet(wavelength, omega, sigma, setup.bin_width, length)
+
+
+def convolve_time(x: jax.Array, wavelet: Wavelet, axis: int = -3) -> jax.Array:
+  """``(P * x)`` along ``axis`` ("same" length, centred kernel), complex.
+
+  Args:
+    x: real or complex array, e.g. a transient ``[..., T, H, W]`` (axis -3).
+    wavelet: the kernel.
+    axis: time axis.
+  Returns:
+    complex array of ``x``'s shape: ``y[t] = sum_k P(t_k) x[t - k + L // 2]``
+    with zeros outside the window.
+  """
+  x = jnp.moveaxis(x, axis, -1)
+  n = x.shape[-1]
+  length = wavelet.num_samples
+  nfft = scipy.fft.next_fast_len(n + length - 1)
+  cdtype = jnp.complex128 if x.real.dtype == jnp.float64 else jnp.complex64
+  kernel = jnp.asarray(np.fft.fft(wavelet.samples, nfft), cdtype)
+  y = jnp.fft.ifft(jnp.fft.fft(x.astype(cdtype), nfft) * kernel)
+  y = y[..., length // 2:length // 2 + n]
+  return jnp.moveaxis(y, -1, axis)
