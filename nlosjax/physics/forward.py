@@ -49,17 +49,18 @@ class RenderOperators:
 
 
 @functools.lru_cache(maxsize=16)
-def render_operators(setup: Setup, falloff: str = "diffuse", dtype=jnp.float32) -> RenderOperators:
+def render_operators(setup: Setup, falloff: str = "diffuse", dtype=jnp.float32,
+                     oversample: int = 2) -> RenderOperators:
   """Build (once, cached) the forward-model operators of ``setup``."""
   q = check_falloff(falloff)
-  dom = lct_domain(setup)
+  dom = lct_domain(setup, oversample=oversample)
   T = setup.num_bins
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
   psf = cone_psf(setup, dom)
   # z -> u with the Jacobian 1/(2 sqrt(u)) = 1/(2 z); power -1 on the z/T axis.
-  to_u = squared_axis_matrix(T, dom.u, dom.z, power=-1.0)
+  to_u = squared_axis_matrix(T, dom.u, dom.z, power=-1.0, oversample=oversample)
   # v -> t bin average divided by (t/T)^q.
-  to_t = linear_axis_matrix(T, dom.t, dom.v, power=-float(q))
+  to_t = linear_axis_matrix(T, dom.t, dom.v, power=-float(q), oversample=oversample)
   # Calibrate to brute-force units: a unit voxel at depth z straight below a
   # scan point returns 1 / z^4 (or 1 / z^2) summed over its time bins.
   scale = _calibration(setup, q, psf, to_u, to_t, dom)
@@ -94,9 +95,10 @@ def _render_one(rho: jax.Array, ops: RenderOperators, num_bins: int) -> jax.Arra
   trans = jnp.pad(trans, ((t0, num_bins - t1), (0, 0), (0, 0)))
   # Causality: nothing returns before the nearest occupied depth bin. Dividing
   # by (t/T)^q amplifies FFT round-off at early t by up to T^q; this bound
-  # removes it exactly instead of by a threshold.
+  # removes it instead of a threshold (less 2 bins: the discretised cone
+  # spreads a voxel's return over its neighbouring bins).
   occupied = jnp.any(rho > 0, axis=(1, 2))
-  first = dom.z[0] + jnp.argmax(occupied)
+  first = dom.z[0] + jnp.argmax(occupied) - 2
   causal = jnp.arange(num_bins) >= first
   return jnp.where(causal[:, None, None], jnp.maximum(trans, 0.0), 0.0)
 

@@ -66,6 +66,7 @@ class LCTDomain:
     z: ``(k0, k1)`` depth bins of the output volume.
     u: ``(u0, u1)`` u-bins (resampled depth) they cover.
     fft_shape: ``(Lv, 2H, 2W)`` real-FFT shape of the linear convolution.
+    oversample: v- and u-bins per time bin (``v_b = oversample t_b^2 / T``).
   """
 
   t: tuple[int, int]
@@ -73,6 +74,7 @@ class LCTDomain:
   z: tuple[int, int]
   u: tuple[int, int]
   fft_shape: tuple[int, int, int]
+  oversample: int = 1
 
   @property
   def num_v(self) -> int:
@@ -83,23 +85,31 @@ class LCTDomain:
     return self.u[1] - self.u[0]
 
 
-def lct_domain(setup: Setup, *, t_margin: int = 0, z_margin: int = 0) -> LCTDomain:
+def lct_domain(setup: Setup, *, t_margin: int = 0, z_margin: int = 0,
+               oversample: int = 1) -> LCTDomain:
   """The bin windows for ``setup`` (its depth range), widened by margins.
 
   Args:
     setup: the capture.
     t_margin: extra time bins on each side (for a temporal filter).
     z_margin: extra depth bins on each side (for a depth filter).
+    oversample: v- and u-bins per time bin. The u-grid is coarse near the
+      wall (one u-bin spans ``T / (2 oversample k)`` depth bins at bin ``k``),
+      which biases LCT depths close to the wall; 2 halves that.
   """
+  if not (isinstance(oversample, int) and oversample >= 1):
+    raise ValueError(f"oversample must be a positive integer, got {oversample!r}")
   T = setup.num_bins
   t0, t1 = setup.time_bins
   k0, k1 = setup.depth_bins
   t0, t1 = max(0, t0 - t_margin), min(T, t1 + t_margin)
   k0, k1 = max(0, k0 - z_margin), min(T, k1 + z_margin)
-  v0, v1 = (t0 * t0) // T, min(T, -(-(t1 * t1) // T))
-  u0, u1 = (k0 * k0) // T, min(T, -(-(k1 * k1) // T))
+  os, tv = oversample, oversample * T
+  v0, v1 = (t0 * t0 * os) // T, min(tv, -(-(t1 * t1 * os) // T))
+  u0, u1 = (k0 * k0 * os) // T, min(tv, -(-(k1 * k1 * os) // T))
   lv = scipy.fft.next_fast_len(v1 - v0 + u1 - u0 - 1, real=True)
-  return LCTDomain((t0, t1), (v0, v1), (k0, k1), (u0, u1), (lv, 2 * setup.height, 2 * setup.width))
+  return LCTDomain((t0, t1), (v0, v1), (k0, k1), (u0, u1),
+                   (lv, 2 * setup.height, 2 * setup.width), oversample)
 
 
 def _midpoints(lo: int, hi: int, samples: int) -> np.ndarray:
@@ -108,11 +118,12 @@ def _midpoints(lo: int, hi: int, samples: int) -> np.ndarray:
 
 
 def squared_axis_matrix(T: int, rows: tuple[int, int], cols: tuple[int, int], *,
-                        power: float, samples: int | None = None) -> np.ndarray:
+                        power: float, samples: int | None = None,
+                        oversample: int = 1) -> np.ndarray:
   """``[R, C]`` float64: rows on the squared axis (v or u), columns on the linear one (t or z).
 
   ``M[i, j] = mean over sub-samples s of v-bin i of [floor(t_s) = j] (t_s / T)^power``
-  with ``t_s = sqrt(T v_s)``: applied to a histogram it returns the bin average
+  with ``t_s = sqrt(T v_s / oversample)``: applied to a histogram it returns the bin average
   of ``(t/T)^power tau(t)`` on the v-grid (``power = 3``: the diffuse LCT
   ``v^{3/2}``; ``power = -1``: the public code's plain ``mtx``, up to ``T``).
   """
@@ -120,7 +131,7 @@ def squared_axis_matrix(T: int, rows: tuple[int, int], cols: tuple[int, int], *,
   r0, r1 = rows
   c0, c1 = cols
   v = _midpoints(r0, r1, samples)
-  t = np.sqrt(v * T)
+  t = np.sqrt(v * T / oversample)
   j = np.floor(t).astype(np.int64)
   keep = (j >= c0) & (j < c1)
   i = (np.arange(v.size) // samples)[keep]
@@ -131,17 +142,17 @@ def squared_axis_matrix(T: int, rows: tuple[int, int], cols: tuple[int, int], *,
 
 
 def linear_axis_matrix(T: int, rows: tuple[int, int], cols: tuple[int, int], *,
-                       power: float, samples: int = 64) -> np.ndarray:
+                       power: float, samples: int = 64, oversample: int = 1) -> np.ndarray:
   """``[R, C]`` float64: rows on the linear axis (t or z), columns on the squared one.
 
-  ``M[j, i] = mean over sub-samples s of t-bin j of [floor(t_s^2 / T) = i] (t_s / T)^power``:
+  ``M[j, i] = mean over sub-samples s of t-bin j of [floor(oversample t_s^2 / T) = i] (t_s / T)^power``:
   the bin average on the t-grid of ``(t/T)^power g(v)`` for a function ``g``
   on the v-grid (``power = 0``: plain averaging, the public ``(T/2) mtxi``).
   """
   r0, r1 = rows
   c0, c1 = cols
   t = _midpoints(r0, r1, samples)
-  i = np.floor(t * t / T).astype(np.int64)
+  i = np.floor(t * t * oversample / T).astype(np.int64)
   keep = (i >= c0) & (i < c1)
   j = (np.arange(t.size) // samples)[keep]
   w = (t[keep] / T) ** power / samples
@@ -150,34 +161,46 @@ def linear_axis_matrix(T: int, rows: tuple[int, int], cols: tuple[int, int], *,
   return out
 
 
-def cone_psf(setup: Setup, domain: LCTDomain) -> np.ndarray:
+def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4) -> np.ndarray:
   """``[Lv, 2H, 2W]`` float64 light-cone PSF laid out for the domain's linear convolution.
 
   Entry ``[m, p, q]`` weights a u-bin ``u`` into the v-bin ``u + m + (v0 - u0)``
   of the scan point ``p`` rows and ``q`` columns away (indices modulo the FFT
-  shape). Unit L2 norm over the ungated cone.
+  shape). Each cone column averages ``lateral_samples^2`` positions across
+  the voxel's footprint (a scatterer anywhere in the pixel, not only at its
+  centre; without it the steep cone flanks are under-sampled and an off-grid
+  point smears in depth), each split linearly between the two v-bins around
+  its exact offset ``oversample r_b^2 / T``. Unit L2 norm over the ungated cone.
   """
   T = setup.num_bins
   H, W = setup.grid
   dy, dx = setup.spacing
   lv = domain.fft_shape[0]
+  tv = domain.oversample * T
   p = np.arange(-(H - 1), H)
   q = np.arange(-(W - 1), W)
-  r2 = ((p[:, None] * dy) ** 2 + (q[None, :] * dx) ** 2) / setup.depth_bin_length ** 2
-  s = r2 / T                                  # exact v-offset of each cone column, v-bins
-  s0 = np.floor(s).astype(np.int64)
-  frac = s - s0
-  # Unit L2 norm of the ungated cone (offsets that fit in T v-bins).
-  w_lo = np.where(s0 < T, 1.0 - frac, 0.0)
-  w_hi = np.where(s0 + 1 < T, frac, 0.0)
-  norm = math.sqrt(float(np.sum(w_lo ** 2 + w_hi ** 2)))
-  psf = np.zeros(domain.fft_shape)
+  pp, qq = np.meshgrid(p, q, indexing="ij")
+  sub = (np.arange(lateral_samples) + 0.5) / lateral_samples - 0.5
   shift = domain.v[0] - domain.u[0]
-  pp, qq = np.broadcast_to(p[:, None], s.shape), np.broadcast_to(q[None, :], s.shape)
-  for offset, weight in ((s0, w_lo), (s0 + 1, w_hi)):
-    m = offset - shift
-    keep = (m > -domain.num_u) & (m < domain.num_v) & (weight > 0)
-    np.add.at(psf, (m[keep] % lv, pp[keep] % (2 * H), qq[keep] % (2 * W)), weight[keep] / norm)
+  cone = np.zeros((tv + 1,) + pp.shape)       # ungated cone on the full v-axis (+1 spill bin)
+  for sy in sub:
+    for sx in sub:
+      r2 = (((pp + sy) * dy) ** 2 + ((qq + sx) * dx) ** 2) / setup.depth_bin_length ** 2
+      s = r2 * domain.oversample / T          # exact v-offset, v-bins
+      s0 = np.minimum(np.floor(s).astype(np.int64), tv)
+      frac = s - np.floor(s)
+      np.add.at(cone, (s0, pp + H - 1, qq + W - 1), np.where(s0 < tv, 1.0 - frac, 0.0))
+      s1 = np.minimum(s0 + 1, tv)
+      np.add.at(cone, (s1, pp + H - 1, qq + W - 1), np.where(s0 + 1 < tv, frac, 0.0))
+  cone = cone[:tv]
+  cone /= math.sqrt(float(np.sum(cone ** 2)))
+  psf = np.zeros(domain.fft_shape)
+  m = np.arange(tv) - shift
+  keep = (m > -domain.num_u) & (m < domain.num_v)
+  rows = (p % (2 * H))[:, None]
+  cols = (q % (2 * W))[None, :]
+  for mi, c in zip(m[keep], cone[keep]):
+    psf[mi % lv, rows, cols] += c
   return psf
 
 
@@ -202,7 +225,7 @@ class LCTOperators:
 
 @functools.lru_cache(maxsize=16)
 def lct_operators(setup: Setup, power: float, *, t_margin: int = 0, z_margin: int = 0,
-                  dtype=jnp.float32) -> LCTOperators:
+                  oversample: int = 2, dtype=jnp.float32) -> LCTOperators:
   """Build (once, cached) the operators to backproject or invert the LCT for ``setup``.
 
   Args:
@@ -210,14 +233,15 @@ def lct_operators(setup: Setup, power: float, *, t_margin: int = 0, z_margin: in
     power: time power of the t -> v resampling (3 diffuse, 1 retroreflective,
       -1 plain, as the phasor method uses).
     t_margin, z_margin: widen the windows (see :func:`lct_domain`).
+    oversample: v- and u-bins per time bin (see :func:`lct_domain`).
     dtype: float dtype of the real operators (complex counterpart for the PSF).
   """
-  dom = lct_domain(setup, t_margin=t_margin, z_margin=z_margin)
+  dom = lct_domain(setup, t_margin=t_margin, z_margin=z_margin, oversample=oversample)
   T = setup.num_bins
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
   psf_fft = np.fft.rfftn(cone_psf(setup, dom))
-  to_v = squared_axis_matrix(T, dom.v, dom.t, power=power)
-  to_z = linear_axis_matrix(T, dom.z, dom.u, power=0.0)
+  to_v = squared_axis_matrix(T, dom.v, dom.t, power=power, oversample=oversample)
+  to_z = linear_axis_matrix(T, dom.z, dom.u, power=0.0, oversample=oversample)
   return LCTOperators(dom, jnp.asarray(psf_fft, cdtype), jnp.asarray(to_v, dtype),
                       jnp.asarray(to_z, dtype))
 

@@ -1,0 +1,337 @@
+"""Physics: Setup, operators, render vs brute force, point scatterers, gating, stability, errors.
+
+Independent references: the brute-force ``render_points`` loop, numerical
+quadrature (scipy), NumPy convolution, closed forms of the wavelet spectrum,
+and physical properties (a point reconstructs at its position).
+"""
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.ndimage
+
+from nlosjax import physics
+from nlosjax.physics import Setup, reconstruct, render, render_points
+from nlosjax.physics.operators import linear_axis_matrix, squared_axis_matrix
+
+C = physics.SPEED_OF_LIGHT
+# 16 x 16 scan of a 1 m wall, 32 ps bins, 512 bins: depths up to 2.46 m.
+SETUP = Setup(wall_size=1.0, grid=(16, 16), bin_width=32e-12, num_bins=512)
+
+
+def peak(vol):
+  return np.unravel_index(int(np.argmax(np.asarray(vol))), np.shape(vol))
+
+
+def corr(a, b):
+  a = np.ravel(a) - np.mean(a)
+  b = np.ravel(b) - np.mean(b)
+  return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+# ------------------------------------------------------------------- Setup
+def test_setup_derived_quantities_match_closed_forms():
+  s = Setup(2.0, (64, 32), 32e-12, 512)
+  assert s.bin_length == pytest.approx(C * 32e-12)
+  assert s.depth_bin_length == pytest.approx(C * 16e-12)
+  assert s.max_depth == pytest.approx(512 * C * 16e-12)
+  assert s.spacing == pytest.approx((2.0 / 63, 2.0 / 31))
+  np.testing.assert_allclose(s.scan_x, np.linspace(-1, 1, 32))
+  np.testing.assert_allclose(s.scan_y, np.linspace(-1, 1, 64))
+  np.testing.assert_allclose(s.depths, np.arange(512) * C * 16e-12)
+  assert s.scan_points.shape == (64, 32, 3)
+  g = s.with_depth_range(0.5, 1.0)
+  k0, k1 = g.depth_bins
+  assert g.depths[0] >= 0.5 and g.depths[-1] <= 1.0
+  assert (k0 - 1) * s.depth_bin_length < 0.5 and k1 * s.depth_bin_length > 1.0
+  t0, t1 = g.time_bins
+  assert t0 == k0
+  # The latest return from the range: a voxel at z_max one wall diagonal away.
+  assert t1 >= min(512, np.hypot(1.0, 2.0 * np.sqrt(2)) / s.depth_bin_length)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(wall_size=-1.0), "wall_size"),
+    (dict(wall_size=float("nan")), "wall_size"),
+    (dict(bin_width=32.0), "picoseconds"),
+    (dict(grid=(1, 16)), "grid"),
+    (dict(grid=(16.5, 16)), "grid"),
+    (dict(num_bins=1), "num_bins"),
+    (dict(depth_range=(1.0, 0.5)), "depth_range"),
+    (dict(depth_range=(5.0, 6.0)), "depth_range"),
+    (dict(depth_range=(0.501, 0.502)), "no depth bin"),
+])
+def test_setup_rejects_bad_arguments(kwargs, match):
+  args = dict(wall_size=1.0, grid=(16, 16), bin_width=32e-12, num_bins=512)
+  args.update(kwargs)
+  with pytest.raises(ValueError, match=match):
+    Setup(**args)
+
+
+# --------------------------------------------------------------- operators
+@pytest.mark.parametrize("bin_index", [3, 40, 200])
+def test_time_to_v_resampling_is_the_bin_average(bin_index):
+  """Row i of the t->v matrix applied to f(t) equals the mean of (t/T)^p f(t(v)) over v-bin i."""
+  T, p = 256, 3.0
+  f = lambda t: np.cos(t / 17.0) + 2.0  # noqa: E731
+  # Histogram of the piecewise-constant function f(floor(t) + 0.5).
+  hist = f(np.arange(T) + 0.5)
+  m = squared_axis_matrix(T, (0, T), (0, T), power=p, samples=4096)
+  got = m[bin_index] @ hist
+
+  def integrand(v):
+    t = np.sqrt(v * T)
+    return (t / T) ** p * f(np.floor(t) + 0.5)
+
+  want, _ = scipy.integrate.quad(integrand, bin_index, bin_index + 1, limit=200)
+  assert got == pytest.approx(want, rel=2e-3)
+
+
+def test_v_to_time_averaging_preserves_constants():
+  T = 128
+  m = linear_axis_matrix(T, (1, T), (0, T), power=0.0)
+  np.testing.assert_allclose(m.sum(axis=1), 1.0, rtol=1e-12)
+
+
+# ------------------------------------------------------------------ render
+@pytest.mark.parametrize("falloff", ["diffuse", "retroreflective"])
+def test_render_matches_brute_force(falloff):
+  setup = Setup(1.0, (12, 12), 32e-12, 256)
+  albedo = np.zeros((256, 12, 12))
+  albedo[150, 4, 7] = 1.0
+  albedo[110, 9, 2] = 0.5
+  albedo[180, 6, 6] = 0.8
+  # A voxel covers its pixel's footprint: brute-force it as 4 x 4 points across it.
+  k, i, j = np.nonzero(albedo)
+  dy, dx = setup.spacing
+  sub = (np.arange(4) + 0.5) / 4 - 0.5
+  points, weights = [], []
+  for sy in sub:
+    for sx in sub:
+      points.append(np.stack([setup.scan_x[j] + sx * dx, setup.scan_y[i] + sy * dy,
+                              setup.depths[k]], -1))
+      weights.append(albedo[k, i, j] / 16)
+  brute = render_points(np.concatenate(points), np.concatenate(weights), setup, falloff=falloff)
+  fast = np.asarray(render(albedo, setup, falloff=falloff))
+  # Same energy at every scan point (units of albedo / r^4), within 3 %.
+  np.testing.assert_allclose(fast.sum(0), brute.sum(0), rtol=0.03)
+  # Same arrival times: identical onsets and high correlation after a 2-bin blur
+  # (the LCT form spreads a point over neighbouring bins).
+  blur = lambda x: scipy.ndimage.gaussian_filter1d(x, 2.0, axis=0)  # noqa: E731
+  assert corr(blur(fast), blur(brute)) > 0.95
+  onset_fast = np.argmax(fast > 1e-3 * fast.max(axis=0), axis=0)
+  onset_brute = np.argmax(brute > 0, axis=0)
+  assert np.max(np.abs(onset_fast - onset_brute)) <= 2
+  assert np.all(fast >= 0) and np.all(fast[:108] == 0)  # causal
+
+
+def test_render_is_linear_and_batched():
+  setup = Setup(1.0, (8, 8), 32e-12, 128)
+  rng = np.random.default_rng(0)
+  a = rng.random((128, 8, 8)) * (rng.random((128, 8, 8)) > 0.99)
+  b = rng.random((128, 8, 8)) * (rng.random((128, 8, 8)) > 0.99)
+  a[:20] = b[:20] = 0
+  ra, rb = render(a, setup), render(b, setup)
+  rab = render(np.stack([a, b, a + b]), setup)
+  np.testing.assert_allclose(rab[0], ra, rtol=1e-5, atol=1e-5 * float(ra.max()))
+  np.testing.assert_allclose(rab[2], ra + rb, rtol=1e-4, atol=1e-4 * float(rab[2].max()))
+
+
+# -------------------------------------------------------- point scatterers
+_rng = np.random.default_rng(1234)
+POINTS = [(x, y, z) for x, y, z in zip(_rng.uniform(-0.35, 0.35, 4), _rng.uniform(-0.35, 0.35, 4),
+                                        np.linspace(0.5, 1.5, 4))]
+
+
+@pytest.fixture(scope="module")
+def point_transients():
+  return [render_points(np.array([p]), 1.0, SETUP) for p in POINTS]
+
+
+@pytest.mark.parametrize("method", physics.METHODS)
+def test_point_scatterer_reconstructs_at_its_position(method, point_transients):
+  for (x, y, z), transient in zip(POINTS, point_transients):
+    vol = reconstruct(transient, SETUP, method)
+    assert vol.shape == (512, 16, 16) and vol.dtype == jnp.float32
+    k, i, j = peak(vol)
+    true_i = np.argmin(np.abs(SETUP.scan_y - y))
+    true_j = np.argmin(np.abs(SETUP.scan_x - x))
+    true_k = z / SETUP.depth_bin_length
+    assert abs(i - true_i) <= 1 and abs(j - true_j) <= 1, (method, (x, y, z), (k, i, j))
+    assert abs(k - true_k) <= 3, (method, (x, y, z), (k, i, j), true_k)
+
+
+def test_retroreflective_lct_and_fbp_find_a_retroreflective_point():
+  p = np.array([[0.1, -0.2, 0.9]])
+  transient = render_points(p, 1.0, SETUP, falloff="retroreflective")
+  for method in ("lct", "fbp"):
+    k, i, j = peak(reconstruct(transient, SETUP, method, falloff="retroreflective"))
+    assert abs(k - 0.9 / SETUP.depth_bin_length) <= 3
+    assert abs(i - np.argmin(np.abs(SETUP.scan_y + 0.2))) <= 1
+    assert abs(j - np.argmin(np.abs(SETUP.scan_x - 0.1))) <= 1
+
+
+def test_batched_reconstruction_equals_one_by_one(point_transients):
+  batch = np.stack(point_transients[:2])[None]          # [1, 2, T, H, W]
+  for method in physics.METHODS:
+    out = reconstruct(batch, SETUP, method)
+    assert out.shape == (1, 2, 512, 16, 16)
+    for n in range(2):
+      one = reconstruct(point_transients[n], SETUP, method)
+      np.testing.assert_allclose(out[0, n], one, rtol=1e-4, atol=1e-5 * float(one.max()))
+
+
+# ------------------------------------------------------------------ gating
+SMALL = Setup(1.0, (12, 12), 32e-12, 384)
+
+
+@pytest.fixture(scope="module")
+def two_points():
+  pts = np.array([[0.1, -0.15, 0.6], [-0.2, 0.2, 0.75]])
+  return render_points(pts, 1.0, SMALL)
+
+
+# Backprojections and migrations are exact inside the range; the Wiener filter
+# (LCT) is not local, so its gated solution differs slightly.
+# f-k resamples its spectrum on a grid set by the (shorter) time window.
+@pytest.mark.parametrize("method, tol", [("fbp", 1e-4), ("rsd", 1e-4), ("phasor", 5e-3),
+                                         ("fk", 5e-2), ("lct", 5e-2)])
+def test_gated_matches_ungated_inside_the_range_and_costs_less(method, tol, two_points):
+  gated = SMALL.with_depth_range(0.5, 0.9)
+  k0, k1 = gated.depth_bins
+  full = np.asarray(reconstruct(two_points, SMALL, method))[k0:k1]
+  part = np.asarray(reconstruct(two_points, gated, method))
+  assert part.shape == (k1 - k0, 12, 12)
+  assert np.max(np.abs(full - part)) <= tol * full.max()
+
+  def flops(setup):
+    x = jnp.zeros((384, 12, 12), jnp.float32)
+    compiled = jax.jit(lambda t: reconstruct(t, setup, method)).lower(x).compile()
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return cost["flops"]
+
+  assert flops(gated) < flops(SMALL)
+
+
+# --------------------------------------------------------------- stability
+def _assert_clean(vol):
+  vol = np.asarray(vol)
+  assert np.all(np.isfinite(vol)), "non-finite output"
+  assert np.all(vol >= 0), "negative output"
+
+
+TINY = Setup(0.6, (8, 8), 32e-12, 128)
+
+
+@pytest.mark.parametrize("method", physics.METHODS)
+def test_extreme_inputs_give_finite_nonnegative_volumes(method):
+  zero = np.zeros((128, 8, 8), np.float32)
+  single = zero.copy()
+  single[70, 3, 4] = 1.0
+  huge = np.full((128, 8, 8), 1e9, np.float32)
+  saturated = np.zeros((128, 8, 8), np.float32)
+  saturated[:, 2:5, 2:5] = 1e9
+  thin = TINY.with_depth_range(100 * TINY.depth_bin_length, 100.5 * TINY.depth_bin_length)
+  assert thin.num_depth_bins == 1
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    for transient in (zero, single, huge, saturated):
+      _assert_clean(reconstruct(transient, TINY, method))
+      out = reconstruct(transient, thin, method)
+      assert out.shape == (1, 8, 8)
+      _assert_clean(out)
+    assert float(jnp.max(reconstruct(zero, TINY, method))) == 0.0
+
+
+@pytest.mark.parametrize("snr", [1e-6, 1e-3, 1.0, 1e3, 1e6])
+def test_lct_snr_extremes(snr):
+  single = np.zeros((128, 8, 8), np.float32)
+  single[70, 3, 4] = 1.0
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    _assert_clean(physics.lct(single, TINY, snr=snr))
+    _assert_clean(physics.lct(single * 1e9, TINY, snr=snr))
+
+
+# -------------------------------------------------------------- bad input
+@pytest.mark.parametrize("bad, match", [
+    (np.zeros((8, 8)), "rank"),
+    (np.zeros((64, 8, 8)), "does not match the Setup"),
+    (np.full((128, 8, 8), np.nan), "NaN"),
+    (-np.ones((128, 8, 8)), "negative"),
+])
+def test_bad_transients_raise(bad, match):
+  for method in physics.METHODS:
+    with pytest.raises(ValueError, match=match):
+      reconstruct(bad, TINY, method)
+
+
+def test_bad_method_and_options_raise():
+  x = np.zeros((128, 8, 8), np.float32)
+  with pytest.raises(ValueError, match="unknown method"):
+    reconstruct(x, TINY, "backprojection")
+  with pytest.raises(ValueError, match="does not take"):
+    reconstruct(x, TINY, "fk", snr=0.1)
+  with pytest.raises(ValueError, match="snr"):
+    reconstruct(x, TINY, "lct", snr=0.0)
+  with pytest.raises(ValueError, match="falloff"):
+    reconstruct(x, TINY, "lct", falloff="lambertian")
+  with pytest.raises(ValueError, match="setup"):
+    reconstruct(x, "not a setup", "lct")
+  with pytest.raises(ValueError, match="albedo"):
+    render(np.zeros((64, 8, 8)), TINY)
+
+
+# ----------------------------------------------------- intensity and depth
+def test_intensity_depth_of_a_known_volume():
+  setup = TINY.with_depth_range(0.3, 1.0)
+  vol = np.zeros((setup.num_depth_bins, 8, 8), np.float32)
+  vol[10, 2, 3] = 4.0
+  vol[30, 5, 5] = 2.0
+  vol[5, 0, 0] = 0.2                        # below 10 % of the max: background
+  intensity, depth = physics.intensity_depth(vol, setup)
+  assert float(intensity[2, 3]) == 1.0 and float(intensity[5, 5]) == 0.5
+  assert float(depth[2, 3]) == pytest.approx(setup.depths[10], rel=1e-6)
+  assert float(depth[5, 5]) == pytest.approx(setup.depths[30], rel=1e-6)
+  assert float(depth[0, 0]) == 0.0 and float(intensity[0, 0]) == pytest.approx(0.05)
+  zi, zd = physics.intensity_depth(np.zeros_like(vol), setup)
+  assert float(jnp.max(zi)) == 0.0 and float(jnp.max(zd)) == 0.0
+
+
+def test_point_scatterer_depth_map_is_metric(point_transients):
+  (x, y, z), transient = POINTS[1], point_transients[1]
+  intensity, depth = physics.intensity_depth(reconstruct(transient, SETUP, "fk"), SETUP)
+  i, j = np.unravel_index(int(np.argmax(intensity)), intensity.shape)
+  assert float(depth[i, j]) == pytest.approx(z, abs=3 * SETUP.depth_bin_length)
+
+
+# ----------------------------------------------------------------- wavelet
+def test_wavelet_parameters_and_spectrum():
+  setup = Setup(2.0, (64, 64), 32e-12, 512)
+  wl = physics.illumination_wavelet(setup)
+  delta = 2.0 / 63
+  assert wl.wavelength == pytest.approx(4 * delta)
+  assert wl.num_samples % 2 == 1
+  assert abs(wl.num_samples - 5 * 4 * delta / setup.bin_length) <= 1
+  assert wl.omega == pytest.approx(2 * np.pi * C / wl.wavelength)
+  # Closed-form Gaussian spectrum vs the DFT of the (long-padded) samples.
+  n = 1 << 14
+  spec = np.abs(np.fft.fft(wl.samples, n))
+  w = 2 * np.pi * np.fft.fftfreq(n, d=setup.bin_width)
+  keep = spec > 0.2 * spec.max()
+  np.testing.assert_allclose(spec[keep] / spec.max(), wl.spectrum(w[keep]), atol=0.02)
+
+
+def test_convolve_time_matches_numpy():
+  setup = Setup(0.6, (8, 8), 32e-12, 512)
+  wl = physics.illumination_wavelet(setup)
+  x = np.random.default_rng(0).random((512, 3, 2))
+  got = np.asarray(physics.convolve_time(jnp.asarray(x, jnp.float32), wl, axis=0))
+  want = np.stack([np.convolve(x[:, a, b], wl.samples, mode="same")
+                   for a in range(3) for b in range(2)], -1).reshape(512, 3, 2)
+  np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
