@@ -1,0 +1,405 @@
+"""Image and depth-map quality metrics: PSNR, SSIM, RMSE, MAD.
+
+Every function takes ``pred`` and ``target`` of the same shape ``[..., H, W]``
+(any number of leading batch dimensions, ``H, W`` being the last two axes) and
+returns one value per image, shape ``[...]``. Everything is pure
+``jax.numpy``: the functions can be jitted, vmapped and differentiated.
+
+Conventions:
+
+* Dtypes: inputs of any real dtype are cast to float32 and all sums run in
+  float32 (float64 when an input is float64, which needs ``jax_enable_x64``).
+  Outputs have that dtype.
+* Intensity images live in ``[0, 1]``, so ``data_range`` (max - min of the
+  possible values) defaults to 1. Depth maps are metres; :func:`rmse` and
+  :func:`mad` return the units of their inputs (metres for depth).
+* ``mask`` (optional, ``[..., H, W]``, the shape of ``pred``): boolean, or
+  numbers that are all 0 or 1. A metric with a mask is the metric over the
+  pixels where the mask is true, image by image. SSIM filters the full images
+  (the mask does not change the local statistics) and averages its SSIM map
+  over the masked pixels that survive the border crop (below).
+* PSNR of identical images (MSE 0) is not infinite: the MSE is floored at
+  ``data_range**2 * 1e-10``, which caps PSNR at :data:`PSNR_CAP_DB` = 100 dB,
+  finite and with finite gradients.
+* SSIM reproduces ``skimage.metrics.structural_similarity(pred, target,
+  gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+  data_range=1.0)`` (Wang et al. 2004): Gaussian weighting with ``sigma = 1.5``
+  truncated at ``3.5 * sigma`` (an 11-tap window; radius
+  ``int(3.5 * sigma + 0.5)``), symmetric ("reflect", ``d c b a | a b c d``)
+  padding at the image borders, population (co)variances, ``K1 = 0.01``,
+  ``K2 = 0.03``; the SSIM map is then cropped by ``(win_size - 1) // 2 = 5``
+  pixels on every side before it is averaged. As in scikit-image,
+  ``win_size`` only sets that crop and the smallest accepted image
+  (``H, W >= win_size``); the Gaussian's extent is set by ``sigma`` alone.
+* Validation: shapes are always checked (they are static under ``jit``).
+  When an argument is concrete (not a JAX tracer) it is also checked, before
+  anything compiles, for NaN (``pred``, ``target``), for values other than
+  0/1 and for images with no masked pixel (``mask``). Under ``jit`` these
+  value checks cannot run: NaN then propagates to the output, and an image
+  whose mask selects no pixel scores as if it had no error (MSE 0: RMSE and
+  MAD 0, PSNR the 100 dB cap, SSIM 1).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["PSNR_CAP_DB", "psnr", "ssim", "rmse", "mad"]
+
+PSNR_CAP_DB = 100.0
+"""PSNR (dB) returned for identical images: MSE is floored at
+``data_range**2 * 10**(-PSNR_CAP_DB / 10)``."""
+
+_PSNR_MSE_FLOOR = 10.0 ** (-PSNR_CAP_DB / 10.0)  # relative to data_range**2
+
+_GAUSSIAN_TRUNCATE = 3.5  # scikit-image's truncation for gaussian_weights=True
+
+
+# --------------------------------------------------------------------------
+# Validation (Python level, before any compilation).
+
+
+def _is_concrete(x) -> bool:
+  return not isinstance(x, jax.core.Tracer)
+
+
+def _check_images(fn: str, pred, target, mask) -> None:
+  """Shape, rank, NaN and mask checks shared by every metric."""
+  pred_shape = tuple(np.shape(pred))
+  target_shape = tuple(np.shape(target))
+  if len(pred_shape) < 2:
+    raise ValueError(
+        f"{fn}: pred must have rank >= 2 ([..., H, W]), got shape {pred_shape}")
+  if target_shape != pred_shape:
+    raise ValueError(
+        f"{fn}: target has shape {target_shape} but pred has shape {pred_shape}; "
+        "they must match")
+  if mask is not None:
+    mask_shape = tuple(np.shape(mask))
+    if mask_shape != pred_shape:
+      raise ValueError(
+          f"{fn}: mask has shape {mask_shape} but pred has shape {pred_shape}; "
+          "they must match")
+  for name, x in (("pred", pred), ("target", target)):
+    if _is_concrete(x):
+      a = np.asarray(x)
+      if np.issubdtype(a.dtype, np.complexfloating):
+        raise ValueError(f"{fn}: {name} must be real, got dtype {a.dtype}")
+      if a.dtype.kind not in "biu" and np.isnan(a).any():
+        raise ValueError(f"{fn}: {name} contains NaN")
+
+
+def _check_mask_values(fn: str, mask, crop: int = 0) -> None:
+  """A concrete mask must be 0/1 and select >= 1 pixel per image (after crop)."""
+  if mask is None or not _is_concrete(mask):
+    return
+  m = np.asarray(mask)
+  if m.dtype != np.bool_:
+    if not np.all((m == 0) | (m == 1)):
+      raise ValueError(f"{fn}: mask must be boolean or contain only 0 and 1")
+    m = m != 0
+  h, w = m.shape[-2:]
+  inner = m[..., crop:h - crop, crop:w - crop]
+  if not inner.any(axis=(-2, -1)).all():
+    where = (f" inside the {crop}-pixel border crop" if crop else "")
+    raise ValueError(f"{fn}: mask selects no pixel{where} for at least one image")
+
+
+def _check_scalar(fn: str, name: str, value, *, allow_zero: bool) -> None:
+  """A concrete ``value`` must be finite and > 0 (>= 0 with ``allow_zero``)."""
+  if not _is_concrete(value):
+    return
+  v = np.asarray(value)
+  if not np.issubdtype(v.dtype, np.number) or np.issubdtype(v.dtype, np.complexfloating):
+    raise ValueError(f"{fn}: {name} must be a real number, got {value!r}")
+  ok = np.isfinite(v) & ((v >= 0) if allow_zero else (v > 0))
+  if not np.all(ok):
+    bound = ">= 0" if allow_zero else "> 0"
+    raise ValueError(f"{fn}: {name} must be finite and {bound}, got {value!r}")
+
+
+# --------------------------------------------------------------------------
+# Shared pieces (traced).
+
+
+def _compute_dtype(pred, target):
+  """float32, or float64 when an input is float64 (x64 mode)."""
+  return jnp.promote_types(jnp.result_type(pred, target), jnp.float32)
+
+
+def _masked_mean(x, mask):
+  """Mean of ``x [..., H, W]`` over H, W, or over the pixels where ``mask``.
+
+  With a mask, an image with no selected pixel averages to 0.
+  """
+  if mask is None:
+    return jnp.mean(x, axis=(-2, -1))
+  m = mask.astype(bool)
+  total = jnp.sum(jnp.where(m, x, 0), axis=(-2, -1))
+  count = jnp.sum(m, axis=(-2, -1), dtype=x.dtype)
+  return total / jnp.maximum(count, 1)
+
+
+def _prepare(pred, target, mask):
+  pred = jnp.asarray(pred)
+  target = jnp.asarray(target)
+  dtype = _compute_dtype(pred, target)
+  mask = None if mask is None else jnp.asarray(mask)
+  return pred.astype(dtype), target.astype(dtype), mask, dtype
+
+
+@jax.jit
+def _mse(pred, target, mask):
+  return _masked_mean(jnp.square(pred - target), mask)
+
+
+@jax.jit
+def _psnr(pred, target, mask, data_range):
+  range_sq = jnp.square(data_range)
+  mse = _mse(pred, target, mask)
+  return 10.0 * jnp.log10(range_sq / jnp.maximum(mse, range_sq * _PSNR_MSE_FLOOR))
+
+
+@jax.jit
+def _rmse(pred, target, mask):
+  mse = _mse(pred, target, mask)
+  positive = mse > 0
+  # where-guard: exact 0 at zero error, with a zero (finite) gradient there.
+  return jnp.where(positive, jnp.sqrt(jnp.where(positive, mse, 1.0)), 0.0)
+
+
+@jax.jit
+def _mad(pred, target, mask):
+  return _masked_mean(jnp.abs(pred - target), mask)
+
+
+def _gaussian_taps(sigma: float) -> tuple[float, ...]:
+  """scipy.ndimage's 1D Gaussian at ``truncate = 3.5``, normalised to sum 1."""
+  radius = int(_GAUSSIAN_TRUNCATE * sigma + 0.5)
+  x = np.arange(-radius, radius + 1, dtype=np.float64)
+  taps = np.exp(-0.5 * (x / sigma) ** 2)
+  taps /= taps.sum()
+  return tuple(float(t) for t in taps)
+
+
+def _gaussian_filter_2d(x, taps):
+  """Separable Gaussian filter over the last two axes, symmetric padding.
+
+  Matches ``scipy.ndimage.gaussian_filter(mode="reflect")`` on each image.
+  Written as shifted, weighted slices (no convolution primitive): exact
+  float32 arithmetic on every backend.
+  """
+  radius = (len(taps) - 1) // 2
+  h, w = x.shape[-2:]
+  pad = [(0, 0)] * (x.ndim - 2) + [(radius, radius), (radius, radius)]
+  xp = jnp.pad(x, pad, mode="symmetric")
+  rows = sum(t * xp[..., k:k + h, :] for k, t in enumerate(taps))
+  return sum(t * rows[..., :, k:k + w] for k, t in enumerate(taps))
+
+
+@functools.partial(jax.jit, static_argnames=("win_size", "sigma"))
+def _ssim(pred, target, mask, data_range, k1, k2, *, win_size, sigma):
+  taps = _gaussian_taps(sigma)
+  # Local statistics are shift-invariant: subtract a per-image constant first
+  # so that E[x^2] - E[x]^2 does not cancel catastrophically in float32.
+  shift = 0.5 * (jnp.mean(pred, axis=(-2, -1), keepdims=True)
+                 + jnp.mean(target, axis=(-2, -1), keepdims=True))
+  shift = jax.lax.stop_gradient(shift)
+  x = pred - shift
+  y = target - shift
+  stats = _gaussian_filter_2d(jnp.stack([x, y, x * x, y * y, x * y], axis=-3), taps)
+  mx, my, mxx, myy, mxy = (stats[..., i, :, :] for i in range(5))
+  var_x = mxx - mx * mx
+  var_y = myy - my * my
+  cov_xy = mxy - mx * my
+  mu_x = mx + shift
+  mu_y = my + shift
+
+  c1 = jnp.square(k1 * data_range)[..., None, None]
+  c2 = jnp.square(k2 * data_range)[..., None, None]
+  ssim_map = ((2.0 * mu_x * mu_y + c1) * (2.0 * cov_xy + c2)
+              / ((mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)))
+
+  crop = (win_size - 1) // 2
+  h, w = ssim_map.shape[-2:]
+  ssim_map = ssim_map[..., crop:h - crop, crop:w - crop]
+  if mask is None:
+    return jnp.mean(ssim_map, axis=(-2, -1))
+  m = mask[..., crop:h - crop, crop:w - crop].astype(bool)
+  count = jnp.sum(m, axis=(-2, -1), dtype=ssim_map.dtype)
+  total = jnp.sum(jnp.where(m, ssim_map, 0), axis=(-2, -1))
+  return jnp.where(count > 0, total / jnp.maximum(count, 1), 1.0)
+
+
+# --------------------------------------------------------------------------
+# Public API.
+
+
+def psnr(pred, target, *, mask=None, data_range=1.0):
+  """Peak signal-to-noise ratio, in dB, of each image.
+
+  ``PSNR = 10 * log10(data_range**2 / max(MSE, data_range**2 * 1e-10))``
+  with ``MSE = mean((pred - target)**2)`` over ``H, W`` (over the pixels
+  where ``mask`` is true when a mask is given). Matches
+  ``skimage.metrics.peak_signal_noise_ratio(target, pred,
+  data_range=data_range)`` except at (near-)zero error: identical images give
+  the finite cap :data:`PSNR_CAP_DB` = 100 dB, never ``inf``/NaN.
+
+  Args:
+    pred: ``[..., H, W]`` real array (float32 or cast to it), e.g. an
+      intensity image in ``[0, 1]``.
+    target: ``[..., H, W]``, same shape as ``pred``. Symmetric in the two.
+    mask: optional ``[..., H, W]`` boolean (or 0/1) array, same shape. A
+      concrete mask selecting no pixel of some image raises ``ValueError``;
+      under ``jit`` such an image has MSE 0 and scores the 100 dB cap.
+    data_range: max - min of the possible values (1 for images in
+      ``[0, 1]``); a positive scalar or an array broadcastable to ``[...]``.
+
+  Returns:
+    ``[...]`` float32 array, dB, at most ``PSNR_CAP_DB``.
+
+  Raises:
+    ValueError: shapes of ``pred``/``target``/``mask`` differ, rank < 2, NaN
+      in a concrete input, a concrete mask not 0/1 or selecting no pixel of
+      some image, ``data_range`` not finite and > 0.
+  """
+  _check_images("psnr", pred, target, mask)
+  _check_mask_values("psnr", mask)
+  _check_scalar("psnr", "data_range", data_range, allow_zero=False)
+  pred, target, mask, dtype = _prepare(pred, target, mask)
+  return _psnr(pred, target, mask, jnp.asarray(data_range, dtype))
+
+
+def ssim(pred, target, *, mask=None, data_range=1.0, win_size=11, sigma=1.5,
+         k1=0.01, k2=0.03):
+  """Structural similarity (Gaussian-weighted, Wang et al. 2004) of each image.
+
+  Local statistics use a normalised Gaussian window ``g`` (std ``sigma``
+  pixels, truncated at radius ``int(3.5 * sigma + 0.5)``: 11 taps for
+  ``sigma = 1.5``), applied separably with symmetric padding
+  (``d c b a | a b c d``) at the borders::
+
+    mu_x = g * x,   var_x = g * x**2 - mu_x**2,   cov = g * (x y) - mu_x mu_y
+    SSIM_map = (2 mu_x mu_y + C1) (2 cov + C2)
+               / ((mu_x**2 + mu_y**2 + C1) (var_x + var_y + C2))
+    C1 = (k1 * data_range)**2,  C2 = (k2 * data_range)**2
+
+  (population, not sample, covariances). The map is cropped by
+  ``(win_size - 1) // 2`` pixels on each side and averaged (over the masked
+  pixels of the cropped area when ``mask`` is given). This is exactly
+  ``skimage.metrics.structural_similarity(pred, target, win_size=win_size,
+  gaussian_weights=True, sigma=sigma, use_sample_covariance=False,
+  data_range=data_range, K1=k1, K2=k2)`` per image, in float32. As in
+  scikit-image, ``win_size`` sets only the border crop and the minimum image
+  size; the Gaussian's extent follows from ``sigma``.
+
+  Args:
+    pred: ``[..., H, W]`` real array, e.g. an intensity image in ``[0, 1]``;
+      ``H, W >= win_size``.
+    target: ``[..., H, W]``, same shape. Symmetric in the two.
+    mask: optional ``[..., H, W]`` boolean (or 0/1) array, same shape. It
+      selects which SSIM-map pixels are averaged; the filtering always sees
+      the full images. A concrete mask with no pixel inside the cropped area
+      of some image raises ``ValueError``; under ``jit`` that image scores 1.
+    data_range: max - min of the possible values; positive scalar or array
+      broadcastable to ``[...]``.
+    win_size: odd integer >= 1 (static); border crop is ``(win_size-1)//2``.
+    sigma: Gaussian standard deviation in pixels, > 0 (static).
+    k1, k2: SSIM constants, >= 0.
+
+  Returns:
+    ``[...]`` float32 array, unitless, in ``[-1, 1]``; 1 (to float32
+    rounding) for identical images.
+
+  Raises:
+    ValueError: shapes differ, rank < 2, ``H`` or ``W`` < ``win_size``, NaN in
+      a concrete input, a bad concrete mask, bad ``win_size``/``sigma``/
+      ``data_range``/``k1``/``k2``.
+  """
+  _check_images("ssim", pred, target, mask)
+  if isinstance(win_size, bool) or not isinstance(win_size, (int, np.integer)):
+    raise ValueError(f"ssim: win_size must be an odd integer, got {win_size!r}")
+  win_size = int(win_size)
+  if win_size < 1 or win_size % 2 == 0:
+    raise ValueError(f"ssim: win_size must be an odd integer >= 1, got {win_size}")
+  try:
+    sigma = float(sigma)
+  except (TypeError, jax.errors.ConcretizationTypeError) as err:
+    raise ValueError(f"ssim: sigma must be a Python number, got {sigma!r}") from err
+  if not (math.isfinite(sigma) and sigma > 0):
+    raise ValueError(f"ssim: sigma must be finite and > 0, got {sigma!r}")
+  h, w = np.shape(pred)[-2:]
+  if h < win_size or w < win_size:
+    raise ValueError(
+        f"ssim: images of {h}x{w} pixels are smaller than win_size={win_size}; "
+        f"H and W must be >= {win_size}")
+  _check_mask_values("ssim", mask, crop=(win_size - 1) // 2)
+  _check_scalar("ssim", "data_range", data_range, allow_zero=False)
+  _check_scalar("ssim", "k1", k1, allow_zero=True)
+  _check_scalar("ssim", "k2", k2, allow_zero=True)
+  pred, target, mask, dtype = _prepare(pred, target, mask)
+  return _ssim(pred, target, mask, jnp.asarray(data_range, dtype),
+               jnp.asarray(k1, dtype), jnp.asarray(k2, dtype),
+               win_size=win_size, sigma=sigma)
+
+
+def rmse(pred, target, *, mask=None):
+  """Root mean squared error of each image, in the units of the inputs.
+
+  ``RMSE = sqrt(mean((pred - target)**2))`` over ``H, W`` (over the pixels
+  where ``mask`` is true when a mask is given); metres for depth maps. The
+  square root is guarded: zero error gives exactly 0 with a zero (finite)
+  gradient, not NaN.
+
+  Args:
+    pred: ``[..., H, W]`` real array (intensity image, or depth map in
+      metres).
+    target: ``[..., H, W]``, same shape and units.
+    mask: optional ``[..., H, W]`` boolean (or 0/1) array, same shape, e.g.
+      the pixels with a valid ground-truth depth. A concrete mask selecting no
+      pixel of some image raises ``ValueError``; under ``jit`` that image
+      scores 0.
+
+  Returns:
+    ``[...]`` float32 array, >= 0, same units as the inputs.
+
+  Raises:
+    ValueError: shapes differ, rank < 2, NaN in a concrete input, a concrete
+      mask not 0/1 or selecting no pixel of some image.
+  """
+  _check_images("rmse", pred, target, mask)
+  _check_mask_values("rmse", mask)
+  pred, target, mask, _ = _prepare(pred, target, mask)
+  return _rmse(pred, target, mask)
+
+
+def mad(pred, target, *, mask=None):
+  """Mean absolute difference of each image, in the units of the inputs.
+
+  ``MAD = mean(|pred - target|)`` over ``H, W`` (over the pixels where
+  ``mask`` is true when a mask is given); metres for depth maps.
+
+  Args:
+    pred: ``[..., H, W]`` real array (intensity image, or depth map in
+      metres).
+    target: ``[..., H, W]``, same shape and units.
+    mask: optional ``[..., H, W]`` boolean (or 0/1) array, same shape. A
+      concrete mask selecting no pixel of some image raises ``ValueError``;
+      under ``jit`` that image scores 0.
+
+  Returns:
+    ``[...]`` float32 array, >= 0, same units as the inputs.
+
+  Raises:
+    ValueError: shapes differ, rank < 2, NaN in a concrete input, a concrete
+      mask not 0/1 or selecting no pixel of some image.
+  """
+  _check_images("mad", pred, target, mask)
+  _check_mask_values("mad", mask)
+  pred, target, mask, _ = _prepare(pred, target, mask)
+  return _mad(pred, target, mask)

@@ -1,0 +1,333 @@
+"""Tests for nlosjax.metrics against scikit-image and NumPy closed forms."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from nlosjax import metrics
+
+SSIM_ATOL = 1e-5  # observed float32 error vs skimage's float64: ~3e-7
+SSIM_ATOL_TIGHT = 1e-6
+PSNR_ATOL = 1e-4  # dB
+
+
+# --------------------------------------------------------------------------
+# Helpers: test images and per-image references.
+
+
+def _noisy(rng, image, noise, lo=0.0, hi=1.0):
+  return np.clip(image + noise * rng.standard_normal(image.shape), lo, hi)
+
+
+def _structured(h, w):
+  """A stack [5, h, w] of deterministic, structured images in [0, 1]."""
+  yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+  ramp = (xx + yy) / (h + w - 2)
+  checker = ((yy // 3 + xx // 3) % 2).astype(np.float64)
+  disk = ((yy - h / 2) ** 2 + (xx - w / 3) ** 2 < (min(h, w) / 3) ** 2).astype(np.float64)
+  waves = 0.5 + 0.5 * np.sin(xx / 1.7) * np.cos(yy / 2.3)
+  edge = (xx > w / 2).astype(np.float64) * 0.8 + 0.1
+  return np.stack([ramp, checker, disk, waves, edge])
+
+
+def _sk_ssim(a, b, *, data_range=1.0, win_size=None, sigma=1.5, k1=0.01, k2=0.03,
+             full=False):
+  return structural_similarity(
+      a, b, gaussian_weights=True, sigma=sigma, use_sample_covariance=False,
+      data_range=data_range, win_size=win_size, K1=k1, K2=k2, full=full)
+
+
+def _per_image(fn, a, b, **kw):
+  """Apply a 2D reference to every [H, W] slice of [..., H, W] inputs."""
+  lead = a.shape[:-2]
+  a2 = a.reshape((-1,) + a.shape[-2:])
+  b2 = b.reshape((-1,) + b.shape[-2:])
+  return np.array([fn(x, y, **kw) for x, y in zip(a2, b2)]).reshape(lead)
+
+
+# --------------------------------------------------------------------------
+# SSIM against skimage.
+
+
+@pytest.mark.parametrize("shape", [(11, 11), (16, 16), (13, 24), (30, 12), (2, 3, 14, 17)])
+def test_ssim_matches_skimage_random(shape):
+  rng = np.random.default_rng(sum(shape))
+  target = rng.random(shape)
+  # A range of similarities, from near 0 (independent noise) to near 1.
+  noise = np.array([0.02, 0.1, 0.3, 1.0])[:, None, None]
+  pred = np.stack([_noisy(rng, target, n) for n in noise[:, 0, 0]])
+  target = np.broadcast_to(target, pred.shape)
+  expected = _per_image(_sk_ssim, pred, target)
+  got = np.asarray(metrics.ssim(pred, target))
+  assert got.shape == pred.shape[:-2]
+  assert got.dtype == np.float32
+  np.testing.assert_allclose(got, expected, rtol=0, atol=SSIM_ATOL)
+  assert np.ptp(expected) > 0.3  # the cases really differ
+
+
+@pytest.mark.parametrize("shape", [(12, 12), (15, 26)])
+def test_ssim_matches_skimage_structured(shape):
+  rng = np.random.default_rng(1)
+  target = _structured(*shape)
+  pred = _noisy(rng, np.roll(target, 1, axis=-1), 0.05)
+  expected = _per_image(_sk_ssim, pred, target)
+  np.testing.assert_allclose(metrics.ssim(pred, target), expected, rtol=0, atol=SSIM_ATOL)
+  # Symmetric in its two arguments, as SSIM is.
+  np.testing.assert_allclose(metrics.ssim(target, pred), expected, rtol=0, atol=SSIM_ATOL)
+
+
+@pytest.mark.parametrize("h, w, win_size", [(9, 12, 7), (3, 4, 3), (5, 9, 5)])
+def test_ssim_small_win_size_matches_skimage(h, w, win_size):
+  # win_size < 11 only changes the crop; the 11-tap Gaussian then reaches past
+  # the image, so these exercise the (repeated) symmetric border padding.
+  rng = np.random.default_rng(h * w)
+  target = rng.random((2, h, w))
+  pred = _noisy(rng, target, 0.2)
+  expected = _per_image(_sk_ssim, pred, target, win_size=win_size)
+  got = metrics.ssim(pred, target, win_size=win_size)
+  np.testing.assert_allclose(got, expected, rtol=0, atol=SSIM_ATOL)
+
+
+@pytest.mark.parametrize("sigma", [1.0, 2.0, 3.0])
+def test_ssim_other_parameters_match_skimage(sigma):
+  # Dark, dimmed prediction on a [0, 2] range: C1 (k1) and C2 (k2) both
+  # matter, and a wrong Gaussian truncation (radius int(3.5 sigma + 0.5))
+  # shows at the 1e-6 level.
+  rng = np.random.default_rng(7)
+  target = 2.0 * (0.2 * rng.random((2, 18, 20)) + 0.05 * (np.arange(20) > 10))
+  pred = _noisy(rng, 0.6 * target, 0.05, 0.0, 2.0)
+  kw = dict(data_range=2.0, sigma=sigma, k1=0.05, k2=0.1, win_size=9)
+  expected = _per_image(_sk_ssim, pred, target, **kw)
+  np.testing.assert_allclose(metrics.ssim(pred, target, **kw), expected,
+                             rtol=0, atol=SSIM_ATOL_TIGHT)
+  default_k = _per_image(_sk_ssim, pred, target, **{**kw, "k1": 0.01, "k2": 0.03})
+  assert np.all(np.abs(default_k - expected) > 1e-2)  # k1, k2 are not ignorable here
+
+
+def test_ssim_float32_bright_low_contrast_image():
+  # Bright, low-contrast images: E[x^2] - E[x]^2 cancels in float32; the
+  # naive formula is off by ~1e-5 here, the mean-shifted one by ~2e-7.
+  rng = np.random.default_rng(3)
+  means = np.array([0.95, 0.99, 0.999])[:, None, None]
+  target = means + 0.005 * (1 - means) / 0.05 * rng.random((3, 24, 24))
+  pred = target + 0.2 * (target - means) * rng.standard_normal(target.shape)
+  expected = _per_image(_sk_ssim, pred, target)
+  got = metrics.ssim(pred.astype(np.float32), target.astype(np.float32))
+  np.testing.assert_allclose(got, expected, rtol=0, atol=SSIM_ATOL_TIGHT)
+
+
+# --------------------------------------------------------------------------
+# PSNR against skimage; RMSE / MAD against NumPy.
+
+
+@pytest.mark.parametrize("shape", [(8, 8), (5, 13), (3, 2, 7, 6)])
+def test_psnr_matches_skimage(shape):
+  rng = np.random.default_rng(sum(shape))
+  target = rng.random(shape)
+  pred = _noisy(rng, target, 0.05)
+  expected = _per_image(peak_signal_noise_ratio, target, pred, data_range=1.0)
+  got = np.asarray(metrics.psnr(pred, target))
+  assert got.shape == shape[:-2]
+  np.testing.assert_allclose(got, expected, rtol=0, atol=PSNR_ATOL)
+
+
+def test_psnr_structured_and_data_range():
+  rng = np.random.default_rng(5)
+  target = _structured(10, 14) * 255.0
+  pred = _noisy(rng, target, 4.0, 0.0, 255.0)
+  expected = _per_image(peak_signal_noise_ratio, target, pred, data_range=255.0)
+  np.testing.assert_allclose(metrics.psnr(pred, target, data_range=255.0), expected,
+                             rtol=0, atol=PSNR_ATOL)
+  # A per-image data_range broadcasts over the leading dims.
+  ranges = np.array([1.0, 2.0, 4.0, 8.0, 255.0])
+  expected = [peak_signal_noise_ratio(t, p, data_range=r)
+              for t, p, r in zip(target, pred, ranges)]
+  np.testing.assert_allclose(metrics.psnr(pred, target, data_range=ranges), expected,
+                             rtol=0, atol=PSNR_ATOL)
+
+
+def test_rmse_mad_closed_form_depth_maps():
+  rng = np.random.default_rng(11)
+  target = 1.0 + 2.0 * rng.random((2, 3, 9, 7))  # metres
+  pred = target + 0.1 * rng.standard_normal(target.shape)
+  diff = pred - target
+  np.testing.assert_allclose(metrics.rmse(pred, target),
+                             np.sqrt(np.mean(diff ** 2, axis=(-2, -1))), rtol=1e-5)
+  np.testing.assert_allclose(metrics.mad(pred, target),
+                             np.mean(np.abs(diff), axis=(-2, -1)), rtol=1e-5)
+  assert metrics.rmse(pred[0, 0], target[0, 0]).shape == ()
+
+
+# --------------------------------------------------------------------------
+# Masks.
+
+
+def _random_mask(rng, shape, p=0.6):
+  mask = rng.random(shape) < p
+  mask[..., 0, 0] = True  # never empty
+  return mask
+
+
+def test_masked_rmse_mad_psnr_equal_metric_over_selected_pixels():
+  rng = np.random.default_rng(13)
+  target = rng.random((3, 8, 10))
+  pred = _noisy(rng, target, 0.1)
+  pred[..., :2, :] = 5.0  # large errors outside the mask must not count
+  mask = _random_mask(rng, target.shape)
+  mask[..., :2, :] = False
+  for i in range(3):
+    sel = mask[i]
+    d = pred[i][sel] - target[i][sel]
+    assert metrics.rmse(pred, target, mask=mask)[i] == pytest.approx(
+        np.sqrt(np.mean(d ** 2)), rel=1e-5)
+    assert metrics.mad(pred, target, mask=mask)[i] == pytest.approx(
+        np.mean(np.abs(d)), rel=1e-5)
+    assert metrics.psnr(pred, target, mask=mask)[i] == pytest.approx(
+        peak_signal_noise_ratio(target[i][sel], pred[i][sel], data_range=1.0),
+        abs=PSNR_ATOL)
+  # A 0/1 float mask means the same as the boolean one.
+  for fn in (metrics.rmse, metrics.mad, metrics.psnr):
+    np.testing.assert_allclose(fn(pred, target, mask=mask.astype(np.float32)),
+                               fn(pred, target, mask=mask), rtol=1e-6)
+
+
+def test_masked_ssim_averages_cropped_skimage_map():
+  rng = np.random.default_rng(17)
+  target = rng.random((2, 16, 19))
+  pred = _noisy(rng, target, 0.2)
+  pred[:, :, 12:] = 1.0 - pred[:, :, 12:]  # a badly wrong region
+  mask = _random_mask(rng, target.shape)
+  mask[..., 5, 5] = True  # at least one pixel inside the crop
+  got = metrics.ssim(pred, target, mask=mask)
+  for i in range(2):
+    _, smap = _sk_ssim(pred[i], target[i], full=True)
+    inner = (slice(5, -5), slice(5, -5))
+    expected = smap[inner][mask[i][inner]].mean()
+    assert got[i] == pytest.approx(expected, abs=SSIM_ATOL)
+  # The mask matters here: unmasked SSIM is different.
+  assert np.all(np.abs(np.asarray(got) - np.asarray(metrics.ssim(pred, target))) > 1e-3)
+
+
+def test_empty_mask_concrete_raises_and_jit_scores_zero_error():
+  rng = np.random.default_rng(19)
+  target = rng.random((2, 12, 12))
+  pred = _noisy(rng, target, 0.2)
+  mask = np.ones(target.shape, bool)
+  mask[1] = False
+  for fn in (metrics.psnr, metrics.ssim, metrics.rmse, metrics.mad):
+    with pytest.raises(ValueError, match="mask selects no pixel"):
+      fn(pred, target, mask=mask)
+  # Only border pixels: nothing survives SSIM's 5-pixel crop.
+  border = np.zeros(target.shape, bool)
+  border[..., :5, :] = True
+  with pytest.raises(ValueError, match="border crop"):
+    metrics.ssim(pred, target, mask=border)
+  # Under jit the values cannot be checked: empty means zero error.
+  args = (jnp.asarray(pred), jnp.asarray(target), jnp.asarray(mask))
+  p = jax.jit(lambda a, b, m: metrics.psnr(a, b, mask=m))(*args)
+  s = jax.jit(lambda a, b, m: metrics.ssim(a, b, mask=m))(*args)
+  r = jax.jit(lambda a, b, m: metrics.rmse(a, b, mask=m))(*args)
+  d = jax.jit(lambda a, b, m: metrics.mad(a, b, mask=m))(*args)
+  assert p[1] == pytest.approx(metrics.PSNR_CAP_DB, abs=1e-3)
+  assert s[1] == 1.0 and r[1] == 0.0 and d[1] == 0.0
+  assert p[0] < 30 and s[0] < 0.9 and r[0] > 0.05 and d[0] > 0.05
+
+
+def test_non_binary_mask_raises():
+  x = np.zeros((8, 8))
+  with pytest.raises(ValueError, match="only 0 and 1"):
+    metrics.rmse(x, x, mask=np.full((8, 8), 0.5))
+
+
+# --------------------------------------------------------------------------
+# jit, gradients, identical images.
+
+
+def test_jit_matches_eager():
+  rng = np.random.default_rng(23)
+  target = jnp.asarray(rng.random((2, 13, 15)), jnp.float32)
+  pred = jnp.asarray(_noisy(rng, np.asarray(target), 0.1), jnp.float32)
+  mask = jnp.asarray(_random_mask(rng, target.shape) | (np.arange(15) == 7))
+  fns = (metrics.psnr, metrics.ssim, metrics.rmse, metrics.mad)
+  all_metrics = jax.jit(lambda a, b, m: [fn(a, b, mask=m) for fn in fns])
+  for m in (None, mask):
+    for fn, jitted in zip(fns, all_metrics(pred, target, m)):
+      np.testing.assert_allclose(jitted, fn(pred, target, mask=m), rtol=1e-6, atol=1e-6)
+  # vmap over the batch gives the batched result as well.
+  np.testing.assert_allclose(jax.vmap(metrics.ssim)(pred, target),
+                             metrics.ssim(pred, target), rtol=1e-6, atol=1e-6)
+
+
+def test_identical_images_cap_and_one():
+  img = _structured(14, 12)
+  p = np.asarray(metrics.psnr(img, img))
+  assert np.all(np.isfinite(p))
+  np.testing.assert_allclose(p, metrics.PSNR_CAP_DB, atol=1e-3)
+  np.testing.assert_allclose(metrics.psnr(img * 7, img * 7, data_range=7.0),
+                             metrics.PSNR_CAP_DB, atol=1e-3)
+  np.testing.assert_allclose(metrics.ssim(img, img), 1.0, atol=1e-6)
+  np.testing.assert_array_equal(metrics.rmse(img, img), 0.0)
+  np.testing.assert_array_equal(metrics.mad(img, img), 0.0)
+  # Any error at all drops below the cap.
+  assert np.all(np.asarray(metrics.psnr(img, img + 1e-3)) < 61.0)
+
+
+def test_gradients_finite_at_zero_error():
+  x = jnp.asarray(_structured(12, 13)[1], jnp.float32)
+  for fn in (metrics.rmse, metrics.mad, metrics.psnr, metrics.ssim):
+    g = jax.grad(lambda p: fn(p, x))(x)
+    assert np.all(np.isfinite(np.asarray(g))), fn.__name__
+  np.testing.assert_array_equal(jax.grad(lambda p: metrics.rmse(p, x))(x), 0.0)
+
+
+def test_rmse_gradient_away_from_zero():
+  rng = np.random.default_rng(29)
+  t = rng.random((6, 5))
+  p = t + 0.1 * rng.standard_normal(t.shape)
+  g = jax.grad(lambda a: metrics.rmse(a, jnp.asarray(t, jnp.float32)))(
+      jnp.asarray(p, jnp.float32))
+  r = np.sqrt(np.mean((p - t) ** 2))
+  np.testing.assert_allclose(g, (p - t) / (p.size * r), rtol=1e-4, atol=1e-7)
+
+
+# --------------------------------------------------------------------------
+# Validation.
+
+
+@pytest.mark.parametrize("fn", [metrics.psnr, metrics.ssim, metrics.rmse, metrics.mad])
+def test_validation_errors(fn):
+  a = np.zeros((12, 12))
+  shapes = r"target has shape \(12, 13\) but pred has shape \(12, 12\)"
+  with pytest.raises(ValueError, match=shapes):
+    fn(a, np.zeros((12, 13)))
+  with pytest.raises(ValueError, match=r"mask has shape \(1, 12, 12\) but pred"):
+    fn(a, a, mask=np.ones((1, 12, 12), bool))
+  with pytest.raises(ValueError, match="rank >= 2"):
+    fn(np.zeros(12), np.zeros(12))
+  bad = a.copy()
+  bad[3, 4] = np.nan
+  with pytest.raises(ValueError, match="pred contains NaN"):
+    fn(bad, a)
+  with pytest.raises(ValueError, match="target contains NaN"):
+    fn(a, jnp.asarray(bad))
+  # Shapes are static, so they are checked under jit too.
+  with pytest.raises(ValueError, match="target has shape"):
+    jax.jit(fn)(jnp.zeros((12, 12)), jnp.zeros((12, 13)))
+
+
+def test_ssim_size_and_parameter_errors():
+  with pytest.raises(ValueError, match="smaller than win_size=11"):
+    metrics.ssim(np.zeros((10, 20)), np.zeros((10, 20)))
+  with pytest.raises(ValueError, match="smaller than win_size=11"):
+    metrics.ssim(np.zeros((3, 20, 10)), np.zeros((3, 20, 10)))
+  metrics.ssim(np.zeros((2, 11, 11)), np.zeros((2, 11, 11)))  # the smallest accepted
+  with pytest.raises(ValueError, match="odd"):
+    metrics.ssim(np.zeros((12, 12)), np.zeros((12, 12)), win_size=8)
+  with pytest.raises(ValueError, match="sigma"):
+    metrics.ssim(np.zeros((12, 12)), np.zeros((12, 12)), sigma=0.0)
+  with pytest.raises(ValueError, match="data_range"):
+    metrics.psnr(np.zeros((4, 4)), np.zeros((4, 4)), data_range=0.0)
