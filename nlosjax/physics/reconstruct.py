@@ -103,8 +103,11 @@ def _fbp_batch(x, ops, kernel, crop):
 
   def one(xi):
     bp = to_depth(lct_apply(xi[t0:t1], ops, filt), ops)
+    # Replicate padding (as LFE): zero padding makes the -LoG ring at the scan border.
+    r = kernel.shape[0] // 2
+    bp = jnp.pad(bp, r, mode="edge")
     vol = jax.lax.conv_general_dilated(
-        bp[None, None], kernel[None, None], (1, 1, 1), "SAME",
+        bp[None, None], kernel[None, None], (1, 1, 1), "VALID",
         dimension_numbers=("NCDHW", "OIDHW", "NCDHW"), precision="highest")[0, 0]
     return jnp.maximum(vol[lo:hi], 0.0)
 
