@@ -1,0 +1,1 @@
+"""Benchmarks of nlosjax against NumPy/SciPy twins of the public reference code."""

@@ -1,0 +1,537 @@
+"""Benchmark the classic reconstructions: jitted JAX against their NumPy/SciPy twins.
+
+    python -m benchmarks.physics [--sizes 32 64 128] [--bins 512] [--methods fbp lct ...]
+                                 [--repeats 3] [--out benchmarks/results/physics.md] [--quick]
+
+For every scan size ``N`` and method, one synthetic transient (a few point
+scatterers, Poisson noise; 2 m wall, ``N x N`` scan points, ``--bins`` bins of
+32 ps) is reconstructed in the same run by
+
+* JAX: ``jax.jit(lambda x: nlosjax.physics.reconstruct(x, setup, method))``.
+  Compile time is ``.lower(x).compile()``; run time the median of
+  ``--repeats`` warm calls (after one warm-up call), each ended by
+  ``block_until_ready``; peak memory from ``compiled.memory_analysis()``
+  (temp + argument + output buffers);
+* the NumPy/SciPy twin (``benchmarks/numpy_twins.py``, the public algorithm):
+  operator build time, then the median of ``--repeats`` runs after one
+  warm-up run, ``scipy.fft`` on all cores; peak memory is the ``tracemalloc``
+  peak during one more run (allocations of the run only, operators excluded).
+
+Each side of each case runs in a fresh child process, so a case that runs out
+of memory or takes longer than ``--time-limit`` seconds in one step is
+recorded as such instead of stopping the benchmark. The two volumes'
+max-intensity projections are compared by normalised cross-correlation as a
+sanity check. The JAX columns are left out when ``nlosjax.physics.reconstruct``
+cannot be imported.
+
+The Markdown table goes to ``--out`` (``benchmarks/results/physics.md`` by
+default; ``--quick`` -- 32^2 scan points, 128 bins, a smoke test -- only
+prints unless ``--out`` is given).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import math
+import multiprocessing
+import os
+import pathlib
+import platform
+import resource
+import statistics
+import sys
+import time
+import traceback
+import tracemalloc
+
+import numpy as np
+
+from benchmarks import numpy_twins
+from nlosjax.physics.setup import Setup
+
+DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "physics.md"
+WALL_SIZE = 2.0      # m
+BIN_WIDTH = 32e-12   # s
+GOAL_SPEEDUP = 2.0   # JAX at least this much faster than the twin ...
+GOAL_SIZES = (64, 128)  # ... at these scan sizes
+MB = 1024.0 ** 2
+
+# The synthetic scene: (x, y) as fractions of the half wall, depth as a
+# fraction of the deepest bin, albedo.
+SCENE_POINTS = (
+    (-0.45, -0.30, 0.35, 1.0),
+    (0.35, 0.20, 0.45, 1.0),
+    (0.00, 0.50, 0.55, 0.8),
+    (-0.15, 0.05, 0.30, 0.6),
+    (0.50, -0.45, 0.50, 1.0),
+)
+SIGNAL_PHOTONS = 200.0  # mean signal photons per scan point
+BACKGROUND = 0.02       # mean background counts per bin
+
+
+# ------------------------------------------------------------------- scene
+def make_setup(n: int, bins: int) -> Setup:
+  """The benchmark capture: 2 m wall, ``n x n`` scan points, ``bins`` bins of 32 ps."""
+  return Setup(wall_size=WALL_SIZE, grid=(n, n), bin_width=BIN_WIDTH, num_bins=bins)
+
+
+def render_points(setup: Setup, points: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+  """Noise-free transient ``[T, H, W]`` of point scatterers (1/r^4, vectorised).
+
+  Each point adds ``albedo / r^4`` to time bin ``floor(2 r / (c dt))`` of every
+  scan point, ``r`` being their distance; later returns fall off the window.
+  """
+  t, (h, w) = setup.num_bins, setup.grid
+  scan = setup.scan_points  # [H, W, 3]
+  r = np.linalg.norm(scan[None] - points[:, None, None, :], axis=-1)  # [P, H, W]
+  bins = np.floor(2.0 * r / setup.bin_length).astype(np.int64)
+  keep = bins < t
+  flat = bins * (h * w) + np.arange(h * w).reshape(1, h, w)
+  weights = (albedo[:, None, None] / r ** 4)
+  counts = np.bincount(flat[keep], weights=weights[keep], minlength=t * h * w)
+  return counts.reshape(t, h, w)
+
+
+def synthetic_transient(setup: Setup, seed: int = 0) -> np.ndarray:
+  """Float32 ``[T, H, W]`` photon counts of :data:`SCENE_POINTS` with Poisson noise."""
+  half, depth = setup.wall_size / 2.0, setup.max_depth
+  pts = np.array([(x * half, y * half, z * depth) for x, y, z, _ in SCENE_POINTS])
+  albedo = np.array([a for *_, a in SCENE_POINTS])
+  clean = render_points(setup, pts, albedo)
+  clean *= SIGNAL_PHOTONS * setup.height * setup.width / max(clean.sum(), 1e-30)
+  rng = np.random.default_rng(seed)
+  return rng.poisson(clean + BACKGROUND).astype(np.float32)
+
+
+# ------------------------------------------------------------- child work
+def _max_rss_mb() -> float:
+  return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+
+
+def _repeats_within(first_s: float, repeats: int, time_limit: float) -> int:
+  """At least one repeat; fewer than asked when they would exceed the time limit."""
+  if first_s <= 0:
+    return repeats
+  return max(1, min(repeats, int(time_limit // first_s)))
+
+
+def _jax_worker(conn, method: str, n: int, bins: int, repeats: int, seed: int,
+                time_limit: float) -> None:
+  try:
+    import jax
+    from nlosjax.physics import reconstruct
+
+    setup = make_setup(n, bins)
+    x = jax.device_put(synthetic_transient(setup, seed))
+    x.block_until_ready()
+    fn = jax.jit(lambda v: reconstruct(v, setup, method))
+    conn.send(("phase", "compile"))
+    t0 = time.perf_counter()
+    compiled = fn.lower(x).compile()
+    compile_s = time.perf_counter() - t0
+    peak_bytes, peak_note = None, ""
+    try:
+      stats = compiled.memory_analysis()
+      if stats is None:
+        peak_note = "memory_analysis() returned None"
+      else:
+        peak_bytes = int(stats.temp_size_in_bytes + stats.argument_size_in_bytes
+                         + stats.output_size_in_bytes)
+    except Exception as e:  # noqa: BLE001 - not every backend implements it
+      peak_note = f"memory_analysis() unavailable: {type(e).__name__}: {e}"
+    conn.send(("phase", "warm-up run"))
+    t0 = time.perf_counter()
+    out = compiled(x)
+    out.block_until_ready()
+    first_s = time.perf_counter() - t0
+    vol = np.asarray(out)
+    mip = vol.max(axis=0).astype(np.float32)
+    del out, vol
+    n_rep = _repeats_within(first_s, repeats, time_limit)
+    times = []
+    for i in range(n_rep):
+      conn.send(("phase", f"run {i + 1}/{n_rep}"))
+      t0 = time.perf_counter()
+      compiled(x).block_until_ready()
+      times.append(time.perf_counter() - t0)
+    conn.send(("result", {
+        "status": "ok", "compile_s": compile_s, "first_s": first_s,
+        "run_s": statistics.median(times), "runs": times, "peak_bytes": peak_bytes,
+        "peak_note": peak_note, "mip": mip, "rss_mb": _max_rss_mb(),
+        "device": str(jax.devices()[0]),
+    }))
+  except MemoryError:
+    conn.send(("result", {"status": "out of memory"}))
+  except Exception as e:  # noqa: BLE001 - reported in the table
+    oom = "RESOURCE_EXHAUSTED" in str(e) or "out of memory" in str(e).lower()
+    conn.send(("result", {
+        "status": "out of memory" if oom else f"error: {type(e).__name__}: {_first_line(e)}",
+        "traceback": traceback.format_exc()}))
+
+
+def _ops_bytes(ops) -> int:
+  """Bytes held by the arrays (dense and sparse) of a twin's operators."""
+  total = 0
+  for value in vars(ops).values():
+    if isinstance(value, np.ndarray):
+      total += value.nbytes
+    elif hasattr(value, "data") and hasattr(value, "indices") and hasattr(value, "indptr"):
+      total += value.data.nbytes + value.indices.nbytes + value.indptr.nbytes
+  return total
+
+
+def _numpy_worker(conn, method: str, n: int, bins: int, repeats: int, seed: int,
+                  time_limit: float) -> None:
+  try:
+    setup = make_setup(n, bins)
+    x = synthetic_transient(setup, seed)
+    conn.send(("phase", "build"))
+    t0 = time.perf_counter()
+    ops = numpy_twins.build(setup, method)
+    build_s = time.perf_counter() - t0
+    conn.send(("phase", "warm-up run"))
+    t0 = time.perf_counter()
+    vol = numpy_twins.run(x, method, ops)
+    first_s = time.perf_counter() - t0
+    mip = vol.max(axis=0).astype(np.float32)
+    del vol
+    n_rep = _repeats_within(first_s, repeats, time_limit)
+    times = []
+    for i in range(n_rep):
+      conn.send(("phase", f"run {i + 1}/{n_rep}"))
+      t0 = time.perf_counter()
+      numpy_twins.run(x, method, ops)
+      times.append(time.perf_counter() - t0)
+    conn.send(("phase", "tracemalloc run"))
+    tracemalloc.start()
+    tracemalloc.reset_peak()
+    numpy_twins.run(x, method, ops)
+    peak_bytes = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    conn.send(("result", {
+        "status": "ok", "build_s": build_s, "first_s": first_s,
+        "run_s": statistics.median(times), "runs": times, "peak_bytes": int(peak_bytes),
+        "ops_bytes": _ops_bytes(ops), "mip": mip, "rss_mb": _max_rss_mb(),
+    }))
+  except MemoryError:
+    conn.send(("result", {"status": "out of memory"}))
+  except Exception as e:  # noqa: BLE001 - reported in the table
+    conn.send(("result", {"status": f"error: {type(e).__name__}: {_first_line(e)}",
+                          "traceback": traceback.format_exc()}))
+
+
+def _first_line(e: BaseException, limit: int = 120) -> str:
+  line = str(e).strip().splitlines()[0] if str(e).strip() else ""
+  return line[:limit]
+
+
+def run_case(worker, method: str, n: int, bins: int, repeats: int, seed: int,
+             time_limit: float) -> dict:
+  """Run one side of a case in a fresh process; never raises.
+
+  The child reports each step; if a step takes more than ``time_limit``
+  seconds the child is killed and the case recorded as timed out. A child
+  that dies (e.g. killed by the kernel for memory) is recorded too.
+  """
+  ctx = multiprocessing.get_context("spawn")
+  parent_conn, child_conn = ctx.Pipe(duplex=False)
+  proc = ctx.Process(target=worker, args=(child_conn, method, n, bins, repeats, seed, time_limit),
+                     daemon=True)
+  proc.start()
+  child_conn.close()
+  phase = "start-up"
+  result = None
+  try:
+    while True:
+      if not parent_conn.poll(time_limit):
+        result = {"status": f"timeout (> {time_limit:.0f} s in {phase})"}
+        break
+      try:
+        kind, payload = parent_conn.recv()
+      except EOFError:
+        proc.join(5)
+        code = proc.exitcode
+        why = "killed, likely out of memory" if code in (-9, 137) else f"exit code {code}"
+        result = {"status": f"crashed in {phase} ({why})"}
+        break
+      if kind == "phase":
+        phase = payload
+      else:
+        result = payload
+        break
+  finally:
+    if proc.is_alive():
+      proc.join(10)
+    if proc.is_alive():
+      proc.kill()
+      proc.join()
+    parent_conn.close()
+  return result
+
+
+# ------------------------------------------------------------- reporting
+def ncc(a: np.ndarray, b: np.ndarray) -> float:
+  """Normalised (zero-mean) cross-correlation of two images; nan if either is flat."""
+  a = np.asarray(a, np.float64).ravel()
+  b = np.asarray(b, np.float64).ravel()
+  if a.shape != b.shape:
+    return float("nan")
+  a = a - a.mean()
+  b = b - b.mean()
+  denom = math.sqrt(float(a @ a) * float(b @ b))
+  return float(a @ b) / denom if denom > 0 else float("nan")
+
+
+def _cpu_model() -> str:
+  try:
+    with open("/proc/cpuinfo") as f:
+      for line in f:
+        if line.startswith("model name"):
+          return line.split(":", 1)[1].strip()
+  except OSError:
+    pass
+  return platform.processor() or platform.machine()
+
+
+def _memory_total_gib() -> str:
+  try:
+    with open("/proc/meminfo") as f:
+      for line in f:
+        if line.startswith("MemTotal:"):
+          return f"{int(line.split()[1]) / 1024 ** 2:.1f} GiB"
+  except OSError:
+    pass
+  return "unknown"
+
+
+def machine_info(jax_status: str) -> list[str]:
+  import scipy
+
+  try:
+    cores = len(os.sched_getaffinity(0))
+  except AttributeError:
+    cores = os.cpu_count()
+  versions = [f"Python {platform.python_version()}", f"numpy {np.__version__}",
+              f"scipy {scipy.__version__}"]
+  try:
+    import jax
+    import jaxlib
+
+    versions[1:1] = [f"jax {jax.__version__}", f"jaxlib {jaxlib.__version__}"]
+  except ImportError:
+    versions.append("jax not installed")
+  return [
+      f"- Date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}",
+      f"- CPU: {_cpu_model()}; {cores} usable cores ({os.cpu_count()} logical); memory {_memory_total_gib()}",
+      f"- Versions: {', '.join(versions)}",
+      f"- JAX side: {jax_status}",
+  ]
+
+
+def _fmt(value, spec: str = ".3f", missing: str = "-") -> str:
+  if value is None or (isinstance(value, float) and not math.isfinite(value)):
+    return missing
+  return format(value, spec)
+
+
+def _cell(side: dict | None, key: str, spec: str = ".3f", scale: float = 1.0) -> str:
+  if side is None:
+    return "n/a"
+  if side.get("status") != "ok":
+    return side["status"] if key.endswith("run_s") else "-"
+  value = side.get(key)
+  return _fmt(None if value is None else value * scale, spec)
+
+
+def format_table(rows: list[dict], with_jax: bool) -> list[str]:
+  head = ["method", "N", "T"]
+  if with_jax:
+    head += ["JAX compile s", "JAX run s"]
+  head += ["NumPy build s", "NumPy run s"]
+  if with_jax:
+    head += ["speed-up (NumPy/JAX)", "JAX peak MB"]
+  head += ["NumPy peak MB"]
+  if with_jax:
+    head += ["MIP NCC"]
+  lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+  for r in rows:
+    j, p = r.get("jax"), r["numpy"]
+    cells = [r["method"], f"{r['n']}²", str(r["bins"])]
+    if with_jax:
+      cells += [_cell(j, "compile_s"), _cell(j, "run_s", ".4f")]
+    cells += [_cell(p, "build_s"), _cell(p, "run_s", ".4f")]
+    if with_jax:
+      cells += [_fmt(r.get("speedup"), ".2f") + ("×" if r.get("speedup") else ""),
+                _cell(j, "peak_bytes", ".1f", 1 / MB)]
+    cells += [_cell(p, "peak_bytes", ".1f", 1 / MB)]
+    if with_jax:
+      cells += [_fmt(r.get("ncc"), ".3f")]
+    lines.append("| " + " | ".join(cells) + " |")
+  return lines
+
+
+def format_details(rows: list[dict], with_jax: bool) -> list[str]:
+  head = ["method", "N", "NumPy first run s", "NumPy repeats", "NumPy operators MB",
+          "NumPy process max RSS MB"]
+  if with_jax:
+    head += ["JAX first call s", "JAX repeats", "JAX process max RSS MB"]
+  lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+  for r in rows:
+    j, p = r.get("jax"), r["numpy"]
+    ok_p = p.get("status") == "ok"
+    cells = [r["method"], f"{r['n']}²",
+             _fmt(p.get("first_s")) if ok_p else "-",
+             str(len(p["runs"])) if ok_p else "-",
+             _fmt(p.get("ops_bytes", 0) / MB, ".1f") if ok_p else "-",
+             _fmt(p.get("rss_mb"), ".0f") if ok_p else "-"]
+    if with_jax:
+      ok_j = j is not None and j.get("status") == "ok"
+      cells += [_fmt(j.get("first_s")) if ok_j else "-",
+                str(len(j["runs"])) if ok_j else "-",
+                _fmt(j.get("rss_mb"), ".0f") if ok_j else "-"]
+    lines.append("| " + " | ".join(cells) + " |")
+  return lines
+
+
+def goal_summary(rows: list[dict]) -> list[str]:
+  lines = []
+  for n in GOAL_SIZES:
+    case = [r for r in rows if r["n"] == n]
+    if not case:
+      continue
+    met = [r["method"] for r in case if (r.get("speedup") or 0) >= GOAL_SPEEDUP]
+    missed = [f"{r['method']} ({_fmt(r.get('speedup'), '.2f')}×)" if r.get("speedup")
+              else f"{r['method']} (no result)" for r in case
+              if (r.get("speedup") or 0) < GOAL_SPEEDUP]
+    lines.append(f"- {n}²: ≥ {GOAL_SPEEDUP:g}× for {', '.join(met) or 'none'}"
+                 + (f"; below for {', '.join(missed)}" if missed else ""))
+  return lines
+
+
+def write_report(path: pathlib.Path | None, command: str, args, rows: list[dict],
+                 with_jax: bool, jax_status: str, peak_notes: list[str]) -> str:
+  lines = [
+      "# Classic reconstructions: JAX vs NumPy/SciPy",
+      "",
+      f"Produced by `{command}`.",
+      "",
+      *machine_info(jax_status),
+      f"- Scene: {len(SCENE_POINTS)} point scatterers (1/r^4), {SIGNAL_PHOTONS:g} signal photons"
+      f" per scan point, {BACKGROUND:g} background counts per bin, Poisson noise; wall"
+      f" {WALL_SIZE:g} m, {BIN_WIDTH * 1e12:g} ps bins, {args.bins} bins, N x N scan points.",
+      f"- Repeats: median of {args.repeats} warm runs after one warm-up; a step longer than"
+      f" {args.time_limit:g} s is recorded as a timeout.",
+      "",
+      "Columns: JAX compile = `jax.jit(...).lower(x).compile()`; JAX run = compiled call +"
+      " `block_until_ready`; NumPy build = the twin's operators (PSF spectrum, resampling"
+      " matrices, Stolt tables, wavelets); NumPy run = `numpy_twins.<method>(x, ops)`;"
+      " speed-up = NumPy run / JAX run; JAX peak = temp + argument + output bytes of"
+      " `compiled.memory_analysis()` (constants folded into the executable, such as"
+      " prebuilt operators, are not counted); NumPy peak = `tracemalloc` peak during one run"
+      " (operators built beforehand are not counted; their size is in the details table);"
+      " MIP NCC = normalised cross-correlation of the two max-intensity projections.",
+      "",
+      *format_table(rows, with_jax),
+      "",
+  ]
+  if with_jax:
+    goal = goal_summary(rows)
+    if goal:
+      lines += [f"Goal (JAX ≥ {GOAL_SPEEDUP:g}× faster than the twin at"
+                f" {' and '.join(f'{g}²' for g in GOAL_SIZES)}):", "", *goal, ""]
+  lines += ["Details:", "", *format_details(rows, with_jax), ""]
+  if peak_notes:
+    lines += ["Notes:", "", *[f"- {note}" for note in peak_notes], ""]
+  text = "\n".join(lines)
+  if path is not None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+  return text
+
+
+# ------------------------------------------------------------------- main
+def _jax_available() -> tuple[bool, str]:
+  try:
+    from nlosjax.physics import reconstruct  # noqa: F401
+  except Exception as e:  # noqa: BLE001 - any import failure means: skip JAX
+    return False, f"skipped: `from nlosjax.physics import reconstruct` failed ({type(e).__name__}: {_first_line(e)})"
+  import jax
+
+  return True, f"`nlosjax.physics.reconstruct`, backend {jax.default_backend()} ({jax.devices()[0]})"
+
+
+def parse_args(argv=None):
+  p = argparse.ArgumentParser(prog="python -m benchmarks.physics", description=__doc__.split("\n\n")[0])
+  p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128], help="scan points per side")
+  p.add_argument("--bins", type=int, default=512, help="time bins (32 ps)")
+  p.add_argument("--methods", nargs="+", default=list(numpy_twins.METHODS),
+                 choices=list(numpy_twins.METHODS))
+  p.add_argument("--repeats", type=int, default=3, help="timed warm runs per side (median)")
+  p.add_argument("--out", type=pathlib.Path, default=None,
+                 help="Markdown output (default benchmarks/results/physics.md; with --quick: print only)")
+  p.add_argument("--quick", action="store_true", help="smoke test: 32² scan points, 128 bins")
+  p.add_argument("--time-limit", type=float, default=120.0,
+                 help="seconds one step (build, compile, one run) may take before the case is recorded as a timeout")
+  p.add_argument("--seed", type=int, default=0)
+  p.add_argument("--no-jax", action="store_true", help="time the NumPy twins only")
+  args = p.parse_args(argv)
+  if args.quick:
+    args.sizes, args.bins = [32], 128
+  if args.out is None and not args.quick:
+    args.out = DEFAULT_OUT
+  if args.repeats < 1:
+    p.error("--repeats must be >= 1")
+  return args
+
+
+def main(argv=None) -> int:
+  args = parse_args(argv)
+  command = "python -m benchmarks.physics" + (" " + " ".join(sys.argv[1:] if argv is None else argv)).rstrip()
+  if args.no_jax:
+    with_jax, jax_status = False, "skipped (--no-jax)"
+  else:
+    with_jax, jax_status = _jax_available()
+  print(jax_status, flush=True)
+
+  from tqdm import tqdm
+
+  cases = [(n, m) for n in args.sizes for m in args.methods]
+  rows, notes = [], []
+  bar = tqdm(cases, desc="cases", unit="case")
+  for n, method in bar:
+    bar.set_postfix_str(f"{method} {n}² numpy")
+    p = run_case(_numpy_worker, method, n, args.bins, args.repeats, args.seed, args.time_limit)
+    j = None
+    if with_jax:
+      bar.set_postfix_str(f"{method} {n}² jax")
+      j = run_case(_jax_worker, method, n, args.bins, args.repeats, args.seed, args.time_limit)
+    row = {"method": method, "n": n, "bins": args.bins, "numpy": p, "jax": j}
+    if j is not None and j.get("status") == "ok" and p.get("status") == "ok":
+      row["speedup"] = p["run_s"] / j["run_s"] if j["run_s"] > 0 else None
+      row["ncc"] = ncc(p["mip"], j["mip"])
+    for side, res in (("NumPy", p), ("JAX", j)):
+      if res is None:
+        continue
+      if res.get("status") != "ok":
+        notes.append(f"{method} {n}² {side}: {res['status']}")
+        if res.get("traceback"):
+          tqdm.write(res["traceback"])
+      elif res.get("peak_note"):
+        notes.append(f"{method} {n}² {side}: {res['peak_note']}")
+    rows.append(row)
+    tqdm.write(f"{method:>6} {n:>4}²: numpy {_cell(p, 'run_s', '.4f')} s"
+               + (f", jax {_cell(j, 'run_s', '.4f')} s (compile {_cell(j, 'compile_s')} s),"
+                  f" speed-up {_fmt(row.get('speedup'), '.2f')}, NCC {_fmt(row.get('ncc'), '.3f')}"
+                  if with_jax else ""))
+  bar.close()
+  text = write_report(args.out, command, args, rows, with_jax, jax_status, notes)
+  print()
+  print(text)
+  if args.out is not None:
+    print(f"written to {args.out}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
