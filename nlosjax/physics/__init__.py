@@ -12,15 +12,11 @@ Public API::
 """
 
 from nlosjax.physics.forward import render, render_points
+from nlosjax.physics.noise import add_spad_noise, expected_counts, jitter_kernel
 from nlosjax.physics.project import intensity_depth
 from nlosjax.physics.reconstruct import METHODS, fbp, fk, lct, phasor, reconstruct, rsd
 from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
 from nlosjax.physics.wavelet import Wavelet, convolve_time, illumination_wavelet
-
-try:  # written in parallel; optional until it lands
-  from nlosjax.physics.noise import add_spad_noise, expected_counts, jitter_kernel
-except ImportError:  # pragma: no cover
-  pass
 
 __all__ = [
     "Setup", "SPEED_OF_LIGHT", "render", "render_points", "add_spad_noise", "expected_counts",

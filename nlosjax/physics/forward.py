@@ -74,8 +74,7 @@ def _calibration(setup, q, psf, to_u, to_t, dom) -> float:
   k = (k0 + k1) // 2
   z = k * setup.depth_bin_length
   # Straight below the scan point only the PSF column at offset 0 matters.
-  col = np.zeros(dom.fft_shape[0])
-  col[:] = psf[:, 0, 0]
+  col = psf[:, 0, 0]
   u = to_u[:, k - k0]
   conv = np.real(np.fft.ifft(np.fft.fft(u, col.size) * np.fft.fft(col)))[:dom.num_v]
   ttrace = to_t @ conv

@@ -231,7 +231,7 @@ def lct_operators(setup: Setup, power: float, *, t_margin: int = 0, z_margin: in
   Args:
     setup: the capture (its depth range selects the bins).
     power: time power of the t -> v resampling (3 diffuse, 1 retroreflective,
-      -1 plain, as the phasor method uses).
+      0 plain averaging, as the phasor method uses).
     t_margin, z_margin: widen the windows (see :func:`lct_domain`).
     oversample: v- and u-bins per time bin (see :func:`lct_domain`).
     dtype: float dtype of the real operators (complex counterpart for the PSF).

@@ -44,7 +44,7 @@ import scipy.fft
 from nlosjax.physics import _validate
 from nlosjax.physics.operators import (check_falloff, lct_apply, lct_filter, lct_operators,
                                        to_depth)
-from nlosjax.physics.setup import Setup
+from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
 from nlosjax.physics.wavelet import convolve_time, illumination_wavelet
 
 METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
@@ -53,7 +53,7 @@ METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
 # ----------------------------------------------------------------------- LCT
 @jax.jit
 def _lct_batch(x, ops, snr):
-  filt = lct_filter(ops, snr if snr is not None else None)
+  filt = lct_filter(ops, snr)
   t0, t1 = ops.domain.t
 
   def one(xi):
@@ -259,7 +259,7 @@ def _rsd_operators(setup: Setup, cycles: float, sampling_coeff: float, ratio: fl
   dy, dx = setup.spacing
   ky = 2 * np.pi * np.fft.fftfreq(2 * H, d=dy)
   kx = 2 * np.pi * np.fft.fftfreq(2 * W, d=dx)
-  k = 2 * omega / 299_792_458.0                               # round-trip wavenumber, rad/m
+  k = 2 * omega / SPEED_OF_LIGHT                              # round-trip wavenumber, rad/m
   kz2 = k[:, None, None] ** 2 - ky[None, :, None] ** 2 - kx[None, None, :] ** 2
   kz = np.sqrt(np.maximum(kz2, 0.0))
   mask = (kz2 > 0).astype(np.float64)
