@@ -266,10 +266,17 @@ def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array) -> jax.Array:
   """
   dom = ops.domain
   h, w = x.shape[-2:]
+  lv, h2, w2 = dom.fft_shape
   data_v = jnp.einsum("vt,thw->vhw", ops.to_v, x, precision="highest")
-  spec = jnp.fft.rfftn(data_v, s=dom.fft_shape)
-  out = jnp.fft.irfftn(spec * filt, s=dom.fft_shape)
-  return out[:dom.num_u, :h, :w]
+  # rfftn / irfftn one axis at a time, skipping the zero padding going in and
+  # the discarded rows going out: the same numbers as the full transforms
+  # with about 20% fewer FLOPs (the data fills an eighth of the FFT box).
+  spec = jnp.fft.rfft(data_v, n=w2, axis=2)                 # [Nv, H, W + 1]
+  spec = jnp.fft.fft(spec, n=h2, axis=1)                    # [Nv, 2H, W + 1]
+  spec = jnp.fft.fft(spec, n=lv, axis=0)                    # [Lv, 2H, W + 1]
+  out = jnp.fft.ifft(spec * filt, axis=0)[:dom.num_u]       # [Nu, 2H, W + 1]
+  out = jnp.fft.ifft(out, axis=1)[:, :h]                    # [Nu, H, W + 1]
+  return jnp.fft.irfft(out, n=w2, axis=2)[:, :, :w]         # [Nu, H, W]
 
 
 def to_depth(vol_u: jax.Array, ops: LCTOperators) -> jax.Array:

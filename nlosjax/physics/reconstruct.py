@@ -51,9 +51,18 @@ METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
 
 
 # ----------------------------------------------------------------------- LCT
+@functools.lru_cache(maxsize=4)   # a filter is [Lv, 2H, W+1] complex: ~0.3 GB at 128^2
+def _lct_problem(setup: Setup, power: float, snr: float | None, z_margin: int, oversample: int,
+                 dtype) -> tuple:
+  """``(operators, frequency-domain filter)`` of one LCT problem, built once and cached."""
+  if oversample not in (1, 2, 3, 4):
+    raise ValueError(f"oversample must be 1, 2, 3 or 4, got {oversample!r}")
+  ops = lct_operators(setup, power, z_margin=z_margin, oversample=oversample, dtype=dtype)
+  return ops, jax.jit(lct_filter, static_argnums=1)(ops, snr)
+
+
 @jax.jit
-def _lct_batch(x, ops, snr):
-  filt = lct_filter(ops, snr)
+def _lct_batch(x, ops, filt):
   t0, t1 = ops.domain.t
 
   def one(xi):
@@ -62,7 +71,8 @@ def _lct_batch(x, ops, snr):
   return jax.vmap(one)(x)
 
 
-def lct(transient, setup: Setup, *, snr: float = 0.1, falloff: str = "diffuse") -> jax.Array:
+def lct(transient, setup: Setup, *, snr: float = 0.1, falloff: str = "diffuse",
+        oversample: int = 1) -> jax.Array:
   """Light-cone transform with a Wiener filter (O'Toole et al., Nature 2018).
 
   ``vol = max(R_z^-1 F^-1[ F[R_t tau] conj(H) / (|H|^2 + 1/snr) ], 0)`` with
@@ -74,19 +84,27 @@ def lct(transient, setup: Setup, *, snr: float = 0.1, falloff: str = "diffuse") 
     snr: Wiener signal-to-noise ratio, > 0 (public defaults: 0.1 nlos-fk, LFE,
       USM; 0.8 O'Toole retroreflective scenes).
     falloff: ``"diffuse"`` (t^4) or ``"retroreflective"`` (t^2).
+    oversample: v-bins per time bin of the LCT grid. 1 is the public
+      algorithm's grid; 2 halves the resampling error near the wall (finer
+      u-grid, sharper off-grid points) at twice the FFT cost. See
+      ``benchmarks/results/physics.md`` for the measured trade.
   Returns:
     ``[..., Z, H, W]`` float32 volume, >= 0.
   """
   q = check_falloff(falloff)
   snr = _validate.check_positive(snr, "snr")
   x, batch = _validate.prepare_transient(transient, setup)
-  ops = lct_operators(setup, float(q), dtype=x.dtype)
-  return _validate.unbatch(_lct_batch(x, ops, jnp.asarray(snr, x.dtype)), batch)
+  ops, filt = _lct_problem(setup, float(q), snr, 0, oversample, x.dtype)
+  return _validate.unbatch(_lct_batch(x, ops, filt), batch)
 
 
 # ----------------------------------------------------------------------- FBP
 def _neg_log_kernel(size: int = 5, sigma: float = 1.0) -> np.ndarray:
-  """``[size]*3`` float64 negative Laplacian-of-Gaussian, zero mean (positive at the centre)."""
+  """``[size]*3`` float64 negative Laplacian-of-Gaussian, zero mean (positive at the centre).
+
+  The dense kernel; :func:`neg_log_filter` applies it separably. Kept as the
+  reference the tests compare against.
+  """
   r = np.arange(size) - size // 2
   r2 = r[:, None, None] ** 2 + r[None, :, None] ** 2 + r[None, None, :] ** 2
   g = np.exp(-r2 / (2 * sigma ** 2))
@@ -95,26 +113,65 @@ def _neg_log_kernel(size: int = 5, sigma: float = 1.0) -> np.ndarray:
   return -(w - w.mean())
 
 
+def _taps(size: int, sigma: float) -> tuple[tuple[float, ...], tuple[float, ...], float]:
+  """1D factors of :func:`_neg_log_kernel`: ``(g, a, mean)``.
+
+  The normalised 3D Gaussian is ``g(z) g(y) g(x)`` and ``r^2 - 3 sigma^2`` is
+  ``sum_i (x_i^2 - sigma^2)``, so the LoG is ``sum_i a(x_i) prod_{j != i} g(x_j)``
+  with ``a = g (x^2 - sigma^2) / sigma^4``; ``mean`` is its mean over the cube.
+  """
+  r = np.arange(size) - size // 2
+  g = np.exp(-r ** 2 / (2 * sigma ** 2))
+  g /= g.sum()
+  a = g * (r ** 2 - sigma ** 2) / sigma ** 4
+  mean = 3 * a.sum() * g.sum() ** 2 / size ** 3
+  return tuple(g.tolist()), tuple(a.tolist()), float(mean)
+
+
+def _correlate_axis(x: jax.Array, taps: tuple[float, ...], axis: int) -> jax.Array:
+  """'valid' correlation of ``x`` with constant ``taps`` along ``axis`` (shifted slices; XLA fuses them)."""
+  n = x.shape[axis] - len(taps) + 1
+  out = None
+  for i, c in enumerate(taps):
+    term = c * jax.lax.slice_in_dim(x, i, i + n, axis=axis)
+    out = term if out is None else out + term
+  return out
+
+
+def neg_log_filter(volume: jax.Array, size: int = 5, sigma: float = 1.0) -> jax.Array:
+  """``-LoG`` filter of a ``[Z, H, W]`` volume with replicate (edge) padding, same shape out.
+
+  Separable: three products of 1D ``size``-tap filters plus a box term for
+  the zero mean, instead of a dense ``size^3`` 3D convolution (XLA's CPU 3D
+  convolution was 20x slower than the NumPy twin). Equal to correlating with
+  :func:`_neg_log_kernel` (the tests check against ``scipy.ndimage``).
+  """
+  g, a, mean = _taps(size, sigma)
+  r = size // 2
+  p = jnp.pad(volume, r, mode="edge")
+  gz, az = _correlate_axis(p, g, 0), _correlate_axis(p, a, 0)
+  gzgy = _correlate_axis(gz, g, 1)
+  log = (_correlate_axis(_correlate_axis(az, g, 1) + _correlate_axis(gz, a, 1), g, 2)
+         + _correlate_axis(gzgy, a, 2))
+  ones = (1.0,) * size
+  box = _correlate_axis(_correlate_axis(_correlate_axis(p, ones, 0), ones, 1), ones, 2)
+  return mean * box - log
+
+
 @functools.partial(jax.jit, static_argnames=("crop",))
-def _fbp_batch(x, ops, kernel, crop):
-  filt = lct_filter(ops, None)
+def _fbp_batch(x, ops, filt, crop):
   t0, t1 = ops.domain.t
   lo, hi = crop
 
   def one(xi):
     bp = to_depth(lct_apply(xi[t0:t1], ops, filt), ops)
     # Replicate padding (as LFE): zero padding makes the -LoG ring at the scan border.
-    r = kernel.shape[0] // 2
-    bp = jnp.pad(bp, r, mode="edge")
-    vol = jax.lax.conv_general_dilated(
-        bp[None, None], kernel[None, None], (1, 1, 1), "VALID",
-        dimension_numbers=("NCDHW", "OIDHW", "NCDHW"), precision="highest")[0, 0]
-    return jnp.maximum(vol[lo:hi], 0.0)
+    return jnp.maximum(neg_log_filter(bp)[lo:hi], 0.0)
 
   return jax.vmap(one)(x)
 
 
-def fbp(transient, setup: Setup, *, falloff: str = "diffuse") -> jax.Array:
+def fbp(transient, setup: Setup, *, falloff: str = "diffuse", oversample: int = 1) -> jax.Array:
   """Filtered backprojection: LCT backprojection (``conj(H)``) then a ``-LoG`` filter.
 
   The public code (nlos-fk, LFE, USM) uses ``+LoG``, negative on objects;
@@ -125,17 +182,17 @@ def fbp(transient, setup: Setup, *, falloff: str = "diffuse") -> jax.Array:
     setup: the capture.
     falloff: time weighting of the backprojection, ``"diffuse"`` (t^4, as
       the public FBP) or ``"retroreflective"`` (t^2).
+    oversample: v-bins per time bin (see :func:`lct`).
   Returns:
     ``[..., Z, H, W]`` float32, >= 0.
   """
   q = check_falloff(falloff)
   x, batch = _validate.prepare_transient(transient, setup)
   margin = 2
-  ops = lct_operators(setup, float(q), z_margin=margin, dtype=x.dtype)
+  ops, filt = _lct_problem(setup, float(q), None, margin, oversample, x.dtype)
   k0, k1 = setup.depth_bins
   lo = k0 - ops.domain.z[0]
-  kernel = jnp.asarray(_neg_log_kernel(), x.dtype)
-  return _validate.unbatch(_fbp_batch(x, ops, kernel, (lo, lo + k1 - k0)), batch)
+  return _validate.unbatch(_fbp_batch(x, ops, filt, (lo, lo + k1 - k0)), batch)
 
 
 # ------------------------------------------------------------------------ FK
@@ -207,8 +264,7 @@ def fk(transient, setup: Setup) -> jax.Array:
 
 # -------------------------------------------------------------------- phasor
 @functools.partial(jax.jit, static_argnames=("wavelet", "window"))
-def _phasor_batch(x, ops, wavelet, window):
-  filt = lct_filter(ops, None)
+def _phasor_batch(x, ops, filt, wavelet, window):
   a, b = window
   t0, t1 = ops.domain.t
 
@@ -221,7 +277,8 @@ def _phasor_batch(x, ops, wavelet, window):
   return jax.vmap(one)(x)
 
 
-def phasor(transient, setup: Setup, *, cycles: float = 5.0, sampling_coeff: float = 2.0) -> jax.Array:
+def phasor(transient, setup: Setup, *, cycles: float = 5.0, sampling_coeff: float = 2.0,
+           oversample: int = 1) -> jax.Array:
   """Phasor-field virtual wave via fast LCT backprojection (nlos-fk, Lindell 2019, alg. 3).
 
   Convolve each histogram with the complex wavelet ``P(t)``
@@ -233,16 +290,17 @@ def phasor(transient, setup: Setup, *, cycles: float = 5.0, sampling_coeff: floa
     transient: ``[..., T, H, W]`` counts >= 0.
     setup: the capture.
     cycles, sampling_coeff: wavelet parameters (see ``illumination_wavelet``).
+    oversample: v-bins per time bin (see :func:`lct`).
   Returns:
     ``[..., Z, H, W]`` float32, >= 0.
   """
   x, batch = _validate.prepare_transient(transient, setup)
   wl = illumination_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
-  ops = lct_operators(setup, 0.0, dtype=x.dtype)
+  ops, filt = _lct_problem(setup, 0.0, None, 0, oversample, x.dtype)
   t0, t1 = ops.domain.t
   half = wl.num_samples // 2
   window = (max(0, t0 - half), min(setup.num_bins, t1 + half))
-  return _validate.unbatch(_phasor_batch(x, ops, wl, window), batch)
+  return _validate.unbatch(_phasor_batch(x, ops, filt, wl, window), batch)
 
 
 # ----------------------------------------------------------------------- RSD
@@ -281,7 +339,12 @@ def _rsd_batch(x, dtft, kz, mask, window, depths, chunk):
     spec = jnp.fft.fft2(fields, s=(2 * h, 2 * w)) * mask                 # [K, 2H, 2W]
 
     def body(phase, _):
-      planes = jnp.einsum("khw,ckhw->chw", spec * phase, steps)
+      # sum_k U_k exp(i z kz_k) in real arithmetic: XLA's CPU complex einsum
+      # here was a batched matvec per lateral frequency, 4x slower.
+      f = spec * phase
+      fr, fi = jnp.real(f)[None], jnp.imag(f)[None]
+      sr, si = jnp.real(steps), jnp.imag(steps)
+      planes = jax.lax.complex(jnp.sum(fr * sr - fi * si, axis=1), jnp.sum(fr * si + fi * sr, axis=1))
       vol = jnp.abs(jnp.fft.ifft2(planes)[:, :h, :w])
       return phase * advance, vol
 
