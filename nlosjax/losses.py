@@ -1,0 +1,201 @@
+"""Training losses of ST-Mamba (paper Eq. 5-6) and the predecessor's regularisers.
+
+``L = L_m + beta L_v + gamma L_r`` with
+
+* ``L_m = L_pf + alpha1 L_t`` (measurement recovery),
+* ``L_v = L_int + alpha2 L_dep`` (volume reconstruction),
+* ``L_r = L_ls + alpha3 L_tv`` (regularisation, as USM).
+
+Every term is computed per sample and averaged over the batch, so its weight
+does not depend on the batch size (USM summed TV over the batch). The paper's
+``||.||_2`` terms are root-mean-square errors over a sample's elements, with a
+guarded square root: ``sqrt(mean + eps)``, whose gradient is 0, not infinite,
+at zero error. A term whose weight is 0 is not computed.
+
+Shapes: transient ``[B, T, H, W]``, volume ``[B, Z, H, W]``, intensity and
+depth ``[B, H, W]``. Units are those of the inputs (the trainer feeds
+normalised transients, intensities in [0, 1] and depths in metres).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from nlosjax.physics.wavelet import Wavelet, convolve_time
+
+SQRT_EPS = 1e-12
+
+
+def _per_sample_rms(diff: jax.Array) -> jax.Array:
+  """``[B]`` guarded root-mean-square of ``|diff|`` over all non-batch axes."""
+  sq = jnp.real(diff * jnp.conj(diff)) if jnp.iscomplexobj(diff) else diff * diff
+  mean = jnp.mean(sq.reshape(sq.shape[0], -1).astype(jnp.float32), axis=1)
+  return jnp.sqrt(mean + SQRT_EPS)
+
+
+def rmse_loss(pred: jax.Array, target: jax.Array) -> jax.Array:
+  """Batch mean of per-sample RMSE: ``mean_b sqrt(mean_i (pred - target)^2 + eps)``.
+
+  Args:
+    pred, target: ``[B, ...]`` of one shape.
+  Returns:
+    scalar float32.
+  """
+  if pred.shape != target.shape:
+    raise ValueError(f"pred {pred.shape} and target {target.shape} differ in shape")
+  return jnp.mean(_per_sample_rms(pred - target))
+
+
+def transient_loss(pred: jax.Array, target: jax.Array) -> jax.Array:
+  """``L_t = ||tau - tau_gt||_2`` (per-sample RMSE, batch mean); ``[B, T, H, W]`` each."""
+  return rmse_loss(pred, target)
+
+
+def phasor_field_loss(pred: jax.Array, target: jax.Array, wavelet: Wavelet) -> jax.Array:
+  """``L_pf = ||tau * P - tau_gt * P||_2``: transients compared in the phasor field.
+
+  Both are convolved along time with the complex illumination wavelet ``P(t)``
+  (:func:`nlosjax.physics.illumination_wavelet`); by linearity this is the
+  RMS modulus of ``(tau - tau_gt) * P``, which weights the band the phasor
+  reconstruction uses and ignores the rest (DC background, bin noise).
+
+  Args:
+    pred, target: ``[B, T, H, W]``.
+    wavelet: the illumination wavelet of the model's Setup.
+  Returns:
+    scalar float32.
+  """
+  if pred.shape != target.shape:
+    raise ValueError(f"pred {pred.shape} and target {target.shape} differ in shape")
+  field = convolve_time((pred - target).astype(jnp.float32), wavelet, axis=1)
+  return jnp.mean(_per_sample_rms(field))
+
+
+def intensity_loss(pred: jax.Array, target: jax.Array) -> jax.Array:
+  """``L_int = ||I - I_gt||_2``; ``[B, H, W]`` each."""
+  return rmse_loss(pred, target)
+
+
+def depth_loss(pred: jax.Array, target: jax.Array) -> jax.Array:
+  """``L_dep = ||D - D_gt||_2`` in metres; ``[B, H, W]`` each."""
+  return rmse_loss(pred, target)
+
+
+# USM's local-similarity blur: 3 x 3 Gaussian, sigma 1.5, normalised.
+_LS_TAPS = np.exp(-np.arange(-1, 2) ** 2 / (2 * 1.5 ** 2))
+_LS_TAPS = tuple((_LS_TAPS / _LS_TAPS.sum()).tolist())
+
+
+def _blur3(volume: jax.Array) -> jax.Array:
+  """3 x 3 Gaussian blur over the last two axes, replicate padding."""
+  p = jnp.pad(volume, [(0, 0)] * (volume.ndim - 2) + [(1, 1), (1, 1)], mode="edge")
+  h, w = volume.shape[-2:]
+  rows = sum(c * p[..., i:i + h, :] for i, c in enumerate(_LS_TAPS))
+  return sum(c * rows[..., :, j:j + w] for j, c in enumerate(_LS_TAPS))
+
+
+def local_similarity_loss(volume: jax.Array) -> jax.Array:
+  """``L_ls = ||V - G * V||_2``: USM's local similarity.
+
+  ``G`` is a 3 x 3 Gaussian (sigma 1.5) applied to each depth slice over
+  (H, W) with replicate padding: the term penalises voxels unlike their
+  lateral neighbours.
+
+  Args:
+    volume: ``[B, Z, H, W]``.
+  Returns:
+    scalar float32.
+  """
+  volume = volume.astype(jnp.float32)
+  return jnp.mean(_per_sample_rms(volume - _blur3(volume)))
+
+
+def tv_loss(volume: jax.Array) -> jax.Array:
+  """``L_tv``: anisotropic 3D total variation, summed per sample, batch mean.
+
+  ``sum |V[z+1] - V[z]| + |V[h+1] - V[h]| + |V[w+1] - V[w]|`` over a sample
+  (a sum, as USM, so the paper's weight ``gamma alpha3 = 1e-6`` keeps its
+  meaning), averaged over the batch. ``|x|`` is smoothed as
+  ``sqrt(x^2 + eps) - sqrt(eps)`` so its gradient is defined at 0.
+
+  Args:
+    volume: ``[B, Z, H, W]``.
+  Returns:
+    scalar float32.
+  """
+  volume = volume.astype(jnp.float32)
+  eps = SQRT_EPS
+  total = 0.0
+  for axis in (1, 2, 3):
+    d = jnp.diff(volume, axis=axis)
+    total = total + jnp.sum(jnp.sqrt(d * d + eps) - np.sqrt(eps), axis=(1, 2, 3))
+  return jnp.mean(total)
+
+
+@dataclasses.dataclass(frozen=True)
+class LossWeights:
+  """Weights of ``L = L_m + beta L_v + gamma L_r`` (defaults: the paper's Sec. 5.1).
+
+  A weight of 0 switches its term off (it is then not computed): the loss
+  ablations of the paper's Table 2. ``phasor_field`` scales ``L_pf`` inside
+  ``L_m`` (1 in the paper; 0 ablates it).
+  """
+
+  phasor_field: float = 1.0
+  alpha1: float = 0.5      # transient
+  alpha2: float = 1.0      # depth
+  alpha3: float = 0.1      # total variation
+  beta: float = 1.0        # volume terms
+  gamma: float = 1e-5      # regularisers
+  intensity: float = 1.0   # scales L_int inside L_v (1 in the paper)
+  local_similarity: float = 1.0   # scales L_ls inside L_r (1 in the paper)
+
+  def __post_init__(self):
+    for f in dataclasses.fields(self):
+      v = getattr(self, f.name)
+      if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
+        raise ValueError(f"loss weight {f.name} must be a finite number >= 0, got {v!r}")
+
+
+def total_loss(outputs: dict, targets: dict, weights: LossWeights,
+               wavelet: Wavelet | None) -> tuple[jax.Array, dict]:
+  """The paper's total loss and its terms.
+
+  Args:
+    outputs: the model's ``{"transient": [B, T, H, W], "volume": [B, Z, H, W],
+      "intensity": [B, H, W], "depth": [B, H, W]}``.
+    targets: ``{"transient", "intensity", "depth"}`` of the same shapes.
+    weights: :class:`LossWeights`.
+    wavelet: illumination wavelet for ``L_pf`` (may be None when
+      ``weights.phasor_field == 0``).
+  Returns:
+    ``(loss, terms)``: scalar float32 and a dict of the unweighted terms
+    that were computed (``pf, t, int, dep, ls, tv``) plus ``m, v, r``.
+  """
+  w = weights
+  terms = {}
+  zero = jnp.zeros((), jnp.float32)
+  if w.phasor_field:
+    if wavelet is None:
+      raise ValueError("wavelet is needed when weights.phasor_field > 0")
+    terms["pf"] = phasor_field_loss(outputs["transient"], targets["transient"], wavelet)
+  if w.alpha1:
+    terms["t"] = transient_loss(outputs["transient"], targets["transient"])
+  if w.beta and w.intensity:
+    terms["int"] = intensity_loss(outputs["intensity"], targets["intensity"])
+  if w.beta and w.alpha2:
+    terms["dep"] = depth_loss(outputs["depth"], targets["depth"])
+  if w.gamma and w.local_similarity:
+    terms["ls"] = local_similarity_loss(outputs["volume"])
+  if w.gamma and w.alpha3:
+    terms["tv"] = tv_loss(outputs["volume"])
+  g = terms.get
+  terms["m"] = w.phasor_field * g("pf", zero) + w.alpha1 * g("t", zero)
+  terms["v"] = w.intensity * g("int", zero) + w.alpha2 * g("dep", zero)
+  terms["r"] = w.local_similarity * g("ls", zero) + w.alpha3 * g("tv", zero)
+  loss = terms["m"] + w.beta * terms["v"] + w.gamma * terms["r"]
+  return loss, terms
