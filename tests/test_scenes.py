@@ -1,0 +1,247 @@
+"""Procedural scenes (nlosjax.data.scenes): geometry of the ray cast, the helix, bounds, seeds.
+
+Independent references: closed forms of the projected shapes (sphere, box,
+torus, planar glyph), the helix equation written out here, and bounding
+geometry of the drawn scenes.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from nlosjax.data import scenes
+from nlosjax.data.scenes import Helix, Scene, SceneObject, SceneParams
+from nlosjax.physics import Setup
+
+# 2 m wall, 41 x 41 scan points (5 cm apart, a point at the wall centre), 2.53 m of depth.
+SETUP = Setup(wall_size=2.0, grid=(41, 41), bin_width=132e-12, num_bins=128)
+DZ = SETUP.depth_bin_length
+
+
+def still_scene(*objects):
+  """A scene of the given objects plus a far-away, motionless dynamic sphere (not drawn)."""
+  helix = Helix(np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]),
+                0.0, 0.0, 0.0, 0.0)
+  dyn = SceneObject("sphere", helix.center, np.eye(3), 0.1, 0.05, {"radius": 0.05},
+                    {"name": "uniform", "albedo": 1.0}, dynamic=True)
+  return Scene(objects=tuple(objects) + (dyn,), helix=helix, num_frames=1, frame_rate=1.0, seed=0)
+
+
+def obj(kind, anchor, shape, radius, rotation=np.eye(3), albedo=0.8):
+  return SceneObject(kind, np.asarray(anchor, float), rotation, 2 * radius, radius, shape,
+                     {"name": "uniform", "albedo": albedo})
+
+
+def draw(scene, objects=(0,), supersample=1):
+  return scenes.rasterize(scene, SETUP, objects=list(objects), supersample=supersample)
+
+
+# ------------------------------------------------------------- ray casting
+def test_sphere_depth_and_shading_match_the_closed_form():
+  r, c = 0.3, np.array([0.1, -0.05, 1.0])
+  out = draw(still_scene(obj("sphere", c, {"radius": r}, r)))
+  X, Y = np.meshgrid(SETUP.scan_x, SETUP.scan_y)
+  rho2 = (X - c[0]) ** 2 + (Y - c[1]) ** 2
+  inside = rho2 < r * r
+  expected_depth = c[2] - np.sqrt(np.where(inside, r * r - rho2, 0.0))
+  ray = out.ray_depth[0, 0]
+  np.testing.assert_array_equal(np.isfinite(ray), inside)
+  np.testing.assert_allclose(ray[inside], expected_depth[inside], atol=1e-6)
+  np.testing.assert_allclose(out.depth[0][inside], expected_depth[inside], atol=1e-6)
+  assert np.all(out.depth[0][~inside] == scenes.BACKGROUND_DEPTH)
+  # Lambertian |n_z| = sqrt(r^2 - rho^2) / r, times albedo 0.8.
+  np.testing.assert_allclose(out.ray_albedo[0, 0][inside],
+                             0.8 * np.sqrt(r * r - rho2[inside]) / r, atol=1e-6)
+  assert out.intensity.max() == pytest.approx(1.0)
+
+
+def test_box_facing_the_wall_is_a_flat_rectangle():
+  half = np.array([0.2, 0.1, 0.15])
+  c = np.array([0.0, 0.0, 0.9])
+  out = draw(still_scene(obj("box", c, {"half_extents": half}, float(np.linalg.norm(half)))),
+             supersample=4)
+  X, Y = np.meshgrid(SETUP.scan_x, SETUP.scan_y)
+  covered = np.isfinite(out.ray_depth[0]).mean(0)
+  # Supersampled coverage integrates the 0.4 m x 0.2 m face: area / pixel area.
+  dy, dx = SETUP.spacing
+  assert covered.sum() == pytest.approx((4 * half[0] * half[1]) / (dx * dy), rel=0.02)
+  hit = covered > 0
+  np.testing.assert_allclose(out.depth[0][hit], c[2] - half[2], atol=1e-9)
+  fully = (np.abs(X - c[0]) < half[0] - dx) & (np.abs(Y - c[1]) < half[1] - dy)
+  assert np.all(covered[fully] == 1.0)
+
+
+def test_torus_has_a_hole_and_its_ring_is_nearest_at_the_major_radius():
+  major, minor = 0.25, 0.08
+  c = np.array([0.0, 0.0, 1.2])
+  out = draw(still_scene(obj("torus", c, {"major": major, "minor": minor}, major + minor)))
+  ray = out.ray_depth[0, 0]
+  X, Y = np.meshgrid(SETUP.scan_x, SETUP.scan_y)
+  rho = np.hypot(X - c[0], Y - c[1])
+  ring = np.abs(rho - major) < minor
+  np.testing.assert_array_equal(np.isfinite(ray), ring)
+  expected = c[2] - np.sqrt(np.maximum(minor ** 2 - (rho - major) ** 2, 0.0))
+  np.testing.assert_allclose(ray[ring], expected[ring], atol=1e-5)
+  assert not np.isfinite(ray[20, 20])  # the wall centre looks through the hole
+
+
+def test_glyphs_follow_the_even_odd_rule():
+  o, i = scenes.glyph_polygons("O"), scenes.glyph_polygons("I")
+  assert len(o) == 2 and len(i) == 1
+  inside = scenes._inside_polygons
+  assert not inside(np.zeros(1), np.zeros(1), o)[0]   # the hole of the O
+  assert inside(np.zeros(1), np.zeros(1), i)[0]
+  pts = np.concatenate(o)
+  assert np.max(pts.max(0) - pts.min(0)) == pytest.approx(1.0)
+  with pytest.raises(ValueError, match="char"):
+    scenes.glyph_polygons("é")
+
+
+def test_planar_letter_is_flat_at_its_depth_and_has_its_hole():
+  size, z = 0.8, 1.1
+  polys = tuple(p * size for p in scenes.glyph_polygons("O"))
+  letter = SceneObject("letter", np.array([0.0, 0.0, z]), np.eye(3), size, size / math.sqrt(2),
+                       {"char": "O", "polygons": polys}, {"name": "uniform", "albedo": 1.0})
+  out = draw(still_scene(letter))
+  hit = np.isfinite(out.ray_depth[0, 0])
+  assert hit.sum() > 20
+  np.testing.assert_allclose(out.ray_depth[0, 0][hit], z, atol=1e-9)
+  assert not hit[20, 20]
+  # Facing the wall: shading is the albedo.
+  np.testing.assert_allclose(out.ray_albedo[0, 0][hit], 1.0)
+
+
+def test_nearer_objects_occlude_farther_ones():
+  near = obj("sphere", [0.0, 0.0, 0.8], {"radius": 0.1}, 0.1, albedo=0.5)
+  far = obj("box", [0.0, 0.0, 1.3], {"half_extents": np.array([0.3, 0.3, 0.1])}, 0.45, albedo=1.0)
+  out = draw(still_scene(near, far), objects=(0, 1))
+  assert out.depth[0][20, 20] == pytest.approx(0.7, abs=1e-6)
+  assert out.depth[0][20, 25] == pytest.approx(1.2, abs=1e-6)  # x = 0.25 m
+
+
+def test_volume_puts_each_ray_in_its_depth_bin_and_sums_to_the_intensity():
+  scene = scenes.make_scene(3, num_frames=2, setup=SETUP)
+  out = scenes.rasterize(scene, SETUP, supersample=2)
+  vol = out.volume(SETUP)
+  assert vol.shape == (2, SETUP.num_bins) + SETUP.grid and vol.dtype == np.float32
+  col = vol.sum(1)
+  np.testing.assert_allclose(col / col.max(axis=(1, 2), keepdims=True), out.intensity, atol=1e-5)
+  # Independent binning of every ray: floor(z / (c dt / 2)).
+  z, a = out.ray_depth[0], out.ray_albedo[0]
+  ok = np.isfinite(z)
+  k = np.floor(z[ok] / DZ).astype(int)
+  ii, jj = np.nonzero(ok)[1:]
+  ref = np.zeros(vol.shape[1:])
+  np.add.at(ref, (k, ii, jj), a[ok] / 4)
+  np.testing.assert_allclose(vol[0], ref, atol=1e-6)
+
+
+# -------------------------------------------------------------------- helix
+def helix_reference(h, t):
+  """p(t) = c + r (cos th u + sin th (a x u)) + pitch (th - phase) / 2 pi a."""
+  th = h.phase + h.angular_speed * np.asarray(t)
+  v = np.cross(h.axis, h.ref)
+  return np.array([h.center + h.radius * (math.cos(x) * h.ref + math.sin(x) * v)
+                   + h.pitch * (x - h.phase) / (2 * math.pi) * h.axis for x in th])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_trajectory_is_the_drawn_helix(seed):
+  scene = scenes.make_scene(seed, num_frames=32)
+  h = scene.helix
+  traj = scene.trajectory
+  np.testing.assert_allclose(traj, helix_reference(h, scene.times), atol=1e-12)
+  assert abs(np.linalg.norm(h.axis) - 1) < 1e-12 and abs(h.axis @ h.ref) < 1e-12
+  # Constant distance r from the axis; axial position linear in time.
+  rel = traj - h.center
+  axial = rel @ h.axis
+  radial = np.linalg.norm(rel - axial[:, None] * h.axis, axis=1)
+  np.testing.assert_allclose(radial, h.radius, atol=1e-12)
+  slope = np.polyfit(scene.times, axial, 1)[0]
+  assert slope == pytest.approx(h.pitch * h.angular_speed / (2 * math.pi), abs=1e-12)
+  p = SceneParams()
+  assert p.helix_speed[0] <= abs(h.angular_speed) <= p.helix_speed[1]
+
+
+def test_dynamic_object_footprint_moves_with_the_trajectory_and_statics_stay_put():
+  params = SceneParams(dynamic_kinds=("sphere", "box", "letter"), helix_radius=(0.2, 0.25),
+                       helix_speed=(1.0, 1.5))
+  for seed in range(3):
+    scene = scenes.make_scene(seed, params, num_frames=12, setup=SETUP)
+    dyn = scene.dynamic_index
+    moving = scenes.rasterize(scene, SETUP, objects=[dyn], supersample=4)
+    cover = np.isfinite(moving.ray_depth).mean(1)                 # [F, H, W]
+    X, Y = np.meshgrid(SETUP.scan_x, SETUP.scan_y)
+    area = cover.sum((1, 2))
+    cx = (cover * X).sum((1, 2)) / area
+    cy = (cover * Y).sum((1, 2)) / area
+    offset = np.stack([cx, cy], 1) - scene.trajectory[:, :2]
+    # Rigid translation: the footprint centroid keeps a fixed offset from the anchor.
+    assert np.abs(offset - offset.mean(0)).max() < 0.25 * SETUP.spacing[0], offset
+    assert np.ptp(scene.trajectory[:, 0]) + np.ptp(scene.trajectory[:, 1]) > 0.1
+    zmean = np.nanmean(np.where(np.isfinite(moving.ray_depth), moving.ray_depth, np.nan), axis=(1, 2, 3))
+    dz = zmean - scene.trajectory[:, 2]
+    assert np.abs(dz - dz.mean()).max() < 0.03
+    statics = [i for i in range(len(scene.objects)) if i != dyn]
+    still = scenes.rasterize(scene, SETUP, objects=statics)
+    assert np.all(still.depth == still.depth[:1]) and np.all(still.intensity == still.intensity[:1])
+
+
+# ------------------------------------------------------------- draws, bounds
+def test_same_seed_same_scene_other_seed_other_scene():
+  a = scenes.make_scene(11, num_frames=4).describe()
+  b = scenes.make_scene(11, num_frames=4).describe()
+  c = scenes.make_scene(12, num_frames=4).describe()
+  assert a == b and a != c
+  assert a["generator_version"] == scenes.GENERATOR_VERSION
+
+
+def test_drawn_scenes_stay_in_their_box():
+  p = SceneParams()
+  seen = set()
+  for seed in range(60):
+    scene = scenes.make_scene(seed, p, num_frames=16, setup=SETUP)
+    statics = [o for o in scene.objects if not o.dynamic]
+    assert p.num_static[0] <= len(statics) <= p.num_static[1]
+    assert scene.objects[-1].dynamic and scene.dynamic_index == len(scene.objects) - 1
+    for o in statics:
+      assert p.depth_range[0] - 1e-9 <= o.anchor[2] - o.radius
+      assert o.anchor[2] + o.radius <= p.depth_range[1] + 1e-9
+      assert np.all(np.abs(o.anchor[:2]) <= p.lateral_extent + 1e-9)
+    r = scene.objects[-1].radius
+    traj = scene.trajectory
+    assert np.all(traj[:, 2] - r >= p.depth_range[0] - 1e-9)
+    assert np.all(traj[:, 2] + r <= p.depth_range[1] + 1e-9)
+    assert np.all(np.abs(traj[:, :2]) <= p.lateral_extent + 1e-9)
+    seen.update(o.kind for o in scene.objects)
+    seen.update(o.texture["name"] for o in scene.objects)
+  assert set(scenes.KINDS) <= seen and set(scenes.TEXTURES) <= seen
+
+
+def test_rasterized_maps_have_documented_ranges_and_dtypes():
+  scene = scenes.make_scene(5, num_frames=3, setup=SETUP)
+  out = scenes.rasterize(scene, SETUP, supersample=2)
+  assert out.intensity.shape == (3, 41, 41) and out.intensity.dtype == np.float32
+  assert out.intensity.min() >= 0 and np.allclose(out.intensity.max((1, 2)), 1.0)
+  fg = out.depth != scenes.BACKGROUND_DEPTH
+  assert np.all(out.intensity[~fg] == 0)
+  assert out.depth[fg].min() >= 0.5 - 1e-6 and out.depth[fg].max() <= 1.5 + 1e-6
+
+
+def test_bad_parameters_name_the_argument():
+  with pytest.raises(ValueError, match="kinds"):
+    SceneParams(kinds=("cube",))
+  with pytest.raises(ValueError, match="size_range"):
+    SceneParams(size_range=(0.5, 2.0))
+  with pytest.raises(ValueError, match="depth_range"):
+    SceneParams(depth_range=(1.0, 0.5))
+  with pytest.raises(ValueError, match="unknown scene parameter"):
+    SceneParams.from_dict({"colour": 1})
+  with pytest.raises(ValueError, match="maximum depth"):
+    scenes.make_scene(0, SceneParams(depth_range=(0.5, 3.0), size_range=(0.2, 0.4)), 2, setup=SETUP)
+  with pytest.raises(ValueError, match="num_frames"):
+    scenes.make_scene(0, num_frames=0)
+  with pytest.raises(ValueError, match="frames"):
+    scenes.rasterize(scenes.make_scene(0, num_frames=2), SETUP, frames=[2])
+  assert SceneParams.from_dict(SceneParams().to_dict()) == SceneParams()
