@@ -1,0 +1,19 @@
+"""Selective state-space models (Mamba v1): scan kernels and a Flax mixer.
+
+Public API::
+
+    selective_scan       h_t = exp(dt_t A) h_{t-1} + dt_t B_t x_t,  y_t = <C_t, h_t> + D x_t
+                         methods "associative" | "sequential" | "chunked" | "auto"
+    bidirectional_scan   forward + reverse scans of one sequence, combined as Vision Mamba does
+    resolve_method       the method "auto" picks for a shape and backend
+    MambaMixer           Flax linen Mamba v1 mixer, direction "causal" | "bidirectional"
+    mamba_dt_bias_init, s4d_real_a_log_init   Mamba's initialisers
+"""
+
+from nlosjax.ssm.mamba import MambaMixer, mamba_dt_bias_init, s4d_real_a_log_init
+from nlosjax.ssm.scan import METHODS, bidirectional_scan, resolve_method, selective_scan
+
+__all__ = [
+    "selective_scan", "bidirectional_scan", "resolve_method", "METHODS", "MambaMixer",
+    "mamba_dt_bias_init", "s4d_real_a_log_init",
+]
