@@ -25,11 +25,12 @@ def check_counts(x, name: str) -> None:
   """Raise ValueError if concrete ``x`` holds NaN, inf or negative values."""
   if not is_concrete(x):
     return
-  arr = jnp.asarray(x)
-  if not (jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.integer)):
+  arr = np.asarray(x)      # host-side: safe while another function is being traced
+  if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+          or arr.dtype == jnp.bfloat16):
     raise ValueError(f"{name} must be a real array of counts, got dtype {arr.dtype}")
-  bad_nan, bad_neg = (bool(v) for v in jax.device_get(
-      (jnp.any(~jnp.isfinite(arr)), jnp.any(arr < 0))))
+  bad_nan = not bool(np.all(np.isfinite(arr)))
+  bad_neg = bool(np.any(arr < 0))
   if bad_nan:
     raise ValueError(f"{name} holds NaN or infinite values")
   if bad_neg:

@@ -1,0 +1,258 @@
+"""Benchmark the ST-Mamba network: one training step (forward + backward) per config.
+
+    python -m benchmarks.model [--configs cpu paper] [--frames 3] [--batch 1] [--repeats 1]
+                               [--time-limit 600] [--out benchmarks/results/model.md]
+
+For every config (``cpu`` = :meth:`ModelConfig.cpu`, ``paper`` =
+:meth:`ModelConfig.paper`: 16 x 16 x 512 in, 128 x 128 out), in a fresh
+child process:
+
+* parameters and FLOPs per frame from :func:`nlosjax.models.model_summary`
+  (``jax.eval_shape`` and XLA's cost analysis of the lowered program, plus the
+  FFT and scan estimates it documents; nothing allocated);
+* the parameters are initialised on a *small* Setup with the same
+  architecture (parameter shapes do not depend on the Setup; the benchmark
+  checks the tree against ``eval_shape`` at the target Setup), so no
+  paper-sized forward pass runs just to initialise;
+* ``step = jax.jit(value_and_grad(loss))`` with ``loss`` the sum of the mean
+  squares of the four outputs (every layer gets a gradient): compile time
+  (``.lower(...).compile()``), XLA's planned memory (``memory_analysis``:
+  temp + arguments + outputs; constants such as the physics operators are not
+  counted), the first call and the median of ``--repeats`` more calls, each
+  ended by ``block_until_ready``; the process's peak resident memory
+  (``ru_maxrss``, compile included);
+* with ``--forward``, the same for the forward pass alone.
+
+Input: Poisson counts (rate 0.05 per bin, a low photon budget). A case that
+runs out of its ``--time-limit`` is recorded as a timeout. The Markdown
+table goes to ``--out``; the machine (CPU model and cores, memory, JAX
+backend and device) and the load average before and after are recorded with it,
+since the machine may be shared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import multiprocessing
+import os
+import pathlib
+import platform
+import resource
+import statistics
+import sys
+import time
+import traceback
+
+DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "model.md"
+GIB = 1024.0 ** 3
+
+
+def _config(name: str, frames: int):
+  from nlosjax.models import ModelConfig
+  if name == "cpu":
+    return ModelConfig.cpu(frames=frames)
+  if name == "paper":
+    return ModelConfig.paper(frames=frames)
+  raise ValueError(f"unknown config {name!r}; choose cpu or paper")
+
+
+def _small_setup(cfg):
+  """A small Setup with the same architecture (same stride, same time strides)."""
+  from nlosjax.physics import Setup
+  n = max(2 * cfg.stride, 8)
+  return Setup(wall_size=cfg.setup.wall_size, grid=(n, n), bin_width=cfg.setup.bin_width,
+               num_bins=64)
+
+
+def _timed(fn, *args, repeats: int):
+  import jax
+  t = time.perf_counter()
+  jax.block_until_ready(fn(*args))
+  first = time.perf_counter() - t
+  runs = []
+  for _ in range(repeats):
+    t = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    runs.append(time.perf_counter() - t)
+  return first, (statistics.median(runs) if runs else float("nan"))
+
+
+def run_case(name: str, frames: int, batch: int, repeats: int, forward: bool) -> dict:
+  """One config in this process; returns the measured numbers."""
+  import jax
+  import jax.numpy as jnp
+  from nlosjax.models import STMambaNet, model_summary
+
+  cfg = _config(name, frames)
+  out = {"config": name, "frames": frames, "batch": batch,
+         "input": cfg.input_shape(batch), "grid": cfg.setup.grid, "bins": cfg.setup.num_bins}
+  t = time.perf_counter()
+  summary = model_summary(cfg)
+  out.update(params=summary["params"], gflop=summary["flops"] / 1e9,
+             summary_s=time.perf_counter() - t)
+
+  small = cfg.with_setup(_small_setup(cfg))
+  key = jax.random.key(0)
+  xs = jnp.zeros(small.input_shape(1), jnp.float32)
+  params = jax.jit(STMambaNet(small).init)(key, xs)["params"]
+  model = STMambaNet(cfg)
+  x = jax.random.poisson(jax.random.key(1), 0.05, cfg.input_shape(batch)).astype(jnp.float32)
+  expected = jax.eval_shape(model.init, key, x)["params"]
+  if jax.tree.structure(expected) != jax.tree.structure(params) or jax.tree.leaves(
+      jax.tree.map(lambda a, b: a.shape != b.shape, expected, params)).count(True):
+    raise RuntimeError("parameter tree differs between Setups")
+
+  def loss(p):
+    o = model.apply({"params": p}, x)
+    return sum(jnp.mean(jnp.square(o[k])) for k in ("transient", "volume", "intensity", "depth"))
+
+  step = jax.jit(jax.value_and_grad(loss))
+  t = time.perf_counter()
+  compiled = step.lower(params).compile()
+  out["compile_s"] = time.perf_counter() - t
+  mem = compiled.memory_analysis()
+  out["xla_gib"] = (mem.temp_size_in_bytes + mem.argument_size_in_bytes
+                    + mem.output_size_in_bytes) / GIB if mem is not None else float("nan")
+  out["first_s"], out["step_s"] = _timed(compiled, params, repeats=repeats)
+  value, grads = compiled(params)
+  out["finite"] = bool(jnp.isfinite(value)) and all(
+      bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(grads))
+  if forward:
+    fwd = jax.jit(lambda p: model.apply({"params": p}, x))
+    t = time.perf_counter()
+    fc = fwd.lower(params).compile()
+    out["fwd_compile_s"] = time.perf_counter() - t
+    out["fwd_first_s"], out["fwd_s"] = _timed(fc, params, repeats=repeats)
+  out["max_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GIB
+  return out
+
+
+def _child(queue, *args):
+  try:
+    queue.put(("ok", run_case(*args)))
+  except BaseException:  # noqa: BLE001 (report anything, including MemoryError)
+    queue.put(("error", traceback.format_exc(limit=4)))
+
+
+def run_isolated(name, frames, batch, repeats, forward, time_limit) -> dict:
+  ctx = multiprocessing.get_context("spawn")
+  queue = ctx.Queue()
+  proc = ctx.Process(target=_child, args=(queue, name, frames, batch, repeats, forward))
+  t = time.perf_counter()
+  proc.start()
+  proc.join(time_limit)
+  wall = time.perf_counter() - t
+  if proc.is_alive():
+    proc.kill()
+    proc.join()
+    return {"config": name, "frames": frames, "batch": batch, "status": f"timeout after {wall:.0f} s"}
+  if queue.empty():
+    return {"config": name, "frames": frames, "batch": batch,
+            "status": f"child died (exit code {proc.exitcode}; out of memory?)"}
+  status, value = queue.get()
+  if status != "ok":
+    return {"config": name, "frames": frames, "batch": batch, "status": "error: " + value}
+  value["status"] = "ok"
+  value["wall_s"] = wall
+  return value
+
+
+def machine() -> dict:
+  import jax
+  cpu = platform.processor() or platform.machine()
+  try:
+    with open("/proc/cpuinfo") as f:
+      for line in f:
+        if line.startswith("model name"):
+          cpu = line.split(":", 1)[1].strip()
+          break
+  except OSError:
+    pass
+  try:
+    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / GIB
+  except (ValueError, OSError):
+    mem = float("nan")
+  dev = jax.devices()[0]
+  return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "mem_gib": mem,
+          "backend": jax.default_backend(), "device": getattr(dev, "device_kind", str(dev)),
+          "versions": f"Python {platform.python_version()}, jax {jax.__version__}"}
+
+
+def _fmt(v, spec=".2f"):
+  if isinstance(v, float):
+    return format(v, spec)
+  return str(v)
+
+
+def to_markdown(rows, info, cmd, load_before, load_after) -> str:
+  lines = [
+      "# ST-Mamba network: one training step (forward + backward)",
+      "",
+      f"Produced by `{cmd}`.",
+      "",
+      f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
+      f"- Machine: {info['cpu']}; {info['cores']} usable cores; memory {info['mem_gib']:.1f} GiB;"
+      f" JAX backend {info['backend']} ({info['device']})",
+      f"- Versions: {info['versions']}",
+      f"- Load average (1, 5, 15 min) before: {load_before}; after: {load_after}. The machine was"
+      " shared with other jobs while this ran, so times are upper bounds for an idle machine.",
+      "",
+      "Columns: params and GFLOP/frame (forward, one frame = one reconstructed middle frame)"
+      " from `model_summary`; compile = `jit(value_and_grad(loss)).lower().compile()`; first"
+      " step = first call; step = median of the repeats; XLA GiB = temp + argument + output"
+      " bytes planned by XLA (constants not counted); max RSS = peak resident memory of the"
+      " child process, compile included.",
+      "",
+      "| config | frames | input [B,F,T,h,w] | output grid x bins | params | GFLOP/frame |"
+      " compile s | first step s | step s | XLA GiB | max RSS GiB | grads finite | status |",
+      "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+  ]
+  for r in rows:
+    if r.get("status") != "ok":
+      lines.append(f"| {r['config']} | {r['frames']} | | | | | | | | | | | {r['status']} |")
+      continue
+    lines.append(
+        f"| {r['config']} | {r['frames']} | {list(r['input'])} | {r['grid'][0]}x{r['grid'][1]}"
+        f" x {r['bins']} | {r['params']:,} | {r['gflop']:.1f} | {r['compile_s']:.1f} |"
+        f" {r['first_s']:.1f} | {_fmt(r['step_s'], '.1f')} | {r['xla_gib']:.2f} |"
+        f" {r['max_rss_gib']:.2f} | {r['finite']} | ok |")
+  fwd = [r for r in rows if r.get("status") == "ok" and "fwd_s" in r]
+  if fwd:
+    lines += ["", "Forward pass alone:", "",
+              "| config | frames | compile s | first call s | call s |", "|---|---|---|---|---|"]
+    for r in fwd:
+      lines.append(f"| {r['config']} | {r['frames']} | {r['fwd_compile_s']:.1f} |"
+                   f" {r['fwd_first_s']:.1f} | {_fmt(r['fwd_s'], '.1f')} |")
+  return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--configs", nargs="+", default=["cpu", "paper"], choices=["cpu", "paper"])
+  p.add_argument("--frames", type=int, nargs="+", default=[3])
+  p.add_argument("--batch", type=int, default=1)
+  p.add_argument("--repeats", type=int, default=1)
+  p.add_argument("--forward", action="store_true", help="also time the forward pass alone")
+  p.add_argument("--time-limit", type=float, default=600.0, help="seconds per case")
+  p.add_argument("--out", type=pathlib.Path, default=DEFAULT_OUT)
+  p.add_argument("--no-write", action="store_true", help="print only")
+  args = p.parse_args(argv)
+  load_before = tuple(round(v, 2) for v in os.getloadavg())
+  rows = []
+  for name in args.configs:
+    for frames in args.frames:
+      r = run_isolated(name, frames, args.batch, args.repeats, args.forward, args.time_limit)
+      print({k: v for k, v in r.items()}, flush=True)
+      rows.append(r)
+  load_after = tuple(round(v, 2) for v in os.getloadavg())
+  cmd = "python -m benchmarks.model " + " ".join(argv if argv is not None else sys.argv[1:])
+  text = to_markdown(rows, machine(), cmd.strip(), load_before, load_after)
+  print(text)
+  if not args.no_write:
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+
+
+if __name__ == "__main__":
+  main()
