@@ -8,7 +8,7 @@ Reads the ``data`` section of the preset (``experiments/configs``), applies the
 flags, and calls :func:`nlosjax.data.dataset.write_dataset` (progress bar,
 crash-safe: it writes ``FILE.partial`` and renames it when done; rerunning
 after a crash resumes it). An existing ``FILE`` is kept unless ``--overwrite``.
-The layout is documented in ``nlosjax/data/README_dataset.md``.
+The layout is documented in the README (section "Dynamic NLOS dataset").
 """
 
 from __future__ import annotations

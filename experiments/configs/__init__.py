@@ -8,7 +8,7 @@ point as input, 512 bins of 33 ps, 32 frames, 265 sequences).
 
 The ``data`` section is read by :meth:`nlosjax.data.dataset.DatasetSpec.from_config`
 (generation) and by the loaders (``input_stride``, ``input_offset``,
-``loader``, ``path``); see ``nlosjax/data/README_dataset.md``.
+``loader``, ``path``); see the README (section "Dynamic NLOS dataset").
 """
 
 from __future__ import annotations
