@@ -194,8 +194,9 @@ def render(results, info, cmd, repeats, chunk_size, load_start, load_end) -> str
       best_b = min(concrete, key=lambda m: rows[(m, "fwd+bwd")]["run_s"])
       rf = rows[(best_f, "fwd")]["run_s"] / floor
       rb = rows[(best_b, "fwd+bwd")]["run_s"] / floor
-      g = (f"- {name}: best forward {best_f} {rf:.2f}x floor ({'met' if rf <= GOAL_FWD else 'NOT met'}, "
-           f"goal <= {GOAL_FWD}x); best fwd+bwd {best_b} {rb:.2f}x ({'met' if rb <= GOAL_FWDBWD else 'NOT met'}, "
+      met = lambda ok: "met" if ok else "NOT met"
+      g = (f"- {name}: best forward {best_f} {rf:.2f}x floor ({met(rf <= GOAL_FWD)}, "
+           f"goal <= {GOAL_FWD}x); best fwd+bwd {best_b} {rb:.2f}x ({met(rb <= GOAL_FWDBWD)}, "
            f"goal <= {GOAL_FWDBWD}x)")
       if auto_as in concrete:
         # "auto" traces to exactly the program of the method it resolves to, so the
@@ -204,7 +205,7 @@ def render(results, info, cmd, repeats, chunk_size, load_start, load_end) -> str
         ab = rows[(auto_as, "fwd+bwd")]["run_s"] / rows[(best_b, "fwd+bwd")]["run_s"]
         ok = af <= GOAL_AUTO and ab <= GOAL_AUTO
         g += (f"; auto -> {auto_as}: {af:.2f}x the best forward, {ab:.2f}x the best fwd+bwd "
-              f"({'met' if ok else 'NOT met'}, goal <= {GOAL_AUTO})")
+              f"({met(ok)}, goal <= {GOAL_AUTO})")
       goals.append(g)
   lines += ["", "Goals (issue 3):", ""] + goals + [""]
   return "\n".join(lines)

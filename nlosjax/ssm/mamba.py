@@ -51,7 +51,10 @@ CONVS = ("directional", "centered")
 
 
 def torch_default_init(scale: float = 1.0):
-  """PyTorch's Linear/Conv default ``U(+-1/sqrt(fan_in))``, times ``scale``; Flax kernels ``[..., in, out]``."""
+  """PyTorch's Linear/Conv default ``U(+-1/sqrt(fan_in))`` times ``scale``.
+
+  For Flax kernels ``[..., in, out]`` (fan_in from the input axis).
+  """
   return nn.initializers.variance_scaling(scale ** 2 / 3.0, "fan_in", "uniform")
 
 

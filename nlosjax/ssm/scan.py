@@ -138,8 +138,8 @@ def resolve_method(method: str, *, length: int, channels: int, state: int, batch
   Rule (measured in ``benchmarks/results/scan.md``, 2-core AMD EPYC, XLA:CPU):
   on CPU "sequential" at every shape. It was the fastest method forward and
   forward+backward at all three issue shapes (``(256, 512, 32, 16)``,
-  ``(64, 128, 16, 16)``, ``(512, 256, 32, 16)``): forward 1.4-2x the exp floor
-  against 13-27x for "chunked" and "associative", and 3-12x less time for
+  ``(64, 128, 16, 16)``, ``(512, 256, 32, 16)``): forward 1.3-3.5x the exp floor
+  against 10-35x for "chunked" and "associative", and 2.6-11x less time for
   forward+backward, with the least memory. The associative scan does about twice
   the work and writes ``[L, ..., N, Dch]`` arrays at every level; the per-step
   cost of ``lax.scan`` on CPU is a few microseconds, negligible next to the
@@ -171,7 +171,10 @@ def _combine(left, right):
 # passed transposed, At = A.T [N, Dch]: the contraction over N is then a sum of
 # whole channel vectors, which XLA:CPU vectorises (2x faster than N minor).
 def _discretize(x, dt, At, B):
-  """``a = exp(dt A)``, ``b = dt x B``: ``[..., N, Dch]`` from ``x, dt`` ``[..., Dch]``, ``B`` ``[..., N]``."""
+  """``a = exp(dt A)``, ``b = dt x B``, ``[..., N, Dch]`` each.
+
+  ``x, dt`` ``[..., Dch]``; ``At`` ``[N, Dch]``; ``B`` ``[..., N]``.
+  """
   a = jnp.exp(dt[..., None, :] * At)
   b = (dt * x)[..., None, :] * B[..., :, None]
   return a, b
