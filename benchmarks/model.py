@@ -185,6 +185,39 @@ def _fmt(v, spec=".2f"):
   return str(v)
 
 
+NOTES = """
+## What is measured, and how the model departs from the paper
+
+- Shapes: `paper` = 3 frames of 16 x 16 scan points x 512 bins of 33 ps (stride 8 from a
+  128 x 128 scan of a 2 m wall) -> transient 128 x 128 x 512, volume 512 x 128 x 128,
+  intensity and depth 128 x 128. `cpu` = 8 x 8 x 128 (64 ps, 1 m wall, stride 4) -> 32 x 32.
+- Widths are ours (the paper gives none): see `ModelConfig.paper` / `ModelConfig.cpu`.
+- 3-D convolutions run as 2-D convolutions of time-folded channels (`Conv3D`): the same
+  sums; XLA:CPU's 3-D convolution was 2.5-6x slower here, forward and backward.
+- The stride-2 3-D transposed convolutions of the transient spreading are sub-pixel
+  convolutions (`Upsample3D`: conv to 8x the channels, then depth-to-space), a family that
+  contains them; with XLA:CPU's transposed 3-D convolutions the spreading stage took 4.1 s
+  instead of 0.03 s (forward, batch 2, `cpu` shapes, shared machine).
+- "Interleaved extraction" is read as a lossless polyphase time downsampling (r consecutive
+  bins -> channels) then interlaced blocks; "interlaced" residual blocks are parallel 3x3x3
+  convolutions with temporal dilations 1, 2, 4, channels interlaced and fused by a 1x1x1 conv.
+- The recovered transient adds the measured frame interpolated bilinearly from its scan
+  points (a learned gain) to the learned residual; the volume adds the normalised physics
+  reconstruction of the recovered transient (feature channel 0) to the refinement output.
+- The physics layer is `nlosjax.physics`' phasor-field pipeline (operators from
+  `lct_operators`, wavelet from `illumination_wavelet`, oversample 1) applied per feature
+  channel at half the time resolution; it gates time and crops depth to a Setup's depth range.
+- Intensity = max-projection normalised per image; depth = soft-argmax along depth of each
+  column normalised by its maximum (temperature 0.05), blended to 0 m where the intensity is
+  below 0.1 through a sigmoid of width 0.02: differentiable everywhere.
+- Counts are divided by their per-sample root mean square (guarded; outputs report it as
+  `scale`), so a 30x photon budget gives the same reconstruction.
+- The cross ST-Mamba averages the two branches before the shared gate (Vision Mamba's
+  halving); the aligned features of the t-1 and t+1 blocks (own weights) are averaged and
+  added to the target features.
+"""
+
+
 def to_markdown(rows, info, cmd, load_before, load_after) -> str:
   lines = [
       "# ST-Mamba network: one training step (forward + backward)",
@@ -224,7 +257,7 @@ def to_markdown(rows, info, cmd, load_before, load_after) -> str:
     for r in fwd:
       lines.append(f"| {r['config']} | {r['frames']} | {r['fwd_compile_s']:.1f} |"
                    f" {r['fwd_first_s']:.1f} | {_fmt(r['fwd_s'], '.1f')} |")
-  return "\n".join(lines) + "\n"
+  return "\n".join(lines) + "\n" + NOTES
 
 
 def main(argv=None):

@@ -9,8 +9,8 @@ computes in float32 / complex64.
 Every 3-D convolution is a :class:`Conv3D` (computed as a 2-D convolution of
 time-folded channels: the same sums, several times faster on XLA:CPU).
 
-Blocks (our reading of the paper where it is silent; each choice is listed in
-``benchmarks/results/model.md`` and the report of issue 5):
+Blocks (our reading of the paper where it is silent; the choices are also listed
+in ``benchmarks/results/model.md``):
 
 * :class:`ResBlock3D` -- two 3x3x3 convs, LeakyReLU(0.2), a residual
   connection (USM's ``ResConv3D``); optionally strided in time, the shortcut
@@ -365,12 +365,13 @@ class TransientSpreading(nn.Module):
       raise ValueError(f"features {features.shape} do not match skip {skip.shape} at time stride"
                        f" {self.time_stride}")
     kw = dict(dtype=self.dtype, param_dtype=self.param_dtype)
+    up = maybe_remat(Upsample3D, self.remat)
     y = features.astype(self.dtype)
     c = features.shape[-1]
     for i in range(max(n_s, n_t)):
       st = (2 if i < n_t else 1, 2 if i < n_s else 1, 2 if i < n_s else 1)
       c = max(c // 2, self.min_width)
-      y = leaky_relu(Upsample3D(c, st, name=f"up{i}", **kw)(y))
+      y = leaky_relu(up(c, st, name=f"up{i}", **kw)(y))
     y = _conv(1, (1, 1, 1), name="to_transient", **kw)(y)[..., 0].astype(jnp.float32)
     y = y[:, :tw]
     if y.shape[2:] != (H, W):

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
 
 import flax.linen as nn
 import jax
@@ -194,11 +193,15 @@ class ModelConfig:
 
     Widths are ours (the paper gives none): C = 32, N = 16, two ST-Mamba
     blocks, one cross block per neighbour, extraction time stride 4,
-    phasor physics at time stride 2 with 4 feature channels.
+    phasor physics at time stride 2 with 4 feature channels, refinement
+    width 4 (8 needs ~3 GiB more in the backward pass at 128 x 128 x 256,
+    which breaks the 16 GiB CPU budget), rematerialisation on, the physics
+    layer one channel at a time: one forward + backward pass fits in 16 GiB
+    on CPU (``benchmarks/results/model.md``).
     """
     setup = setup or Setup(wall_size=2.0, grid=(128, 128), bin_width=33e-12, num_bins=512)
     kw = dict(stride=8, frames=3, width=32, extract_time_stride=4, st_depth=2, cross_depth=1,
-              d_state=16, volume_time_stride=2, volume_features=4, refine_width=8,
+              d_state=16, volume_time_stride=2, volume_features=4, refine_width=4,
               physics_chunk=1, remat=True)
     kw.update(overrides)
     return cls(setup=setup, **kw)
@@ -362,7 +365,6 @@ class STMambaNet(nn.Module):
     cfg.check_frames(frames)
     _validate.check_counts(frames, "frames")
     B, F, T, h, w = frames.shape
-    H, W = cfg.setup.grid
     dtype = cfg.activation_dtype
     a, b = cfg.time_window
     x = jnp.asarray(frames, jnp.float32)[:, :, a:b]              # [B, F, Tw, h, w]
