@@ -88,7 +88,7 @@ def test_config_derives_shapes_from_the_setup():
 @pytest.mark.parametrize("kw, setup", [
     (dict(frames=3), TINY),
     (dict(frames=1), TINY),
-    (dict(frames=3, variant="s"), TINY),
+    (dict(frames=3, variant="s", remat=True, physics_chunk=1), TINY),
     (dict(frames=1, variant="tt", temporal_causal=False), TINY),
     (dict(frames=3, variant="ss", physics="lct", dtype="bfloat16"), TINY),
     (dict(frames=1, stride=4, volume_time_stride=1, extract_time_stride=4), TINY),
