@@ -123,7 +123,7 @@ def create_train_state(model: nn.Module, input_shape: tuple[int, ...], tx, key: 
 
 
 # ------------------------------------------------------------------ step
-def make_targets(outputs: dict, batch: dict, time_window: tuple[int, int]) -> dict:
+def make_targets(batch: dict, time_window: tuple[int, int]) -> dict:
   """Loss targets in the model's units.
 
   The model predicts the transient's shape, not its photon scale (which
@@ -157,7 +157,7 @@ def train_step(state: TrainState, batch: dict, key: jax.Array, *, weights: losse
 
   def loss_fn(params):
     out = state.apply_fn({"params": params}, batch["measurement"])
-    targets = make_targets(out, batch, time_window)
+    targets = make_targets(batch, time_window)
     return losses.total_loss(out, targets, weights, wavelet)
 
   (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
@@ -503,7 +503,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *,
   return mcfg, state
 
 
-def evaluate_model(mcfg, params, loader, *, batch_size: int) -> dict:
+def evaluate_model(mcfg, params, loader) -> dict:
   """Per-frame images of a trained model on a loader's examples (in order).
 
   Returns ``{"intensity": [N, H, W], "depth": [N, H, W]}`` NumPy.
@@ -518,7 +518,6 @@ def evaluate_model(mcfg, params, loader, *, batch_size: int) -> dict:
     out = apply(params, jnp.asarray(x))
     inten.append(np.asarray(out["intensity"]))
     depth.append(np.asarray(out["depth"]))
-  del batch_size
   return {"intensity": np.concatenate(inten), "depth": np.concatenate(depth)}
 
 
@@ -555,7 +554,7 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
       out_d.append(d)
     images[method] = {"intensity": np.concatenate(out_i), "depth": np.concatenate(out_d)}
   for variant, (mcfg, params) in trained.items():
-    images[variant] = evaluate_model(mcfg, params, loader, batch_size=batch_size)
+    images[variant] = evaluate_model(mcfg, params, loader)
   for method, im in images.items():
     if method != "gt":
       table[method] = summarise(image_metrics(im["intensity"], im["depth"], gt["intensity"],

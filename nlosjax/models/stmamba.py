@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 
 from nlosjax.ssm import mamba_dt_bias_init, s4d_real_a_log_init, selective_scan
-from nlosjax.ssm.mamba import depthwise_conv, torch_default_init
+from nlosjax.ssm.mamba import depthwise_conv, resolve_dt_rank, torch_default_init
 
 MIXERS = ("temporal", "spatial")
 VARIANTS = {
@@ -195,7 +195,7 @@ class _BlockBase(nn.Module):
 
   @property
   def rank(self) -> int:
-    return math.ceil(self.d_model / 16) if self.dt_rank == "auto" else int(self.dt_rank)
+    return resolve_dt_rank(self.d_model, self.dt_rank)
 
   def _check(self, x, name: str):
     if x.ndim != 5 or x.shape[-1] != self.d_model:

@@ -50,6 +50,11 @@ DIRECTIONS = ("causal", "bidirectional")
 CONVS = ("directional", "centered")
 
 
+def resolve_dt_rank(d_model: int, dt_rank: int | str) -> int:
+  """Mamba's dt rank: ``ceil(d_model / 16)`` for ``"auto"``, else ``int(dt_rank)``."""
+  return math.ceil(d_model / 16) if dt_rank == "auto" else int(dt_rank)
+
+
 def torch_default_init(scale: float = 1.0):
   """PyTorch's Linear/Conv default ``U(+-1/sqrt(fan_in))`` times ``scale``.
 
@@ -178,7 +183,7 @@ class MambaMixer(nn.Module):
 
   @property
   def rank(self) -> int:
-    return math.ceil(self.d_model / 16) if self.dt_rank == "auto" else int(self.dt_rank)
+    return resolve_dt_rank(self.d_model, self.dt_rank)
 
   def _check(self, u):
     if self.direction not in DIRECTIONS:
