@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import json
 import math
 import pathlib
@@ -440,6 +441,30 @@ def _read_jsonl(path: pathlib.Path) -> list[dict]:
   return rows
 
 
+def param_fingerprint(params) -> str:
+  """A short hash of the parameter tree's paths, shapes and dtypes (not the values).
+
+  Changes when the model code renames or reshapes a layer even though its
+  config did not change, so such a checkpoint is refused by name.
+  """
+  leaves = jax.tree_util.tree_flatten_with_path(params)[0]
+  desc = ";".join(f"{jax.tree_util.keystr(path)}:{tuple(x.shape)}:{jnp.dtype(x.dtype).name}"
+                  for path, x in leaves)
+  return hashlib.sha256(desc.encode()).hexdigest()[:16]
+
+
+def run_signature(mcfg, params, optim: OptimConfig, weights: losses.LossWeights, batch_size: int,
+                  seed: int) -> str:
+  """What a checkpoint must have been trained with to be resumed or restored.
+
+  The model config, the parameter tree (:func:`param_fingerprint`), the
+  optimiser, the loss weights, the batch size and the seed, as sorted JSON.
+  """
+  return json.dumps({"model": repr(mcfg), "params": param_fingerprint(params),
+                     "optim": dataclasses.asdict(optim), "loss": dataclasses.asdict(weights),
+                     "batch_size": int(batch_size), "seed": int(seed)}, sort_keys=True)
+
+
 def train_model(config: dict, data_path, workdir, variant: str, *,
                 log: Callable[[str], None] = print) -> tuple[Any, TrainState]:
   """Train one variant (``"ours"`` or ``"ours_s"``), resuming from ``workdir/<variant>``.
@@ -464,9 +489,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *,
   del key
   shape = (batch_size, mcfg.frames, loader.setup.num_bins) + tuple(loader.input_shape[-2:])
   state = create_train_state(model, shape, make_optimizer(optim, steps), init_key, mesh)
-  signature = json.dumps({"model": repr(mcfg), "optim": dataclasses.asdict(optim),
-                          "loss": dataclasses.asdict(weights), "batch_size": batch_size,
-                          "seed": seed}, sort_keys=True)
+  signature = run_signature(mcfg, state.params, optim, weights, batch_size, seed)
   ckpt = Checkpointer(vdir / "checkpoints", signature, every=int(tr.get("checkpoint_every", 50)),
                       keep=int(tr.get("keep_checkpoints", 2)))
   start = 0
@@ -503,6 +526,86 @@ def train_model(config: dict, data_path, workdir, variant: str, *,
   return mcfg, state
 
 
+def find_runs(path) -> tuple[pathlib.Path, dict[str, pathlib.Path]]:
+  """Locate a trained run: ``(workdir, variant -> variant folder)``.
+
+  ``path`` may be a main-job workdir (``config.json`` plus ``ours``/``ours_s``
+  folders), one variant's folder (``workdir/ours``), or its ``checkpoints``
+  folder; the last two select that variant only.
+
+  Raises:
+    ValueError: naming ``path`` when no ``config.json`` or no checkpoint is found.
+  """
+  path = pathlib.Path(path).absolute()
+  if not path.is_dir():
+    raise ValueError(f"--checkpoint {path}: no such folder")
+  if path.name == "checkpoints":
+    path = path.parent
+  if (path / "config.json").is_file():
+    workdir = path
+    candidates = {v: path / v for v in VARIANT_FRAMES}
+  elif path.name in VARIANT_FRAMES and (path.parent / "config.json").is_file():
+    workdir = path.parent
+    candidates = {path.name: path}
+  else:
+    raise ValueError(f"{path}: not a training run: expected a workdir holding config.json (as"
+                     " written by python -m experiments.train) or one of its variant folders"
+                     f" {tuple(VARIANT_FRAMES)}")
+  runs = {v: d for v, d in candidates.items() if (d / "checkpoints").is_dir()
+          and any(c.name.isdigit() for c in (d / "checkpoints").iterdir())}
+  if not runs:
+    raise ValueError(f"{path}: no checkpoint found under {sorted(str(d) for d in candidates.values())}")
+  return workdir, runs
+
+
+def load_trained(path, *, setup=None, log: Callable[[str], None] = print) -> tuple[dict, dict]:
+  """Restore the latest parameters of a trained run (see :func:`find_runs` for ``path``).
+
+  The model is rebuilt from the run's ``config.json`` exactly as it was
+  trained (the checkpoint's recorded signature must match), then moved to
+  ``setup`` when one is given (:meth:`ModelConfig.with_setup`: the same
+  parameters, the physics layer rebuilt for that capture).
+
+  Returns:
+    ``(config, trained)``: the run's config dict and ``variant -> (model_config,
+    params)``.
+  Raises:
+    ValueError: no run at ``path``, a checkpoint written by another config,
+      or an unreadable checkpoint (named).
+  """
+  from nlosjax.data.dataset import DatasetSpec
+  from nlosjax.models.network import STMambaNet
+  workdir, runs = find_runs(path)
+  try:
+    config = with_defaults(json.loads((workdir / "config.json").read_text()))
+    train_setup = DatasetSpec.from_config(config["data"]).setup
+  except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+    raise ValueError(f"{workdir / 'config.json'}: not a usable run config ({e})") from None
+  tr = config["train"]
+  optim = OptimConfig(**tr.get("optim", {}))
+  weights = losses.LossWeights(**tr.get("loss", {}))
+  trained = {}
+  for variant, vdir in runs.items():
+    mcfg = model_config_for(config, train_setup, variant)
+    shape = (int(tr["batch_size"]),) + mcfg.input_shape()[1:]
+    state = create_train_state(STMambaNet(mcfg), shape, make_optimizer(optim, int(tr["steps"])),
+                               jax.random.key(0))
+    ckpt = Checkpointer(vdir / "checkpoints",
+                        run_signature(mcfg, state.params, optim, weights, int(tr["batch_size"]),
+                                      int(tr.get("seed", 0))),
+                        every=1)
+    restored = ckpt.restore_latest(state)
+    ckpt.close()
+    if restored is None:
+      raise ValueError(f"{vdir / 'checkpoints'}: no checkpoint to restore")
+    state, _ = restored
+    log(f"[{variant}] restored step {int(state.step)} from {vdir / 'checkpoints'}")
+    if setup is not None and setup != mcfg.setup:
+      mcfg = mcfg.with_setup(setup)
+    trained[variant] = (mcfg, state.params)
+  return config, trained
+
+
 def evaluate_model(mcfg, params, loader) -> dict:
   """Per-frame images of a trained model on a loader's examples (in order).
 
@@ -522,6 +625,7 @@ def evaluate_model(mcfg, params, loader) -> dict:
 
 
 def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
+             methods: tuple[str, ...] = CLASSIC_METHODS,
              log: Callable[[str], None] = print) -> tuple[dict, dict]:
   """Table 1 on ``split``: classic methods (under-scanned input interpolated) and trained models.
 
@@ -529,6 +633,7 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
     config: the run config.
     data_path: an HDF5 file in the documented layout.
     trained: ``variant -> (model_config, params)``.
+    methods: the classic methods to include.
   Returns:
     ``(table, images)``: ``method -> metric -> [mean, std]`` and
     ``method -> {"intensity", "depth"}`` arrays ``[N, H, W]`` (plus ``"gt"``).
@@ -546,7 +651,7 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
   mid = np.concatenate(mid)
   images = {"gt": gt}
   table = {}
-  for method in tqdm(CLASSIC_METHODS, desc="classic methods", unit="method"):
+  for method in tqdm(methods, desc="classic methods", unit="method"):
     out_i, out_d = [], []
     for s in range(0, len(mid), batch_size):
       i, d = classic_images(mid[s:s + batch_size], loader.setup, loader.stride, method)

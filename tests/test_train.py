@@ -51,6 +51,48 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
   rows = [json.loads(l) for l in (tmp_path / "ours" / "metrics.jsonl").read_text().splitlines()]
   assert [r["step"] for r in rows] == [1, 2]
   assert all(np.isfinite(r["loss"]) for r in rows)
+  # The evaluate CLI restores the same checkpoints from disk and reproduces the table.
+  from experiments import evaluate
+  evaluated = evaluate.main(["--checkpoint", str(tmp_path), "--data", str(data_path),
+                             "--out", str(tmp_path / "eval")])
+  again = json.loads((tmp_path / "eval" / "table.json").read_text())
+  assert set(again) == set(T.TABLE_METHODS)
+  for method in T.TABLE_METHODS:
+    for metric in ("psnr", "ssim", "rmse", "mad"):
+      assert again[method][metric] == pytest.approx(saved[method][metric], rel=1e-5, abs=1e-6), \
+          (method, metric)
+  assert evaluated["ours"] == pytest.approx(again["ours"])
+  # One variant's folder selects that variant only.
+  _, only = T.load_trained(tmp_path / "ours_s" / "checkpoints", log=lambda s: None)
+  assert set(only) == {"ours_s"}
+
+
+def test_evaluate_cli_errors_name_the_problem(data_path, tmp_path):
+  from experiments import evaluate
+  with pytest.raises(SystemExit, match="not a training run"):
+    evaluate.main(["--checkpoint", str(tmp_path), "--data", str(data_path)])
+  with pytest.raises(SystemExit, match="no such file"):
+    evaluate.main(["--checkpoint", str(tmp_path), "--data", str(tmp_path / "absent.h5")])
+  (tmp_path / "config.json").write_text("{}")
+  (tmp_path / "ours" / "checkpoints" / "7").mkdir(parents=True)
+  with pytest.raises(SystemExit, match="config.json"):
+    evaluate.main(["--checkpoint", str(tmp_path), "--data", str(data_path)])
+
+
+def test_two_hundred_steps_stay_finite_at_the_lowest_efficiency_and_exposure(tmp_path):
+  # The CPU preset's lowest efficiency (1 %) and photon budget (1e3 per point), nothing higher.
+  path = tmp_path / "dim.h5"
+  cfg = tiny_config(path, steps=200, log_every=1, checkpoint_every=200)
+  low = configs.get_config("cpu")["data"]
+  cfg["data"].update(efficiency=(low["efficiency"][0],) * 2, photons=(low["photons"][0],) * 2)
+  T.ensure_dataset(cfg, path, log=lambda s: None)
+  T.train_model(cfg, path, tmp_path, "ours_s", log=lambda s: None)  # raises on a non-finite metric
+  rows = [json.loads(l) for l in (tmp_path / "ours_s" / "metrics.jsonl").read_text().splitlines()]
+  assert [r["step"] for r in rows] == list(range(1, 201))
+  for key in ("loss", "l2_grads", "l2_updates"):
+    values = np.array([r[key] for r in rows])
+    assert np.isfinite(values).all(), key
+  assert rows[-1]["l2_grads"] > 0                   # still learning, not silently zeroed
 
 
 def test_resume_after_a_kill_matches_an_uninterrupted_run(data_path, tmp_path):
