@@ -1,4 +1,4 @@
-"""Tests for nlosjax.data.io: the lct_mat reader, detection, downsampling, overrides, errors."""
+"""Tests for nlosjax.data.io: every format reader, detection, downsampling, overrides, errors."""
 
 from __future__ import annotations
 
@@ -492,3 +492,241 @@ def test_every_shared_real_scan_loads():
     assert math.isclose(setup.bin_width, 16e-12, rel_tol=1e-12), path
     assert transient.min() >= 0 and np.isfinite(transient).all(), path
     assert not transient[:150].any() and transient[150:].any(), path
+
+
+# ============================================================ more formats
+#
+# Small files in every format, written here; each reader is checked against an
+# independent NumPy reference (per-pixel loops, explicit transposes).
+
+def write_v73(path, variables):
+  """A MATLAB v7.3 file: HDF5 behind a 512-byte text header, arrays stored transposed (as MATLAB does)."""
+  with h5py.File(path, "w", userblock_size=512) as f:
+    for name, value in variables.items():
+      f[name] = np.asarray(value).T
+  with open(path, "r+b") as f:
+    f.write(b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: test HDF5 schema 1.00 .")
+  return path
+
+
+def fk_reference(meas, tofgrid, keep, zero_bins=0, bin_factor=1):
+  """nlos-fk's preparation by loops: circshift each pixel left by floor(tof / 32), crop, zero, bin."""
+  height, width, _ = meas.shape
+  out = np.zeros((keep // bin_factor, height, width))
+  for i in range(height):
+    for j in range(width):
+      h = np.roll(meas[i, j].astype(np.float64), -int(math.floor(tofgrid[i, j] / 32.0)))[:keep]
+      h[:zero_bins] = 0
+      out[:, i, j] = h.reshape(-1, bin_factor).sum(axis=1)
+  return out
+
+
+@pytest.fixture
+def fk_capture(tmp_path):
+  rng = np.random.default_rng(11)
+  height, width, raw_bins = 3, 5, 640                          # H != W checks the axis order
+  meas = rng.poisson(0.7, (height, width, raw_bins)).astype(np.float64)
+  tof = rng.uniform(0.0, 3000.0, (height, width))               # ps: shifts of 0..93 bins
+  tof[0, 0] = 31.99                                             # floor, not round
+  path = write_v73(tmp_path / "meas_10min.mat", {"meas": meas})
+  scipy.io.savemat(tmp_path / "tof_10min.mat", {"tofgrid": tof}, appendmat=False)
+  return path, meas, tof
+
+
+def test_stanford_fk_v73_matches_loop_reference(fk_capture):
+  path, meas, tof = fk_capture
+  assert dio.detect_format(path) == "stanford_fk"
+  transient, setup = load_measurement(path)                    # tof_10min.mat found beside it
+  assert transient.shape == (512, 3, 5) and transient.dtype == np.float32
+  np.testing.assert_array_equal(transient, fk_reference(meas, tof, 512))
+  assert setup == Setup(wall_size=2.0, grid=(3, 5), bin_width=32e-12, num_bins=512)
+  # Binning and trimming, and the wall size the files do not record.
+  transient, setup = load_measurement(path, zero_bins=6, bin_factor=4, num_bins=100, wall_size=1.0)
+  np.testing.assert_array_equal(transient, fk_reference(meas, tof, 400, zero_bins=6, bin_factor=4))
+  assert setup == Setup(wall_size=1.0, grid=(3, 5), bin_width=128e-12, num_bins=100)
+
+
+def test_stanford_fk_alignment_puts_the_wall_at_bin_zero(tmp_path):
+  # One photon per pixel at the gated wall return floor(tof / 32) + 7: aligned, all land in bin 7.
+  rng = np.random.default_rng(12)
+  tof = rng.uniform(0.0, 8000.0, (4, 4))
+  meas = np.zeros((4, 4, 600))
+  for i in range(4):
+    for j in range(4):
+      meas[i, j, int(tof[i, j] // 32) + 7] = 1.0
+  path = write_v73(tmp_path / "scan.mat", {"meas": meas, "tofgrid": tof})   # tofgrid in the file
+  transient, _ = load_measurement(path, num_bins=64)
+  assert transient[7].min() == 1.0 and transient.sum() == 16
+
+
+def test_stanford_fk_tofgrid_sources(fk_capture, tmp_path):
+  path, meas, tof = fk_capture
+  expected = fk_reference(meas, tof, 512)
+  np.testing.assert_array_equal(load_measurement(path, tofgrid=tof)[0], expected)
+  other = write_v73(tmp_path / "calibration.mat", {"tofgrid": tof})
+  np.testing.assert_array_equal(load_measurement(path, tofgrid=other)[0], expected)
+  np.testing.assert_array_equal(load_measurement(path, tofgrid=False)[0],
+                                meas[:, :, :512].transpose(2, 0, 1))
+  # meas as MATLAB v5 works too.
+  v5 = tmp_path / "meas_v5.mat"
+  scipy.io.savemat(v5, {"meas": meas, "tofgrid": tof}, appendmat=False)
+  assert dio.detect_format(v5) == "stanford_fk"
+  np.testing.assert_array_equal(load_measurement(v5)[0], expected)
+
+
+def test_stanford_fk_tofgrid_errors(fk_capture, tmp_path):
+  path, meas, tof = fk_capture
+  with pytest.raises(ValueError, match=names_file(path)) as info:
+    load_measurement(path, tofgrid=tof[:2])
+  assert "tofgrid" in str(info.value) and "(2, 5)" in str(info.value)
+  with pytest.raises(ValueError, match="NaN"):
+    load_measurement(path, tofgrid=np.where(tof > 1000, np.nan, tof))
+  (tmp_path / "alone").mkdir()
+  lone = write_v73(tmp_path / "alone" / "meas_1.mat", {"meas": meas})
+  with pytest.raises(ValueError, match=names_file(lone)) as info:
+    load_measurement(lone)
+  assert "tof_1.mat" in str(info.value) and "tofgrid=False" in str(info.value)
+  with pytest.raises(FileNotFoundError):
+    load_measurement(path, tofgrid=tmp_path / "missing.mat")
+  with pytest.raises(ValueError, match="wall_size"):
+    load_measurement(path, wall_size=-2.0)
+
+
+def test_stanford_fk_video_frames(tmp_path):
+  rng = np.random.default_rng(13)
+  video = rng.poisson(1.0, (3, 4, 4, 80)).astype(np.float64)     # MATLAB [F, H, W, T]
+  path = write_v73(tmp_path / "meas_32.mat", {"meas": video})
+  tof = np.full((4, 4), 100.0)                                   # shift 3 bins
+  write_v73(tmp_path / "tof_32.mat", {"tofgrid": tof})
+  one, setup = load_measurement(path, frame=2, num_bins=64)
+  np.testing.assert_array_equal(one, fk_reference(video[2], tof, 64))
+  frames, _ = load_measurement(path, frame="all", num_bins=64, spatial_factor=2)
+  assert frames.shape == (3, 64, 2, 2)
+  for f in range(3):
+    full = fk_reference(video[f], tof, 64)
+    np.testing.assert_array_equal(frames[f], full.reshape(64, 2, 2, 2, 2).sum(axis=(2, 4)))
+  picked, _ = load_measurement(path, frame=[2, 0], num_bins=64)
+  np.testing.assert_array_equal(picked[0], one)
+  with pytest.raises(ValueError, match="out of range"):
+    load_measurement(path, frame=3)
+
+
+def test_nlost_data_is_transposed(tmp_path):
+  rng = np.random.default_rng(14)
+  data = rng.poisson(1.0, (5, 3, 64)).astype(np.uint16)          # [W, H, T] as NLOST stores it
+  path = tmp_path / "nlost.mat"
+  scipy.io.savemat(path, {"data": data}, appendmat=False)
+  assert dio.detect_format(path) == "nlost_mat"
+  transient, setup = load_measurement(path)
+  assert transient.shape == (64, 3, 5)
+  for t, y, x in [(0, 0, 0), (10, 2, 4), (63, 1, 3)]:
+    assert transient[t, y, x] == data[x, y, t]
+  assert setup == Setup(wall_size=2.0, grid=(3, 5), bin_width=32e-12, num_bins=64)
+  # NLOST's own recipe: transpose([1, 0, 2]) then [H, W, T] -> [T, H, W].
+  np.testing.assert_array_equal(transient, data.transpose(1, 0, 2).transpose(2, 0, 1))
+  binned, setup = load_measurement(path, bin_factor=2, num_bins=16, bin_width=16e-12)
+  np.testing.assert_array_equal(binned, transient[:32].reshape(16, 2, 3, 5).sum(axis=1))
+  assert math.isclose(setup.bin_width, 32e-12)
+  # Aligned f-k captures as USM/NLOST ship them: final_meas [H, W, T], no transpose, v7.3.
+  fm = write_v73(tmp_path / "final.mat", {"final_meas": data.transpose(1, 0, 2)})
+  assert dio.detect_format(fm) == "nlost_mat"
+  np.testing.assert_array_equal(load_measurement(fm)[0], transient)
+
+
+def test_capture_roundtrip_and_frames(tmp_path):
+  rng = np.random.default_rng(15)
+  frames = rng.poisson(2.0, (4, 32, 6, 6)).astype(np.float32)
+  setup = Setup(wall_size=1.5, grid=(6, 6), bin_width=50e-12, num_bins=32, depth_range=(0.2, 0.9))
+  path = dio.save_capture(tmp_path / "cap.h5", frames, setup, attrs={"scene": "test", "meta": [1, 2]})
+  assert not (tmp_path / "cap.h5.partial").exists()
+  assert dio.detect_format(path) == "nlosjax_capture"
+  one, s1 = load_measurement(path, frame=1)
+  np.testing.assert_array_equal(one, frames[1])
+  assert s1 == setup
+  allf, _ = load_measurement(path, frame="all", bin_factor=2)
+  np.testing.assert_array_equal(allf, frames.reshape(4, 16, 2, 6, 6).sum(axis=2))
+  single = dio.save_capture(tmp_path / "one.h5", frames[0], setup.ungated())
+  np.testing.assert_array_equal(load_measurement(single)[0], frames[0])
+  with pytest.raises(FileExistsError):
+    dio.save_capture(single, frames[0], setup)
+  with pytest.raises(ValueError, match="does not match"):
+    dio.save_capture(tmp_path / "bad.h5", frames[0][:, :5], setup)
+  # A reconstruction-only file (no transient) is refused by name.
+  vol = dio.save_capture(tmp_path / "vol.h5", None, setup, volume=np.zeros((3, 6, 6)))
+  with pytest.raises(ValueError, match=names_file(vol)) as info:
+    load_measurement(vol)
+  assert "transient" in str(info.value)
+
+
+def test_capture_inconsistent_attributes(tmp_path):
+  path = dio.save_capture(tmp_path / "cap.h5", np.ones((8, 4, 4)),
+                          Setup(wall_size=1.0, grid=(4, 4), bin_width=1e-11, num_bins=8))
+  with h5py.File(path, "r+") as f:
+    f.attrs["grid"] = [4, 5]
+  with pytest.raises(ValueError, match=names_file(path)) as info:
+    load_measurement(path)
+  assert "grid" in str(info.value)
+  with h5py.File(path, "r+") as f:
+    f.attrs["grid"] = [4, 4]
+    f.attrs["format_version"] = 99
+  with pytest.raises(ValueError, match="format_version"):
+    load_measurement(path)
+
+
+def test_dynamic_dataset_sequence_frames(tmp_path):
+  # A minimal file in the documented dataset layout (README, "Dynamic NLOS dataset").
+  rng = np.random.default_rng(16)
+  meas = {name: rng.poisson(3.0, (3, 16, 4, 4)).astype(np.uint16)
+          for name in ("test-00000", "test-00001", "train-00000")}
+  path = tmp_path / "data.h5"
+  with h5py.File(path, "w") as f:
+    f.attrs.update(format="nlosjax-dynamic-nlos", format_version=1, complete=True, wall_size=2.0,
+                   grid=[4, 4], bin_width=132e-12, num_bins=16)
+    for name, m in meas.items():
+      g = f.create_group(f"sequences/{name}")
+      g.attrs["split"] = name.split("-")[0]
+      g["measurement"] = m
+  assert dio.detect_format(path) == "nlosjax_dataset"
+  frame, setup = load_measurement(path)                          # first sequence, frame 0
+  np.testing.assert_array_equal(frame, meas["test-00000"][0])
+  assert setup == Setup(wall_size=2.0, grid=(4, 4), bin_width=132e-12, num_bins=16)
+  frames, _ = load_measurement(path, split="test", sequence=1, frame="all")
+  np.testing.assert_array_equal(frames, meas["test-00001"])
+  named, _ = load_measurement(path, sequence="train-00000", frame=-1)
+  np.testing.assert_array_equal(named, meas["train-00000"][2])
+  with pytest.raises(ValueError, match="no sequence"):
+    load_measurement(path, sequence="test-00009")
+  with pytest.raises(ValueError, match="out of range"):
+    load_measurement(path, split="train", sequence=1)
+
+
+def test_detection_of_every_format_and_errors(tmp_path):
+  scipy.io.savemat(tmp_path / "foo.mat", {"foo": np.ones(3)}, appendmat=False)
+  with pytest.raises(ValueError, match=names_file(tmp_path / "foo.mat")) as info:
+    load_measurement(tmp_path / "foo.mat")
+  assert "'foo'" in str(info.value) and "stanford_fk" in str(info.value)
+  # A truncated HDF5 file: named, "corrupt".
+  good = write_v73(tmp_path / "meas.mat", {"meas": np.ones((2, 2, 8)), "tofgrid": np.zeros((2, 2))})
+  bad = tmp_path / "truncated.mat"
+  bad.write_bytes(good.read_bytes()[:700])
+  with pytest.raises(ValueError, match=names_file(bad)) as info:
+    load_measurement(bad)
+  assert "corrupt" in str(info.value)
+  # An option the format does not take.
+  lct = write_lct(tmp_path / "scan.mat", poisson_counts((4, 4, 2048)))
+  with pytest.raises(ValueError, match=names_file(lct)) as info:
+    load_measurement(lct, tofgrid=False)
+  assert "tofgrid" in str(info.value)
+  # A single capture has only frame 0; "all" gives [1, T, H, W].
+  assert load_measurement(lct, frame="all")[0].shape == (1, 512, 4, 4)
+  with pytest.raises(ValueError, match="out of range"):
+    load_measurement(lct, frame=1)
+
+
+def test_override_of_a_value_the_format_does_not_record(fk_capture):
+  path, _, _ = fk_capture
+  with pytest.raises(ValueError, match=names_file(path)) as info:
+    load_measurement(path, setup_overrides={"wall_size": 1.0})
+  assert "wall_size=" in str(info.value) and "does not record" in str(info.value)
+  _, setup = load_measurement(path, wall_size=1.0, setup_overrides={"wall_size": 1.0})
+  assert setup.wall_size == 1.0
