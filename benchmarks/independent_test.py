@@ -164,10 +164,12 @@ def main(argv=None):
   parser.add_argument("--data", default="runs/data/independent.h5")
   parser.add_argument("--out", default="benchmarks/results/table1_independent.md")
   args = parser.parse_args(argv)
+  from nlosjax import checkpoints_io
   from nlosjax import train as T
   from benchmarks.model import machine
   t0 = time.perf_counter()
-  config, trained = T.load_trained(args.checkpoint)
+  config, trained = checkpoints_io.load_run(args.checkpoint)
+  config = T.with_defaults(config)
   data = pathlib.Path(args.data)
   if not data.exists():
     write_testset(data, config["data"], args.sequences, args.frames, args.seed)

@@ -35,7 +35,7 @@ def main(argv=None) -> dict:
                       help="comma-separated classic methods to include ('' for none)")
   args = parser.parse_args(argv)
 
-  from nlosjax import train
+  from nlosjax import checkpoints_io, train
   from nlosjax.data.dataset import open_dataset
   t0 = time.perf_counter()
   data = pathlib.Path(args.data)
@@ -50,11 +50,12 @@ def main(argv=None) -> dict:
       setup = ds.setup
       if not ds.names(args.split):
         raise ValueError(f"{data}: no sequence in split {args.split!r}")
-    config, trained = train.load_trained(args.checkpoint, setup=setup)
+    config, trained = checkpoints_io.load_run(args.checkpoint, setup=setup)
+    config = train.with_defaults(config)
     table, images = train.evaluate(config, data, trained, split=args.split, methods=classic)
   except ValueError as e:
     raise SystemExit(f"error: {e}") from None
-  workdir, _ = train.find_runs(args.checkpoint)
+  workdir, _, _ = checkpoints_io.find_checkpoints(args.checkpoint)
   out = pathlib.Path(args.out) if args.out else workdir / f"eval_{data.stem}"
   caption = (f"`{args.split}` split of `{data}` ({len(images['gt']['intensity'])} frames); "
              f"models from `{args.checkpoint}`; evaluated in {time.perf_counter() - t0:.0f} s.")

@@ -63,7 +63,8 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
           (method, metric)
   assert evaluated["ours"] == pytest.approx(again["ours"])
   # One variant's folder selects that variant only.
-  _, only = T.load_trained(tmp_path / "ours_s" / "checkpoints", log=lambda s: None)
+  from nlosjax import checkpoints_io
+  _, only = checkpoints_io.load_run(tmp_path / "ours_s" / "checkpoints", log=lambda s: None)
   assert set(only) == {"ours_s"}
 
 
