@@ -563,7 +563,8 @@ def soft_projection(volume: jax.Array, depths, *, temperature: float = 0.05,
     (the hard rule of ``intensity_depth`` as ``softness -> 0``).
 
   An all-zero volume gives zero intensity and ``background_depth`` (up to
-  ``sigmoid(-threshold / softness)``), never NaN.
+  ``sigmoid(-threshold / softness)``), never NaN, and zero gradients (an image
+  or column whose maximum is at most 1e-12 counts as dark).
 
   Args:
     volume: ``[..., Z, H, W]`` real.
@@ -578,8 +579,13 @@ def soft_projection(volume: jax.Array, depths, *, temperature: float = 0.05,
   v = jnp.maximum(volume.astype(jnp.float32), 0.0)
   mip = jnp.max(v, axis=-3)
   peak = jnp.max(mip, axis=(-2, -1), keepdims=True)
-  intensity = jnp.clip(mip / jnp.maximum(peak, _TINY), 0.0, 1.0)
-  col = v / jnp.maximum(mip, _TINY)[..., None, :, :]
+  # An all-dark image (column) is 0 with gradient 0: dividing by max(peak, _TINY)
+  # instead gives gradients of 1 / _TINY = 1e12 there (an all-zero volume, e.g.
+  # a zero-photon frame through the initialised network).
+  lit = peak > _TINY
+  intensity = jnp.where(lit, jnp.clip(mip / jnp.where(lit, peak, 1.0), 0.0, 1.0), 0.0)
+  seen = (mip > _TINY)[..., None, :, :]
+  col = jnp.where(seen, v / jnp.where(seen, mip[..., None, :, :], 1.0), 0.0)
   p = jax.nn.softmax(col / temperature, axis=-3)
   z = jnp.asarray(depths, jnp.float32)[:, None, None]
   d_fg = jnp.sum(p * z, axis=-3)

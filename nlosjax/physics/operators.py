@@ -193,7 +193,15 @@ def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4) -> np
       s1 = np.minimum(s0 + 1, tv)
       np.add.at(cone, (s1, pp + H - 1, qq + W - 1), np.where(s0 + 1 < tv, frac, 0.0))
   cone = cone[:tv]
-  cone /= math.sqrt(float(np.sum(cone ** 2)))
+  energy = float(np.sum(cone ** 2))
+  if energy == 0.0:
+    # Every footprint sample of every cone column lies beyond the last bin: the
+    # PSF is empty, and dividing by its norm would fill every volume with NaN.
+    raise ValueError(
+        f"{setup}: no part of the light cone fits in the {T} time bins (scan spacing"
+        f" {dy:.4g} x {dx:.4g} m, maximum depth {setup.max_depth:.4g} m); use more or wider"
+        " bins, or a finer scan grid")
+  cone /= math.sqrt(energy)
   psf = np.zeros(domain.fft_shape)
   m = np.arange(tv) - shift
   keep = (m > -domain.num_u) & (m < domain.num_v)
@@ -239,7 +247,7 @@ def lct_operators(setup: Setup, power: float, *, t_margin: int = 0, z_margin: in
   dom = lct_domain(setup, t_margin=t_margin, z_margin=z_margin, oversample=oversample)
   T = setup.num_bins
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
-  psf_fft = np.fft.rfftn(cone_psf(setup, dom))
+  psf_fft = scipy.fft.rfftn(cone_psf(setup, dom), workers=-1)   # built once per Setup; all cores
   to_v = squared_axis_matrix(T, dom.v, dom.t, power=power, oversample=oversample)
   to_z = linear_axis_matrix(T, dom.z, dom.u, power=0.0, oversample=oversample)
   return LCTOperators(dom, jnp.asarray(psf_fft, cdtype), jnp.asarray(to_v, dtype),

@@ -45,7 +45,7 @@ from nlosjax.physics import _validate
 from nlosjax.physics.operators import (check_falloff, lct_apply, lct_filter, lct_operators,
                                        to_depth)
 from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
-from nlosjax.physics.wavelet import convolve_time, illumination_wavelet
+from nlosjax.physics.wavelet import Wavelet, convolve_time, illumination_wavelet
 
 METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
 
@@ -57,7 +57,9 @@ def _lct_problem(setup: Setup, power: float, snr: float | None, z_margin: int, o
   """``(operators, frequency-domain filter)`` of one LCT problem, built once and cached."""
   if oversample not in (1, 2, 3, 4):
     raise ValueError(f"oversample must be 1, 2, 3 or 4, got {oversample!r}")
-  ops = lct_operators(setup, power, z_margin=z_margin, oversample=oversample, dtype=dtype)
+  # The depth margin (FBP's -LoG taps) needs the time bins of its returns too.
+  ops = lct_operators(setup, power, t_margin=z_margin, z_margin=z_margin, oversample=oversample,
+                      dtype=dtype)
   return ops, jax.jit(lct_filter, static_argnums=1)(ops, snr)
 
 
@@ -304,13 +306,24 @@ def phasor(transient, setup: Setup, *, cycles: float = 5.0, sampling_coeff: floa
 
 
 # ----------------------------------------------------------------------- RSD
+def _rsd_window(setup: Setup, wavelet: Wavelet) -> tuple[int, int]:
+  """Time bins RSD reads: ``setup.time_bins`` widened by half the wavelet (as ``phasor``).
+
+  The virtual wave at depth ``z`` is the data convolved with ``P(t)`` around
+  ``t = 2 z / c``, so bins up to half a wavelet outside the range contribute.
+  """
+  t0, t1 = setup.time_bins
+  half = wavelet.num_samples // 2
+  return (max(0, t0 - half), min(setup.num_bins, t1 + half))
+
+
 @functools.lru_cache(maxsize=16)
 def _rsd_operators(setup: Setup, cycles: float, sampling_coeff: float, ratio: float, dtype):
   wl = illumination_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
   omega = wl.frequencies(setup.num_bins, ratio)               # [K] rad/s
   if omega.size == 0:
     raise ValueError(f"no frequency of the wavelet spectrum exceeds ratio={ratio}")
-  t0, t1 = setup.time_bins
+  t0, t1 = _rsd_window(setup, wl)
   t = np.arange(t0, t1) * setup.bin_width
   dtft = np.exp(-1j * omega[:, None] * t[None, :]) * wl.spectrum(omega)[:, None]   # [K, Nt]
   H, W = setup.grid
@@ -382,11 +395,13 @@ def rsd(transient, setup: Setup, *, cycles: float = 3.0, sampling_coeff: float =
   if not (isinstance(chunk, int) and chunk >= 1):
     raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
   dtft, kz, mask = _rsd_operators(setup, float(cycles), float(sampling_coeff), float(ratio), x.dtype)
+  window = _rsd_window(setup, illumination_wavelet(setup, cycles=float(cycles),
+                                                   sampling_coeff=float(sampling_coeff)))
   k0, k1 = setup.depth_bins
   depths = (k0 * setup.depth_bin_length, setup.depth_bin_length, k1 - k0)
   chunk = min(chunk, k1 - k0)
   return _validate.unbatch(
-      _rsd_batch(x, dtft, kz, mask, setup.time_bins, depths, chunk).astype(x.dtype), batch)
+      _rsd_batch(x, dtft, kz, mask, window, depths, chunk).astype(x.dtype), batch)
 
 
 # ------------------------------------------------------------------ dispatch
