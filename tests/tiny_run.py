@@ -1,0 +1,27 @@
+"""A tiny training run shared by the training tests (not a test module)."""
+
+from experiments import configs
+from nlosjax import train as T
+
+# 16 x 16 capture, every 4th point in (4 x 4), 64 bins of 264 ps; a model a few thousand parameters big.
+TINY_DATA = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, input_stride=4, input_offset=2,
+                 num_sequences={"train": 2, "test": 1}, render_batch=4)
+TINY_MODEL = dict(width=4, d_state=2, extract_time_stride=2, extract_blocks=1, st_depth=1,
+                  cross_depth=1, spread_min_width=1, volume_features=1, refine_width=2)
+
+
+def tiny_config(data_path, **train):
+  """The CPU preset shrunk to TINY_DATA / TINY_MODEL, 4 steps of batch 2 unless ``train`` overrides."""
+  cfg = configs.get_config("cpu")
+  cfg["data"].update(TINY_DATA, path=str(data_path))
+  cfg["model"] = dict(TINY_MODEL)
+  cfg["train"] = {"steps": 4, "batch_size": 2, "log_every": 1, "checkpoint_every": 2,
+                  "eval_batch_size": 2, **train}
+  return T.with_defaults(cfg)
+
+
+def make_tiny_dataset(tmp_path_factory):
+  """Generate the tiny dataset in a fresh temporary folder; returns its path."""
+  path = tmp_path_factory.mktemp("data") / "tiny.h5"
+  T.ensure_dataset(tiny_config(path), path, log=lambda s: None)
+  return path
