@@ -70,7 +70,7 @@ import numpy as np
 DEFAULT_OUT_DIR = pathlib.Path(__file__).resolve().parent / "results"
 DEFAULT_WORKDIR = pathlib.Path("runs/tradeoff")
 QUICK_STEPS, FULL_STEPS = 150, 300
-QUICK_REPEATS, FULL_REPEATS = 5, 15
+QUICK_REPEATS, FULL_REPEATS = 9, 15
 MIB = 1024.0 ** 2
 
 CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
