@@ -640,3 +640,20 @@ def test_network_on_one_scan_point_and_one_depth_bin(net):
   # The recovered transient is zero outside the gated window.
   tr = np.asarray(got["transient"])
   assert np.all(tr[:, :a] == 0) and np.all(tr[:, b:] == 0)
+
+
+def test_operators_built_first_inside_a_user_jit_do_not_leak_tracers():
+  """Each method's cached operators, first built under a user's jit, still work eagerly after."""
+  from nlosjax import physics
+  setup = physics.Setup(wall_size=1.0, grid=(6, 6), bin_width=96e-12, num_bins=40)
+  x = np.random.default_rng(7).poisson(0.5, (40, 6, 6)).astype(np.float32)
+  for method in ("fbp", "lct", "fk", "phasor", "rsd"):
+    inside = jax.jit(lambda v, m=method: physics.reconstruct(v, setup, m))(x)
+    outside = physics.reconstruct(x, setup, method)        # raised UnexpectedTracerError before
+    np.testing.assert_allclose(np.asarray(outside), np.asarray(inside), rtol=1e-5,
+                               atol=1e-6 * float(np.max(np.abs(inside))), err_msg=method)
+  albedo = np.zeros((40, 6, 6), np.float32)
+  albedo[20, 3, 3] = 1.0
+  inside = jax.jit(lambda a: physics.render(a, setup))(albedo)
+  np.testing.assert_allclose(np.asarray(physics.render(albedo, setup)), np.asarray(inside), rtol=1e-5,
+                             atol=1e-6 * float(np.max(inside)))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -63,3 +65,24 @@ def check_positive(value, name: str) -> float:
   if not np.isfinite(v) or v <= 0:
     raise ValueError(f"{name} must be finite and > 0, got {value!r}")
   return v
+
+
+def cached_operators(maxsize: int):
+  """``functools.lru_cache`` for operator builders, always evaluated eagerly.
+
+  A builder first reached inside a user's ``jax.jit`` would otherwise cache
+  tracers of that trace, and every later call would fail with
+  ``UnexpectedTracerError``; ``jax.ensure_compile_time_eval`` makes the cached
+  operators concrete arrays whatever the calling context.
+  """
+  def wrap(fn):
+    cached = functools.lru_cache(maxsize=maxsize)(fn)
+
+    @functools.wraps(fn)
+    def build(*args, **kwargs):
+      with jax.ensure_compile_time_eval():
+        return cached(*args, **kwargs)
+    build.cache_clear = cached.cache_clear
+    build.cache_info = cached.cache_info
+    return build
+  return wrap

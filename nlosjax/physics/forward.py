@@ -48,7 +48,7 @@ class RenderOperators:
   to_t: jax.Array
 
 
-@functools.lru_cache(maxsize=16)
+@_validate.cached_operators(maxsize=16)
 def render_operators(setup: Setup, falloff: str = "diffuse", dtype=jnp.float32,
                      oversample: int = 2) -> RenderOperators:
   """Build (once, cached) the forward-model operators of ``setup``."""

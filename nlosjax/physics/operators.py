@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.fft
 
+from nlosjax.physics import _validate
 from nlosjax.physics.setup import Setup
 
 FALLOFF_POWER = {"diffuse": 3, "retroreflective": 1}
@@ -231,7 +232,7 @@ class LCTOperators:
   to_z: jax.Array
 
 
-@functools.lru_cache(maxsize=16)
+@_validate.cached_operators(maxsize=16)
 def lct_operators(setup: Setup, power: float, *, t_margin: int = 0, z_margin: int = 0,
                   oversample: int = 2, dtype=jnp.float32) -> LCTOperators:
   """Build (once, cached) the operators to backproject or invert the LCT for ``setup``.

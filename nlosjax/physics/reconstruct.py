@@ -51,7 +51,7 @@ METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
 
 
 # ----------------------------------------------------------------------- LCT
-@functools.lru_cache(maxsize=4)   # a filter is [Lv, 2H, W+1] complex: ~0.3 GB at 128^2
+@_validate.cached_operators(maxsize=4)   # a filter is [Lv, 2H, W+1] complex: ~0.3 GB at 128^2
 def _lct_problem(setup: Setup, power: float, snr: float | None, z_margin: int, oversample: int,
                  dtype) -> tuple:
   """``(operators, frequency-domain filter)`` of one LCT problem, built once and cached."""
@@ -198,7 +198,7 @@ def fbp(transient, setup: Setup, *, falloff: str = "diffuse", oversample: int = 
 
 
 # ------------------------------------------------------------------------ FK
-@functools.lru_cache(maxsize=16)
+@_validate.cached_operators(maxsize=16)
 def _fk_grid(setup: Setup, dtype):
   """Static sizes and small arrays of the Stolt migration for ``setup``."""
   T = setup.num_bins
@@ -317,7 +317,7 @@ def _rsd_window(setup: Setup, wavelet: Wavelet) -> tuple[int, int]:
   return (max(0, t0 - half), min(setup.num_bins, t1 + half))
 
 
-@functools.lru_cache(maxsize=16)
+@_validate.cached_operators(maxsize=16)
 def _rsd_operators(setup: Setup, cycles: float, sampling_coeff: float, ratio: float, dtype):
   wl = illumination_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
   omega = wl.frequencies(setup.num_bins, ratio)               # [K] rad/s
