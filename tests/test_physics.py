@@ -5,6 +5,7 @@ quadrature (scipy), NumPy convolution, closed forms of the wavelet spectrum,
 and physical properties (a point reconstructs at its position).
 """
 
+import importlib
 import warnings
 
 import jax
@@ -19,6 +20,8 @@ from nlosjax.physics import Setup, reconstruct, render, render_points
 from nlosjax.physics.operators import linear_axis_matrix, squared_axis_matrix
 
 C = physics.SPEED_OF_LIGHT
+# the module (``physics.reconstruct`` is the function of the same name)
+RECON = importlib.import_module("nlosjax.physics.reconstruct")
 # 16 x 16 scan of a 1 m wall, 32 ps bins, 512 bins: depths up to 2.46 m.
 SETUP = Setup(wall_size=1.0, grid=(16, 16), bin_width=32e-12, num_bins=512)
 
@@ -250,6 +253,35 @@ def test_gated_matches_ungated_inside_the_range_and_costs_less(method, tol, two_
     return cost["flops"]
 
   assert flops(gated) < flops(SMALL)
+
+
+@pytest.mark.parametrize("depth_range", [None, (0.31, 0.77)])
+def test_rsd_nufft_depth_sum_equals_the_brute_force_sum(depth_range):
+  """The NUFFT over depth reproduces ``|ifft2(sum_k U_k exp(i z kz_k))|`` summed plane by plane in NumPy."""
+  setup = Setup(0.7, (6, 9), 32e-12, 160, depth_range=depth_range)   # odd Z when gated
+  rng = np.random.default_rng(3)
+  tau = rng.poisson(2.0, (160, 6, 9)).astype(np.float64)
+  with jax.enable_x64(True):
+    fast = np.asarray(reconstruct(tau, setup, "rsd"))
+    direct = np.asarray(reconstruct(tau, setup, "rsd", depth_sum="direct", chunk=5))
+    # the wall field and wavenumbers, as the method builds them
+    dtft, kz, mask = (np.asarray(a) for a in RECON._rsd_operators(setup, 3.0, 2.0, 0.1, jnp.float64))
+  t0, t1 = RECON._rsd_window(setup, physics.illumination_wavelet(setup, cycles=3.0))
+  spec = np.fft.fft2(np.einsum("kt,thw->khw", dtft, tau[t0:t1]), s=(12, 18)) * mask
+  k0, k1 = setup.depth_bins
+  brute = np.stack([np.abs(np.fft.ifft2((spec * np.exp(1j * k * setup.depth_bin_length * kz)).sum(0)))
+                    [:6, :9] for k in range(k0, k1)])
+  assert fast.shape == brute.shape == (k1 - k0, 6, 9)
+  np.testing.assert_allclose(direct, brute, rtol=0, atol=1e-10 * brute.max())
+  # NUFFT kernel error: 2.3e-7 of the peak in float64 (8 taps)
+  np.testing.assert_allclose(fast, brute, rtol=0, atol=1e-6 * brute.max())
+  fast32 = np.asarray(reconstruct(tau.astype(np.float32), setup, "rsd"))
+  np.testing.assert_allclose(fast32, brute, rtol=0, atol=1e-5 * brute.max())
+
+
+def test_rsd_rejects_an_unknown_depth_sum():
+  with pytest.raises(ValueError, match="depth_sum"):
+    reconstruct(np.zeros((128, 8, 8), np.float32), TINY, "rsd", depth_sum="fast")
 
 
 # --------------------------------------------------------------- stability
