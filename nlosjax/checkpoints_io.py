@@ -246,7 +246,7 @@ def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = N
                      f" {num_bins} network bins of {bin_factor * capture.bin_width:.3g} s")
   setup = Setup(wall_size=capture.wall_size, grid=capture.grid,
                 bin_width=capture.bin_width * bin_factor, num_bins=num_bins,
-                depth_range=capture.depth_range)
+                depth_range=capture.depth_range, aperture=capture.aperture)
   # Wavelength in coarse bins, as trained.
   stride = model_config.volume_time_stride
   trained_coarse = dataclasses.replace(trained.ungated(), bin_width=trained.bin_width * stride)

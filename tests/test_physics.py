@@ -255,6 +255,63 @@ def test_gated_matches_ungated_inside_the_range_and_costs_less(method, tol, two_
   assert flops(gated) < flops(SMALL)
 
 
+def test_aperture_window_is_the_closed_form_and_shrinks_with_the_range():
+  wide = Setup(2.0, (16, 16), 32e-12, 512)
+  dz = wide.depth_bin_length
+  for z0, z1 in [(0.5, 1.5), (0.75, 1.25)]:
+    for rho in (0.3, 1.0):
+      s = wide.with_depth_range(z0, z1).with_aperture(rho)
+      k0, k1 = s.depth_bins
+      assert s.time_bins == (k0, min(512, int(np.hypot((k1 - 1) * dz, rho) // dz) + 2))
+  # R -> R/2 halves the window only with an aperture (the wall diagonal is 2.83 m)
+  full = [wide.with_depth_range(*r).time_bins for r in [(0.5, 1.5), (0.75, 1.25)]]
+  ap = [wide.with_depth_range(*r).with_aperture(0.8).time_bins for r in [(0.5, 1.5), (0.75, 1.25)]]
+  assert full[0][1] == full[1][1] == 512
+  assert (ap[0][1] - ap[0][0]) / (ap[1][1] - ap[1][0]) > 1.5
+  # an aperture beyond the wall diagonal is no aperture
+  assert wide.with_aperture(10.0).with_depth_range(0.5, 1.5).time_bins == full[0]
+  assert repr(wide) == ("Setup(wall_size=2.0, grid=(16, 16), bin_width=3.2e-11, num_bins=512,"
+                        " depth_range=None)")
+  for bad in (0.0, -1.0, float("nan"), "1"):
+    with pytest.raises(ValueError, match="aperture"):
+      wide.with_aperture(bad)
+
+
+def test_aperture_cuts_the_cone_and_never_the_forward_model():
+  from nlosjax.physics.operators import cone_psf, lct_domain
+  s = Setup(1.0, (12, 12), 32e-12, 384)
+  rho = 0.35
+  cut = s.with_aperture(rho)
+  full_psf = cone_psf(s, lct_domain(s))
+  cut_psf = cone_psf(cut, lct_domain(cut))
+  dy, dx = s.spacing
+  p = np.fft.fftfreq(24, 1 / 24)                      # signed lateral offsets of the FFT layout
+  lateral = np.hypot(p[:, None] * dy, p[None, :] * dx)
+  half_pixel = 0.5 * np.hypot(dy, dx)
+  support = np.abs(cut_psf).sum(0) > 0
+  assert not np.any(support & (lateral > rho + half_pixel))
+  inside = lateral < rho - half_pixel                 # every footprint sample within the aperture
+  ratio = cut_psf[:, inside].sum() / full_psf[:, inside].sum()
+  np.testing.assert_allclose(cut_psf[:, inside], ratio * full_psf[:, inside], rtol=1e-12, atol=1e-15)
+  rng = np.random.default_rng(0)
+  albedo = rng.random((384, 12, 12)).astype(np.float32) * (rng.random((384, 12, 12)) > 0.999)
+  np.testing.assert_array_equal(np.asarray(render(albedo, cut)), np.asarray(render(albedo, s)))
+
+
+@pytest.mark.parametrize("method", ["fbp", "lct", "phasor"])
+def test_point_scatterer_with_an_aperture_and_a_range(method):
+  """A 0.8 m aperture (the wall diagonal is 2.8 m) still puts a point at its position."""
+  s = Setup(2.0, (16, 16), 32e-12, 512)
+  x, y, z = 0.3, -0.25, 0.9
+  transient = render_points(np.array([[x, y, z]]), 1.0, s)
+  gated = s.with_depth_range(0.75, 1.25).with_aperture(0.8)
+  vol = np.asarray(reconstruct(transient, gated, method))
+  k, i, j = peak(vol)
+  assert abs(i - np.argmin(np.abs(s.scan_y - y))) <= 1 and abs(j - np.argmin(np.abs(s.scan_x - x))) <= 1
+  assert abs(k + gated.depth_bins[0] - z / s.depth_bin_length) <= 3
+  assert gated.time_bins[1] < 512
+
+
 @pytest.mark.parametrize("depth_range", [None, (0.31, 0.77)])
 def test_rsd_nufft_depth_sum_equals_the_brute_force_sum(depth_range):
   """The NUFFT over depth reproduces ``|ifft2(sum_k U_k exp(i z kz_k))|`` summed plane by plane in NumPy."""

@@ -53,6 +53,8 @@ def render_operators(setup: Setup, falloff: str = "diffuse", dtype=jnp.float32,
                      oversample: int = 2) -> RenderOperators:
   """Build (once, cached) the forward-model operators of ``setup``."""
   q = check_falloff(falloff)
+  if setup.aperture is not None:   # the aperture limits reconstructions, never the physics
+    return render_operators(setup.with_aperture(None), falloff, dtype, oversample)
   dom = lct_domain(setup, oversample=oversample)
   T = setup.num_bins
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64

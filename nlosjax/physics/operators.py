@@ -172,6 +172,7 @@ def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4) -> np
   centre; without it the steep cone flanks are under-sampled and an off-grid
   point smears in depth), each split linearly between the two v-bins around
   its exact offset ``oversample r_b^2 / T``. Unit L2 norm over the ungated cone.
+  With ``setup.aperture``, samples laterally farther than it are dropped.
   """
   T = setup.num_bins
   H, W = setup.grid
@@ -186,9 +187,12 @@ def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4) -> np
   cone = np.zeros((tv + 1,) + pp.shape)       # ungated cone on the full v-axis (+1 spill bin)
   for sy in sub:
     for sx in sub:
-      r2 = (((pp + sy) * dy) ** 2 + ((qq + sx) * dx) ** 2) / setup.depth_bin_length ** 2
+      lateral2 = ((pp + sy) * dy) ** 2 + ((qq + sx) * dx) ** 2
+      r2 = lateral2 / setup.depth_bin_length ** 2
       s = r2 * domain.oversample / T          # exact v-offset, v-bins
       s0 = np.minimum(np.floor(s).astype(np.int64), tv)
+      if setup.aperture is not None:          # beyond the aperture: into the dropped spill bin
+        s0 = np.where(lateral2 > setup.aperture ** 2, tv, s0)
       frac = s - np.floor(s)
       np.add.at(cone, (s0, pp + H - 1, qq + W - 1), np.where(s0 < tv, 1.0 - frac, 0.0))
       s1 = np.minimum(s0 + 1, tv)

@@ -42,6 +42,12 @@ class Setup:
     num_bins: ``T``, number of time bins per histogram.
     depth_range: optional ``(z_min, z_max)`` in metres, ``0 <= z_min < z_max``;
       reconstructions return only the depth bins inside it.
+    aperture: optional lateral reach of reconstructions, metres: returns from
+      voxels more than ``aperture`` away (laterally) from a scan point are
+      not modelled (the light cone is cut at that radius), so a gated window
+      ends at ``hypot(z_max, aperture)`` instead of one wall diagonal away
+      and cost follows the depth range. ``None``: the whole wall. The forward
+      model (``render``) always uses the whole cone.
 
   Raises:
     ValueError: on a non-positive size, a grid with fewer than 2 points per
@@ -53,6 +59,7 @@ class Setup:
   bin_width: float
   num_bins: int
   depth_range: tuple[float, float] | None = None
+  aperture: float | None = None
 
   def __post_init__(self):
     def positive_number(name, value):
@@ -82,6 +89,8 @@ class Setup:
       raise ValueError(f"Setup.num_bins must be an integer >= 2, got {self.num_bins!r}")
     object.__setattr__(self, "num_bins", int(self.num_bins))
 
+    if self.aperture is not None:
+      object.__setattr__(self, "aperture", positive_number("aperture", self.aperture))
     if self.depth_range is not None:
       try:
         z_min, z_max = (float(v) for v in self.depth_range)
@@ -102,6 +111,13 @@ class Setup:
         raise ValueError(
             f"Setup.depth_range {self.depth_range} holds no depth bin (bins are"
             f" {self.depth_bin_length:.4g} m apart)")
+
+  def __repr__(self) -> str:
+    # ``aperture`` only when set: the repr of an aperture-free Setup is unchanged
+    # (checkpoint signatures embed it).
+    items = [f"{f.name}={getattr(self, f.name)!r}" for f in dataclasses.fields(self)
+             if f.name != "aperture" or self.aperture is not None]
+    return f"Setup({', '.join(items)})"
 
   # ---------------------------------------------------------------- geometry
   @property
@@ -152,8 +168,12 @@ class Setup:
 
   @property
   def max_lateral_offset(self) -> float:
-    """Largest lateral distance between a scan point and a voxel column, metres."""
-    return self.wall_size * math.sqrt(2.0)
+    """Largest lateral distance between a scan point and a voxel column that is modelled, metres.
+
+    One wall diagonal (``sqrt(2) wall_size``), or the ``aperture`` if smaller.
+    """
+    diagonal = self.wall_size * math.sqrt(2.0)
+    return diagonal if self.aperture is None else min(diagonal, self.aperture)
 
   # ------------------------------------------------------------ depth gating
   @property
@@ -187,9 +207,9 @@ class Setup:
     """``(t0, t1)``: time bins that can hold returns from the depth range.
 
     The earliest return from ``z >= z_min`` is straight ahead (bin ``k0``);
-    the latest from ``z <= z_max`` comes from a voxel one wall diagonal away,
-    round-trip ``2 * sqrt(z_max**2 + 2 * wall_size**2)``. ``(0, T)`` without a
-    depth range.
+    the latest from ``z <= z_max`` comes from a voxel one wall diagonal (or
+    the ``aperture``) away, round-trip ``2 * hypot(z_max, max_lateral_offset)``.
+    ``(0, T)`` without a depth range.
     """
     if self.depth_range is None:
       return (0, self.num_bins)
@@ -206,6 +226,10 @@ class Setup:
   def with_depth_range(self, z_min: float, z_max: float) -> "Setup":
     """The same capture restricted to depths ``[z_min, z_max]`` metres."""
     return dataclasses.replace(self, depth_range=(z_min, z_max))
+
+  def with_aperture(self, aperture: float | None) -> "Setup":
+    """The same capture with reconstructions limited to a lateral reach of ``aperture`` metres."""
+    return dataclasses.replace(self, aperture=aperture)
 
   def check_transient(self, transient, name: str = "transient") -> None:
     """Raise ``ValueError`` unless ``transient`` is ``[..., T, H, W]`` for this Setup."""
