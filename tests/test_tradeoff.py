@@ -155,9 +155,14 @@ def test_in_range_accuracy_arithmetic():
 
 
 def test_depth_ranges_halve():
-  r = dict(tradeoff.depth_ranges((0.5, 1.5), 2.5))
-  assert r["full"] is None and r["full/2"] == (0.0, 1.25) and r["R"] == (0.5, 1.5)
-  assert r["R/2"] == pytest.approx((0.75, 1.25)) and r["R/4"] == pytest.approx((0.875, 1.125))
+  r = {label: (rng, ap) for label, rng, ap in tradeoff.depth_ranges((0.5, 1.5), 2.5, 0.7)}
+  assert r["full"] == (None, None) and r["full/2"] == ((0.0, 1.25), None)
+  assert r["R"] == ((0.5, 1.5), None) and r["R|a"] == ((0.5, 1.5), 0.7)
+  assert r["R/2"][0] == pytest.approx((0.75, 1.25)) and r["R/4"][0] == pytest.approx((0.875, 1.125))
+  assert r["R/2|a"][0] == pytest.approx((0.75, 1.25)) and r["R/2|a"][1] == 0.7
+  assert "R|a" not in {label for label, _, _ in tradeoff.depth_ranges((0.5, 1.5), 2.5)}
+  s = tradeoff.gated_setup(Setup(2.0, (8, 8), 64e-12, 64), (0.5, 1.0), 0.7)
+  assert s.depth_range == (0.5, 1.0) and s.aperture == 0.7
 
 
 def test_lct_stages_compose_to_lct():
