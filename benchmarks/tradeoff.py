@@ -935,8 +935,8 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
       f"Produced by `{cmd}` on {datetime.date.today().isoformat()} ({res['wall_s']:.0f} s).",
       "",
       f"- Machine: {machine}. Load average (1, 5, 15 min) before: {loads[0]}; after: {loads[1]}."
-      " The 2 cores were shared with other engineers' jobs while this ran, so times are upper"
-      f" bounds for an idle machine. Every time in this file comes from one phase in which all"
+      + _load_remark(loads[0]) +
+      f" Every time in this file comes from one phase in which all"
       f" {res['executables']} executables were called in turn, {res['rounds']} rounds after a"
       f" warm-up round ({res['timing_s']:.0f} s): the median is reported, and the `range` column"
       " gives the fastest and slowest round, the noise within this run. Between runs the load"
@@ -1133,6 +1133,18 @@ def gating_markdown(res: dict) -> list[str]:
           " hypot(z_max, rho) and Nv falls with the range (the `R|a` columns); its price is the"
           " oblique returns it ignores, measured in the accuracy table above.", ""]
   return out
+
+
+def _load_remark(load_before) -> str:
+  """A sentence on what the load average before the run means for the times."""
+  try:
+    one_minute = float(str(load_before).split(",")[0])
+  except ValueError:
+    return ""
+  if one_minute < 1.5:
+    return " The machine was otherwise quiet (1-minute load below 1.5 on 2 cores)."
+  return (" Other jobs shared the cores while this ran, so times are upper bounds for an idle"
+          " machine.")
 
 
 def _rng(r) -> str:
