@@ -48,13 +48,19 @@ class RenderOperators:
   to_t: jax.Array
 
 
-@_validate.cached_operators(maxsize=16)
 def render_operators(setup: Setup, falloff: str = "diffuse", dtype=jnp.float32,
                      oversample: int = 2) -> RenderOperators:
-  """Build (once, cached) the forward-model operators of ``setup``."""
+  """The forward-model operators of ``setup`` (built once per capture and cached).
+
+  ``setup.aperture`` is dropped first: it limits reconstructions, never the
+  physics, so a Setup with and without one share the same operators.
+  """
+  return _render_operators(setup.with_aperture(None), falloff, jnp.dtype(dtype), int(oversample))
+
+
+@_validate.cached_operators(maxsize=16)
+def _render_operators(setup: Setup, falloff: str, dtype, oversample: int) -> RenderOperators:
   q = check_falloff(falloff)
-  if setup.aperture is not None:   # the aperture limits reconstructions, never the physics
-    return render_operators(setup.with_aperture(None), falloff, dtype, oversample)
   dom = lct_domain(setup, oversample=oversample)
   T = setup.num_bins
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
