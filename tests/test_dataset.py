@@ -75,6 +75,36 @@ def test_clean_agrees_with_brute_force_render_of_the_stored_maps(tiny):
       assert clean.sum(1).mean() == pytest.approx(photons, rel=1e-3)
 
 
+def test_retroreflective_falloff_renders_r2_returns_of_the_same_scene():
+  """``falloff="retroreflective"``: the same scene as the diffuse spec, with 1/r^2 returns."""
+  spec = tiny_spec(frames=1, num_train=1, num_test=0, falloff="retroreflective")
+  seq = D.simulate_sequence(spec, "train", 0)
+  diffuse = D.simulate_sequence(tiny_spec(frames=1, num_train=1, num_test=0), "train", 0)
+  for key in ("intensity", "depth"):        # the scene does not depend on the falloff
+    np.testing.assert_array_equal(seq["arrays"][key], diffuse["arrays"][key])
+  s = spec.setup
+  clean = seq["arrays"]["clean"][0].astype(np.float64)
+  inten, depth = seq["arrays"]["intensity"][0], seq["arrays"]["depth"][0]
+  fg = inten > 0
+  ys, xs = np.nonzero(fg)
+  pts = np.stack([s.scan_x[xs], s.scan_y[ys], depth[fg]], -1)
+  for falloff, expect_better in (("retroreflective", True), ("diffuse", False)):
+    ref = render_points(pts, inten[fg], s, falloff=falloff)
+    # Per-bin totals: the shape of the return over time, where r^2 vs r^4 shows.
+    a, b = clean.sum((1, 2)), ref.sum((1, 2))
+    err = np.abs(a / a.sum() - b / b.sum()).sum()
+    if expect_better:
+      best = err
+    else:
+      assert best < 0.5 * err, (best, err)
+  assert best < 0.15, best
+  spec_dict = spec.to_dict()
+  assert spec_dict["falloff"] == "retroreflective" and "falloff" not in tiny_spec().to_dict()
+  assert D.DatasetSpec.from_config(spec_dict) == spec
+  with pytest.raises(ValueError, match="falloff"):
+    tiny_spec(falloff="lambertian")
+
+
 def test_albedo_volume_is_the_depth_binned_intensity(tiny):
   path, spec = tiny
   dz = spec.setup.depth_bin_length

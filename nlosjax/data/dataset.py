@@ -150,6 +150,9 @@ class DatasetSpec:
       0)`` for none.
     dark_counts: dark counts per scan point over the whole histogram.
     jitter: ``"measured"``, a Gaussian FWHM in seconds, or ``None``.
+    falloff: radiometric falloff of the rendered returns, ``"diffuse"``
+      (``r^-4``, the default) or ``"retroreflective"`` (``r^-2``, the measured
+      scans of O'Toole et al. 2018); see :func:`nlosjax.physics.render`.
     store_clean: store the noise-free ``clean`` transients.
     store_albedo: store the albedo volumes.
     compression: ``"gzip"``, ``"lzf"`` or ``None``.
@@ -173,6 +176,7 @@ class DatasetSpec:
   ambient: tuple[float, float] = (50.0, 500.0)
   dark_counts: float = 0.5
   jitter: str | float | None = "measured"
+  falloff: str = "diffuse"
   store_clean: bool = True
   store_albedo: bool = False
   compression: str | None = "gzip"
@@ -210,6 +214,8 @@ class DatasetSpec:
     from nlosjax.physics.noise import jitter_kernel
     if self.jitter is not None:
       jitter_kernel(self.setup, self.jitter)  # validates
+    from nlosjax.physics.operators import check_falloff
+    check_falloff(self.falloff)
     if self.noise_sampler not in ("numpy", "jax"):
       raise ValueError(f'noise_sampler must be "numpy" or "jax", got {self.noise_sampler!r}')
     if self.compression not in ("gzip", "lzf", None):
@@ -272,7 +278,9 @@ class DatasetSpec:
             "store_clean": self.store_clean, "store_albedo": self.store_albedo,
             "compression": self.compression, "compression_level": self.compression_level,
             "render_batch": self.render_batch, "noise_sampler": self.noise_sampler,
-            "scene": self.scene.to_dict()}
+            "scene": self.scene.to_dict(),
+            # Only when set: files written before the field existed keep their key.
+            **({} if self.falloff == "diffuse" else {"falloff": self.falloff})}
 
   def generation_key(self) -> dict:
     """What decides the content of a sequence: everything but the sequence counts."""
@@ -405,9 +413,9 @@ def simulate_sequence(spec: DatasetSpec, split: str, index: int) -> dict:
     if albedo is not None:
       albedo[start:stop] = vol
     if np.any(vol[:, :k0]) or np.any(vol[:, k1:]):  # cannot happen for valid scenes
-      clean[start:stop] = np.asarray(render(vol, setup))
+      clean[start:stop] = np.asarray(render(vol, setup, falloff=spec.falloff))
     else:
-      clean[start:stop] = np.asarray(render(vol[:, k0:k1], gated))
+      clean[start:stop] = np.asarray(render(vol[:, k0:k1], gated, falloff=spec.falloff))
   energy = float(np.mean(np.sum(clean, axis=1, dtype=np.float64)))
   if not energy > 0:
     raise ValueError(f"sequence {sequence_name(split, index)} (seed {seed}) renders no signal")
