@@ -44,6 +44,7 @@ import numpy as np
 
 from experiments import configs
 from nlosjax.data import dataset as D
+from benchmarks import _machine as _machine_facts
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "data.md"
 PAPER_FRAMES = 32
@@ -51,26 +52,10 @@ BATCH = 4
 
 
 def _machine() -> list[str]:
-  model = platform.processor() or platform.machine()
-  try:
-    with open("/proc/cpuinfo") as f:
-      model = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), model)
-  except OSError:
-    pass
-  mem = "unknown"
-  try:
-    with open("/proc/meminfo") as f:
-      kib = next(int(line.split()[1]) for line in f if line.startswith("MemTotal:"))
-      mem = f"{kib / 1024 ** 2:.1f} GiB"
-  except (OSError, StopIteration):
-    pass
-  try:
-    cores = len(os.sched_getaffinity(0))
-  except AttributeError:
-    cores = os.cpu_count()
   import h5py
   import jax
-  return [f"- CPU: {model}; {cores} usable cores ({os.cpu_count()} logical); memory {mem}",
+  return [f"- CPU: {_machine_facts.cpu_model()}; {_machine_facts.usable_cores()} usable cores"
+          f" ({os.cpu_count()} logical); memory {_machine_facts.memory_text()}",
           f"- JAX backend: {jax.default_backend()} ({jax.devices()[0]})",
           f"- Versions: Python {platform.python_version()}, jax {jax.__version__}, numpy"
           f" {np.__version__}, h5py {h5py.__version__} (HDF5 {h5py.version.hdf5_version})"]

@@ -43,6 +43,7 @@ import statistics
 import sys
 import time
 import traceback
+from benchmarks import _machine as _machine_facts
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "model.md"
 GIB = 1024.0 ** 3
@@ -160,21 +161,10 @@ def run_isolated(name, frames, batch, repeats, forward, time_limit) -> dict:
 
 def machine() -> dict:
   import jax
-  cpu = platform.processor() or platform.machine()
-  try:
-    with open("/proc/cpuinfo") as f:
-      for line in f:
-        if line.startswith("model name"):
-          cpu = line.split(":", 1)[1].strip()
-          break
-  except OSError:
-    pass
-  try:
-    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / GIB
-  except (ValueError, OSError):
-    mem = float("nan")
+  mem = _machine_facts.memory_gib()
   dev = jax.devices()[0]
-  return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "mem_gib": mem,
+  return {"cpu": _machine_facts.cpu_model(), "cores": _machine_facts.usable_cores(),
+          "mem_gib": float("nan") if mem is None else mem,
           "backend": jax.default_backend(), "device": getattr(dev, "device_kind", str(dev)),
           "versions": f"Python {platform.python_version()}, jax {jax.__version__}"}
 

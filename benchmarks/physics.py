@@ -49,6 +49,7 @@ import numpy as np
 
 from benchmarks import numpy_twins
 from nlosjax.physics.setup import Setup
+from benchmarks import _machine as _machine_facts
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "physics.md"
 WALL_SIZE = 2.0      # m
@@ -288,35 +289,10 @@ def ncc(a: np.ndarray, b: np.ndarray) -> float:
   return float(a @ b) / denom if denom > 0 else float("nan")
 
 
-def _cpu_model() -> str:
-  try:
-    with open("/proc/cpuinfo") as f:
-      for line in f:
-        if line.startswith("model name"):
-          return line.split(":", 1)[1].strip()
-  except OSError:
-    pass
-  return platform.processor() or platform.machine()
-
-
-def _memory_total_gib() -> str:
-  try:
-    with open("/proc/meminfo") as f:
-      for line in f:
-        if line.startswith("MemTotal:"):
-          return f"{int(line.split()[1]) / 1024 ** 2:.1f} GiB"
-  except OSError:
-    pass
-  return "unknown"
-
-
 def machine_info(jax_status: str) -> list[str]:
   import scipy
 
-  try:
-    cores = len(os.sched_getaffinity(0))
-  except AttributeError:
-    cores = os.cpu_count()
+  cores = _machine_facts.usable_cores()
   versions = [f"Python {platform.python_version()}", f"numpy {np.__version__}",
               f"scipy {scipy.__version__}"]
   try:
@@ -328,7 +304,8 @@ def machine_info(jax_status: str) -> list[str]:
     versions.append("jax not installed")
   return [
       f"- Date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}",
-      f"- CPU: {_cpu_model()}; {cores} usable cores ({os.cpu_count()} logical); memory {_memory_total_gib()}",
+      f"- CPU: {_machine_facts.cpu_model()}; {cores} usable cores ({os.cpu_count()} logical);"
+      f" memory {_machine_facts.memory_text()}",
       f"- Versions: {', '.join(versions)}",
       f"- JAX side: {jax_status}",
   ]

@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from nlosjax.ssm import resolve_method, selective_scan
+from benchmarks import _machine as _machine_facts
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "scan.md"
 DEFAULT_SHAPES = ("256x512x32x16", "64x128x16x16", "512x256x32x16")
@@ -124,19 +125,8 @@ def bench_shape(shape, methods, repeats, chunk_size, log=print):
 
 
 def machine_info() -> dict:
-  model = platform.processor() or platform.machine()
-  try:
-    with open("/proc/cpuinfo") as f:
-      for line in f:
-        if line.startswith("model name"):
-          model = line.split(":", 1)[1].strip()
-          break
-  except OSError:
-    pass
-  try:
-    usable = len(os.sched_getaffinity(0))
-  except AttributeError:
-    usable = os.cpu_count()
+  model = _machine_facts.cpu_model()
+  usable = _machine_facts.usable_cores()
   import flax
   dev = jax.devices()[0]
   return dict(cpu=model, usable=usable, logical=os.cpu_count(), python=platform.python_version(),
@@ -146,10 +136,7 @@ def machine_info() -> dict:
 
 
 def _load() -> str:
-  try:
-    return " ".join(f"{v:.2f}" for v in os.getloadavg())
-  except OSError:
-    return "n/a"
+  return _machine_facts.load_average()
 
 
 def render(results, info, cmd, repeats, chunk_size, load_start, load_end) -> str:

@@ -62,7 +62,6 @@ import dataclasses
 import datetime
 import json
 import math
-import os
 import pathlib
 import statistics
 import sys
@@ -70,6 +69,7 @@ import time
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from benchmarks import _machine as _machine_facts
 
 DEFAULT_OUT_DIR = pathlib.Path(__file__).resolve().parent / "results"
 DEFAULT_WORKDIR = pathlib.Path("runs/tradeoff")
@@ -672,10 +672,7 @@ def machine_line() -> str:
 
 
 def load_average() -> str:
-  try:
-    return ", ".join(f"{v:.2f}" for v in os.getloadavg())
-  except OSError:
-    return "n/a"
+  return _machine_facts.load_average(", ")
 
 
 # --------------------------------------------------------------------- run

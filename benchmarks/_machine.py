@@ -1,0 +1,58 @@
+"""What the benchmark reports say about the machine: CPU model, cores, memory, load.
+
+One place for the ``/proc`` reading that every ``benchmarks/*.py`` report
+header needs; each report formats these its own way.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+
+
+def _proc_field(path: str, key: str) -> str | None:
+  """The value after ``key:`` on the first matching line of ``path``, or None."""
+  try:
+    with open(path) as f:
+      for line in f:
+        name, sep, value = line.partition(":")
+        if sep and name.strip() == key:      # cpuinfo pads names with tabs
+          return value.strip()
+  except OSError:
+    pass
+  return None
+
+
+def cpu_model() -> str:
+  """The CPU's model name (``/proc/cpuinfo``), else what ``platform`` knows."""
+  return _proc_field("/proc/cpuinfo", "model name") or platform.processor() or platform.machine()
+
+
+def usable_cores() -> int:
+  """Cores this process may run on (its affinity mask), else the logical count."""
+  try:
+    return len(os.sched_getaffinity(0))
+  except AttributeError:
+    return os.cpu_count() or 1
+
+
+def memory_gib() -> float | None:
+  """Physical memory in GiB (``/proc/meminfo``), or None where unknown."""
+  value = _proc_field("/proc/meminfo", "MemTotal")
+  if value is None:
+    return None
+  return int(value.split()[0]) / 1024 ** 2
+
+
+def memory_text() -> str:
+  """``"23.5 GiB"`` or ``"unknown"``."""
+  gib = memory_gib()
+  return "unknown" if gib is None else f"{gib:.1f} GiB"
+
+
+def load_average(sep: str = " ") -> str:
+  """1, 5 and 15 minute load averages, or ``"n/a"``."""
+  try:
+    return sep.join(f"{v:.2f}" for v in os.getloadavg())
+  except OSError:
+    return "n/a"
