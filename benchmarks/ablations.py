@@ -75,22 +75,13 @@ def run_row(base: dict, row: str, steps: int, workdir: pathlib.Path) -> dict:
   t0 = time.perf_counter()
   mcfg, state = T.train_model(cfg, data_path, out, "ours", log=lambda s: None)
   train_s = time.perf_counter() - t0
-  loader = T._loader(cfg, data_path, "test", batch_size=int(cfg["train"]["eval_batch_size"]),
-                     shuffle=False, seed=0)
-  images = T.evaluate_model(mcfg, state.params, loader)
-  gt_i, gt_d = [], []
-  for step in range(len(loader)):
-    b = loader.batch(step)
-    gt_i.append(b["intensity"])
-    gt_d.append(b["depth"])
-  loader.close()
-  import numpy as np
-  table = T.summarise(T.image_metrics(images["intensity"], images["depth"], np.concatenate(gt_i),
-                                      np.concatenate(gt_d)))
-  rows = T._read_jsonl(out / "ours" / "metrics.jsonl")
+  tables, images = T.evaluate(cfg, data_path, {"ours": (mcfg, state.params)}, methods=(),
+                              log=lambda s: None)
+  table = tables["ours"]
+  rows = T.read_metrics(out / "ours" / "metrics.jsonl")
   result = {"row": row, "steps": steps, "train_s": round(train_s, 1), "metrics": table,
             "final_loss": rows[-1]["loss"] if rows else None,
-            "frames": int(len(images["intensity"]))}
+            "frames": int(len(images["ours"]["intensity"]))}
   out.mkdir(parents=True, exist_ok=True)
   cached.write_text(json.dumps(result, indent=2) + "\n")
   return result

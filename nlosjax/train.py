@@ -429,7 +429,9 @@ def ensure_dataset(config: dict, path: pathlib.Path, log: Callable[[str], None] 
   log(f"dataset: done in {time.perf_counter() - t0:.0f} s")
 
 
-def _read_jsonl(path: pathlib.Path) -> list[dict]:
+def read_metrics(path) -> list[dict]:
+  """Rows of a ``metrics.jsonl`` training log (``[]`` if absent; stops at a line cut by a kill)."""
+  path = pathlib.Path(path)
   if not path.exists():
     return []
   rows = []
@@ -498,7 +500,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *,
     state, start = restored
     log(f"[{variant}] resumed from step {start} ({ckpt.directory})")
   log_path = vdir / "metrics.jsonl"
-  kept = [r for r in _read_jsonl(log_path) if r["step"] <= start]
+  kept = [r for r in read_metrics(log_path) if r["step"] <= start]
   log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
   step_fn = make_train_step(mcfg, weights, mesh)
   log_every = int(tr.get("log_every", 10))
@@ -571,7 +573,7 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
   mid = np.concatenate(mid)
   images = {"gt": gt}
   table = {}
-  for method in tqdm(methods, desc="classic methods", unit="method"):
+  for method in tqdm(methods, desc="classic methods", unit="method", disable=not methods):
     out_i, out_d = [], []
     for s in range(0, len(mid), batch_size):
       i, d = classic_images(mid[s:s + batch_size], loader.setup, loader.stride, method)
@@ -672,7 +674,7 @@ def train_and_evaluate(config: dict, workdir) -> dict:
   for variant in config["train"].get("variants", ("ours_s", "ours")):
     mcfg, state = train_model(config, data_path, workdir, variant)
     trained[variant] = (mcfg, state.params)
-    logs[variant] = _read_jsonl(workdir / variant / "metrics.jsonl")
+    logs[variant] = read_metrics(workdir / variant / "metrics.jsonl")
   table, images = evaluate(config, data_path, trained)
   caption = (f"Test split of `{data_path}` ({len(images['gt']['intensity'])} frames); "
              f"{config['train']['steps']} steps of batch {config['train']['batch_size']}; "
