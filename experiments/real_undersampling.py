@@ -509,6 +509,15 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
   out.write_text("\n".join(lines))
 
 
+def training_data(checkpoint) -> str:
+  """The dataset a trained run read (``data.path`` of its ``config.json``), else the cpu preset's."""
+  default = "runs/data/cpu.h5"
+  config = pathlib.Path(checkpoint) / "config.json" if checkpoint else None
+  if config is None or not config.is_file():
+    return default
+  return str(json.loads(config.read_text()).get("data", {}).get("path", default))
+
+
 def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--data-dir", default=None,
@@ -520,8 +529,10 @@ def main(argv=None):
   parser.add_argument("--no-timing", action="store_true", help="skip the CLI vs twin timing")
   parser.add_argument("--timing-repeats", type=int, default=3)
   parser.add_argument("--json", default=None, help="also write the scores as JSON here")
-  parser.add_argument("--synthetic", default="runs/data/cpu.h5",
-                      help="dataset file for the in-domain check ('none' to skip; skipped if absent)")
+  parser.add_argument("--synthetic", default=None,
+                      help="dataset file for the in-domain check (default: the data.path of the"
+                           " checkpoint's config.json, else runs/data/cpu.h5; 'none' to skip;"
+                           " skipped if absent)")
   parser.add_argument("--notes", default=None, help="a Markdown file whose text is added after the tables")
   args = parser.parse_args(argv)
   t0 = time.perf_counter()
@@ -539,8 +550,9 @@ def main(argv=None):
   command = "python -m experiments.real_undersampling " + " ".join(
       sys.argv[1:] if argv is None else argv)
   synthetic = None
-  if args.synthetic.lower() != "none":
-    synthetic = synthetic_check(args.synthetic, results["trained"])
+  synthetic_path = args.synthetic or training_data(checkpoint)
+  if synthetic_path.lower() != "none":
+    synthetic = synthetic_check(synthetic_path, results["trained"])
   notes = pathlib.Path(args.notes).read_text() if args.notes else ""
   write_report(results, out, timing=timing, warm=warm, synthetic=synthetic,
                command=command.strip(), elapsed=time.perf_counter() - t0, figures=figures,

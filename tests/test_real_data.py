@@ -46,3 +46,30 @@ def test_reconstruct_cli_images_match_public_reference(scan, method, tmp_path):
   ref = twins.run(transient, method, twins.build(setup, method))[:-cli.EDGE_BINS]
   front = np.sqrt(ref.max(0)) if method == "fk" else ref.max(0)
   assert ncc(res["intensity"][0], front) >= 0.9
+
+
+def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(scan):
+  """The ``real`` preset builds its model, and ``adapt_to_capture`` maps it onto the shipped scan
+  with whole capture bins per network bin and the trained wavelength in bins (same depth range)."""
+  from experiments.configs import get_config
+  from nlosjax import checkpoints_io as cio
+  from nlosjax import train as T
+  from nlosjax.data.dataset import DatasetSpec
+  from nlosjax.physics.wavelet import illumination_wavelet
+
+  config = T.with_defaults(get_config("real"))
+  spec = DatasetSpec.from_config(config["data"])
+  mcfg = T.model_config_for(config, spec.setup, "ours_s")      # raises if the physics layer can't be built
+  _, capture = scan
+  adapted = cio.adapt_to_capture(mcfg, capture)
+  assert adapted.bin_factor * capture.bin_width == pytest.approx(spec.setup.bin_width)
+  assert adapted.setup.max_depth == pytest.approx(capture.max_depth)
+  assert spec.setup.max_depth == pytest.approx(capture.max_depth)
+
+  def wavelength_in_bins(m):
+    wl = illumination_wavelet(m.setup, cycles=m.wavelet_cycles, sampling_coeff=m.wavelet_sampling)
+    return wl.wavelength / (m.setup.bin_length * m.volume_time_stride)
+
+  trained = wavelength_in_bins(mcfg)
+  assert 2.5 <= trained <= 4.0
+  assert wavelength_in_bins(adapted.model_config) == pytest.approx(trained, rel=1e-6)

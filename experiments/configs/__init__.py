@@ -17,7 +17,7 @@ import copy
 import importlib
 
 #: Preset names (modules of this package).
-PRESETS = ("cpu", "paper")
+PRESETS = ("cpu", "paper", "real")
 #: The preset used when none is named.
 DEFAULT = "cpu"
 
