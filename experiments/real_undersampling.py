@@ -1,7 +1,7 @@
 """Under-scanning on measured scans: every method on 16 x 16 and 8 x 8 subsets of real 64 x 64 scans.
 
     python -m experiments.real_undersampling                      # -> benchmarks/results/real.md
-    python -m experiments.real_undersampling --data-dir DIR --checkpoint runs/default --out FILE.md
+    python -m experiments.real_undersampling --data-dir DIR --checkpoint runs/real --out FILE.md
 
 Protocol (the paper's under-scanning experiment, on measured data):
 
@@ -18,22 +18,24 @@ Protocol (the paper's under-scanning experiment, on measured data):
   linearly interpolated back to 64 x 64 (``nlosjax.train.upsample_scan``), with
   the options these retroreflective scenes were published with (LCT snr 0.8
   and FBP with the t^2 falloff; f-k, phasor, RSD defaults);
-* the trained networks (Ours-S and Ours of ``python -m experiments.train``,
-  trained on synthetic 32 x 32 scans at stride 4 with 132 ps bins) read the
-  sparse scan with time summed to the nearest multiple of the capture's bins
-  (8 x 16 ps = 128 ps), the physics layer rebuilt for the scan's wall and grid
-  (``nlosjax.checkpoints_io.adapt_to_capture``). At stride 4 they output the
-  64 x 64 grid directly. At stride 8 the network keeps its trained stride 4
-  and outputs a 32 x 32 grid of every other scan point (full-grid points
-  ``0, 2, ..., 62``, so its inputs ``2 + 4 i`` are the full grid's ``4 + 8 i``),
-  which is linearly interpolated to 64 x 64. "Ours" reads each static scan as
-  three identical frames;
+* the trained networks (Ours-S and Ours of ``--checkpoint``, default
+  ``runs/real``: ``python -m experiments.train --config real --workdir
+  runs/real``, trained on synthetic 64 x 64 scans of a 0.6 m wall at stride 4
+  with 64 ps bins; see ``experiments/configs/real.py``) read the sparse scan
+  with time summed to the trained bin width (4 x 16 ps), the physics layer
+  rebuilt for the scan's wall and grid
+  (``nlosjax.checkpoints_io.adapt_to_capture``). At their trained stride they
+  output the 64 x 64 grid directly. At twice that stride (8) the network keeps
+  its trained stride and outputs a 32 x 32 grid of every other scan point
+  (full-grid points ``0, 2, ..., 62``, so its inputs ``2 + 4 i`` are the full
+  grid's ``4 + 8 i``), which is linearly interpolated to 64 x 64. "Ours" reads
+  each static scan as three identical frames;
 * scores: intensity PSNR (dB) and SSIM (``nlosjax.metrics``) against the
   reference, per scene and averaged over scenes. Nothing is tuned on these
   scenes.
 
 An in-domain check runs the same code on the networks' own data (the synthetic
-test split of ``--synthetic``, default ``runs/data/cpu.h5`` when present,
+test split of ``--synthetic``, default the checkpoint's own dataset when present,
 scored against its ground truth), to tell a reading or adaptation bug from the
 synthetic-to-real gap.
 
@@ -61,6 +63,8 @@ import time
 
 import numpy as np
 
+from benchmarks import _machine as _machine_facts
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
 VARIANTS = ("ours_s", "ours")
@@ -70,6 +74,8 @@ LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "R
 OPTIONS = {"fbp": {"falloff": "retroreflective"}, "lct": {"snr": 0.8, "falloff": "retroreflective"},
            "fk": {}, "phasor": {}, "rsd": {}}
 REFERENCE = "phasor"
+#: Bin width of the measured scans after the published preparation (s).
+CAPTURE_BIN_WIDTH = 16e-12
 
 
 def default_files(data_dir=None) -> list[pathlib.Path]:
@@ -182,6 +188,20 @@ def run(files, strides, checkpoint, log=print) -> dict:
   return results
 
 
+def synthetic_options(method: str, setup) -> dict:
+  """Options of a classic method on a synthetic capture: defaults, with the phasor wavelet resolved.
+
+  Phasor and RSD default to a virtual wavelength of ``2 * 2 * spacing``; on
+  coarse bins (the ``real`` preset: 1 cm spacing, 1.9 cm bins) that carrier is
+  not resolved, so ``sampling_coeff`` is raised to put 3 bins in a period
+  (as the ``real`` model's physics layer).
+  """
+  if method not in ("phasor", "rsd"):
+    return {}
+  needed = 3.0 * setup.bin_length / (2.0 * max(setup.spacing))
+  return {} if needed <= 2.0 else {"sampling_coeff": float(needed)}
+
+
 def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict | None:
   """The same pipeline on the networks' own domain: the synthetic test split, stride 4.
 
@@ -205,12 +225,13 @@ def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict
         gt = ds.read(name, "intensity", frames=fr)
         for m in scores:
           image = (model_intensity(trained[m], x, setup, stride) if m in trained
-                   else classic_intensity(x, setup, m, stride, options={}))
+                   else classic_intensity(x, setup, m, stride, options=synthetic_options(m, setup)))
           scores[m]["psnr"].append(float(metrics.psnr(image, gt)))
           scores[m]["ssim"].append(float(metrics.ssim(image, gt)))
   shown = path.resolve()
   shown = shown.relative_to(REPO) if shown.is_relative_to(REPO) else shown
   return {"file": str(shown), "frames": len(scores[CLASSIC[0]]["psnr"]), "stride": stride,
+          "options": {m: synthetic_options(m, setup) for m in CLASSIC},
           "scores": {m: {k: float(np.mean(v)) for k, v in d.items()} for m, d in scores.items()}}
 
 
@@ -439,6 +460,19 @@ def write_figures(results, out_dir: pathlib.Path) -> list[str]:
   return names + ["real_summary.png"]
 
 
+def _network_text(results) -> str:
+  """How the networks read the scans: trained geometry and the time binning."""
+  trained = results.get("trained") or {}
+  if not trained:
+    return "no trained network."
+  mcfg = next(iter(trained.values()))[0]
+  s = mcfg.setup
+  factor = max(1, int(round(s.bin_width / CAPTURE_BIN_WIDTH)))
+  return (f"the networks on the sparse scan with time summed {factor} × 16 ps ="
+          f" {factor * 16} ps (trained on {s.bin_width * 1e12:.0f} ps bins, {s.grid[0]} × {s.grid[1]}"
+          f" scans of a {s.wall_size:g} m wall at stride {mcfg.stride}).")
+
+
 def write_report(results, out: pathlib.Path, *, timing=None, warm=None, synthetic=None,
                  command: str, elapsed: float, figures: list[str], notes: str = "") -> None:
   import jax
@@ -448,15 +482,16 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
       f"Produced by `{command}` in {elapsed / 60:.1f} min.",
       "",
       f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
-      "- Machine: 2-core AMD EPYC VM, CPU, shared with other jobs (timings are noisy);"
-      f" Python {platform.python_version()}, jax {jax.__version__}, numpy {np.__version__}",
+      f"- Machine: {_machine_facts.cpu_model()}, {_machine_facts.usable_cores()} cores, JAX"
+      f" backend {jax.default_backend()}; load average (1, 5, 15 min) at the end"
+      f" {_machine_facts.load_average(', ')}; Python {platform.python_version()}, jax"
+      f" {jax.__version__}, numpy {np.__version__}",
       "- Scans: " + ", ".join(f"`{pathlib.Path(e['file']).name}`" for e in results["scenes"].values()) +
       " (O'Toole et al. 2018, 64 × 64 × 512 after the published preparation, 16 ps bins)",
       "- Protocol: see the docstring of `experiments/real_undersampling.py`: reference = phasor"
       " field on the full 64 × 64 scan; sparse scans = scan points `stride // 2 + stride i`;"
       " classic methods on the sparse scan interpolated to 64 × 64 (LCT snr 0.8 and FBP with"
-      " the retroreflective t² falloff, f-k / phasor / RSD defaults); the networks on the"
-      " sparse scan with time summed 8 × 16 ps = 128 ps (trained on 132 ps).",
+      " the retroreflective t² falloff, f-k / phasor / RSD defaults); " + _network_text(results),
       "",
   ]
   lines += _table(results)
@@ -469,8 +504,9 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
     lines += [
         f"In-domain check (same code, the networks' own data): {synthetic['frames']} frames of"
         f" the synthetic test split of `{synthetic['file']}` at stride {synthetic['stride']},"
-        " scored against the ground-truth intensity (classic methods with default options;"
-        " the adaptation is the identity there: bin factor 1, the trained wavelet):", "",
+        " scored against the ground-truth intensity (classic methods with default options"
+        + "".join(f", {LABELS[m]} {o}" for m, o in synthetic.get("options", {}).items() if o)
+        + "; the adaptation is the identity there: bin factor 1, the trained wavelet):", "",
         "| method | PSNR (dB) | SSIM |", "|---|---|---|"]
     for m, r in synthetic["scores"].items():
       lines.append(f"| {LABELS[m]} | {r['psnr']:.2f} | {r['ssim']:.3f} |")
@@ -522,7 +558,7 @@ def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--data-dir", default=None,
                       help="folder of real .mat scans (default ../shared/data/real, else the shipped scan)")
-  parser.add_argument("--checkpoint", default="runs/default",
+  parser.add_argument("--checkpoint", default="runs/real",
                       help="trained run (workdir of python -m experiments.train); 'none' for classic only")
   parser.add_argument("--strides", type=int, nargs="+", default=[4, 8])
   parser.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "real.md"))

@@ -73,3 +73,21 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
   trained = wavelength_in_bins(mcfg)
   assert 2.5 <= trained <= 4.0
   assert wavelength_in_bins(adapted.model_config) == pytest.approx(trained, rel=1e-6)
+
+
+def test_in_domain_check_resolves_the_phasor_wavelet_on_coarse_synthetic_bins():
+  """``real_undersampling.synthetic_options``: defaults where they work, a resolved carrier where not."""
+  from experiments import real_undersampling as RU
+  from nlosjax.physics.wavelet import illumination_wavelet
+  fine = physics.Setup(wall_size=2.0, grid=16, bin_width=132e-12, num_bins=64)
+  coarse = physics.Setup(wall_size=0.6, grid=64, bin_width=64e-12, num_bins=64)   # the real preset's
+  assert RU.synthetic_options("phasor", fine) == {} and RU.synthetic_options("lct", coarse) == {}
+  with pytest.raises(ValueError, match="not resolved"):
+    illumination_wavelet(coarse)
+  for method in ("phasor", "rsd"):
+    options = RU.synthetic_options(method, coarse)
+    wl = illumination_wavelet(coarse, sampling_coeff=options["sampling_coeff"])
+    assert wl.wavelength == pytest.approx(3 * coarse.bin_length)
+    x = np.zeros((64, 64, 64), np.float32)
+    x[30, 32, 32] = 1.0
+    assert np.isfinite(np.asarray(physics.reconstruct(x, coarse, method, **options))).all()
