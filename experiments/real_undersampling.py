@@ -188,20 +188,6 @@ def run(files, strides, checkpoint, log=print) -> dict:
   return results
 
 
-def synthetic_options(method: str, setup) -> dict:
-  """Options of a classic method on a synthetic capture: defaults, with the phasor wavelet resolved.
-
-  Phasor and RSD default to a virtual wavelength of ``2 * 2 * spacing``; on
-  coarse bins (the ``real`` preset: 1 cm spacing, 1.9 cm bins) that carrier is
-  not resolved, so ``sampling_coeff`` is raised to put 3 bins in a period
-  (as the ``real`` model's physics layer).
-  """
-  if method not in ("phasor", "rsd"):
-    return {}
-  needed = 3.0 * setup.bin_length / (2.0 * max(setup.spacing))
-  return {} if needed <= 2.0 else {"sampling_coeff": float(needed)}
-
-
 def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict | None:
   """The same pipeline on the networks' own domain: the synthetic test split, stride 4.
 
@@ -211,6 +197,7 @@ def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict
   points at the domain gap, not at the reading or the adaptation.
   """
   from nlosjax import metrics
+  from nlosjax import train as T
   from nlosjax.data import dataset, io
   path = pathlib.Path(path)
   if not path.is_file() or not trained:
@@ -225,13 +212,13 @@ def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict
         gt = ds.read(name, "intensity", frames=fr)
         for m in scores:
           image = (model_intensity(trained[m], x, setup, stride) if m in trained
-                   else classic_intensity(x, setup, m, stride, options=synthetic_options(m, setup)))
+                   else classic_intensity(x, setup, m, stride, options=T.classic_options(m, setup)))
           scores[m]["psnr"].append(float(metrics.psnr(image, gt)))
           scores[m]["ssim"].append(float(metrics.ssim(image, gt)))
   shown = path.resolve()
   shown = shown.relative_to(REPO) if shown.is_relative_to(REPO) else shown
   return {"file": str(shown), "frames": len(scores[CLASSIC[0]]["psnr"]), "stride": stride,
-          "options": {m: synthetic_options(m, setup) for m in CLASSIC},
+          "options": {m: T.classic_options(m, setup) for m in CLASSIC},
           "scores": {m: {k: float(np.mean(v)) for k, v in d.items()} for m, d in scores.items()}}
 
 

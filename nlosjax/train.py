@@ -317,6 +317,21 @@ def upsample_scan(transient, grid: tuple[int, int], stride: int) -> jax.Array:
   return jnp.einsum("Hh,...thw,Ww->...tHW", my, jnp.asarray(transient, jnp.float32), mx)
 
 
+def classic_options(method: str, setup) -> dict:
+  """Options of a classic baseline on ``setup``: the defaults, with a resolved phasor wavelet.
+
+  Phasor and RSD get ``sampling_coeff`` from
+  :func:`~nlosjax.physics.wavelet.resolved_sampling_coeff` where their default
+  virtual wavelength (4 scan spacings) is under 3 time bins (the ``real``
+  preset); elsewhere (``cpu``, ``paper``, the measured scans) ``{}``.
+  """
+  from nlosjax.physics.wavelet import resolved_sampling_coeff
+  if method not in ("phasor", "rsd"):
+    return {}
+  coeff = resolved_sampling_coeff(setup)
+  return {} if coeff <= 2.0 else {"sampling_coeff": coeff}
+
+
 def classic_images(measurement, setup, stride: int, method: str) -> tuple[np.ndarray, np.ndarray]:
   """Intensity and depth of a classic method on under-scanned input.
 
@@ -324,13 +339,13 @@ def classic_images(measurement, setup, stride: int, method: str) -> tuple[np.nda
     measurement: ``[N, T, h, w]`` counts of the frames to reconstruct.
     setup: the full-grid Setup.
     stride: the under-scan stride (the input is interpolated to the full grid).
-    method: one of :data:`CLASSIC_METHODS`.
+    method: one of :data:`CLASSIC_METHODS` (options: :func:`classic_options`).
   Returns:
     ``(intensity [N, H, W] in [0, 1], depth [N, H, W] metres)`` as NumPy.
   """
   from nlosjax.physics import intensity_depth, reconstruct
   full = upsample_scan(measurement, setup.grid, stride)
-  vol = reconstruct(full, setup, method)
+  vol = reconstruct(full, setup, method, **classic_options(method, setup))
   if method == "fk":
     vol = jnp.sqrt(vol)                      # f-k returns albedo squared
   inten, depth = intensity_depth(vol, setup)

@@ -75,19 +75,21 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
   assert wavelength_in_bins(adapted.model_config) == pytest.approx(trained, rel=1e-6)
 
 
-def test_in_domain_check_resolves_the_phasor_wavelet_on_coarse_synthetic_bins():
-  """``real_undersampling.synthetic_options``: defaults where they work, a resolved carrier where not."""
-  from experiments import real_undersampling as RU
+def test_classic_baselines_resolve_the_phasor_wavelet_on_coarse_synthetic_bins():
+  """``train.classic_options``: defaults where they work, a carrier over 3 bins where not."""
+  from nlosjax import train as T
   from nlosjax.physics.wavelet import illumination_wavelet
   fine = physics.Setup(wall_size=2.0, grid=16, bin_width=132e-12, num_bins=64)
   coarse = physics.Setup(wall_size=0.6, grid=64, bin_width=64e-12, num_bins=64)   # the real preset's
-  assert RU.synthetic_options("phasor", fine) == {} and RU.synthetic_options("lct", coarse) == {}
+  assert T.classic_options("phasor", fine) == {} and T.classic_options("lct", coarse) == {}
   with pytest.raises(ValueError, match="not resolved"):
     illumination_wavelet(coarse)
+  x = np.zeros((1, 64, 16, 16), np.float32)             # under-scanned at stride 4
+  x[0, 30, 8, 8] = 1.0
   for method in ("phasor", "rsd"):
-    options = RU.synthetic_options(method, coarse)
+    options = T.classic_options(method, coarse)
     wl = illumination_wavelet(coarse, sampling_coeff=options["sampling_coeff"])
     assert wl.wavelength == pytest.approx(3 * coarse.bin_length)
-    x = np.zeros((64, 64, 64), np.float32)
-    x[30, 32, 32] = 1.0
-    assert np.isfinite(np.asarray(physics.reconstruct(x, coarse, method, **options))).all()
+    intensity, depth = T.classic_images(x, coarse, 4, method)
+    assert np.isfinite(intensity).all() and np.isfinite(depth).all()
+    assert intensity.max() == pytest.approx(1.0, abs=1e-6)

@@ -104,6 +104,20 @@ def illumination_wavelet(setup: Setup, *, cycles: float = 5.0, sampling_coeff: f
   return Wavelet(wavelength, omega, sigma, setup.bin_width, length)
 
 
+def resolved_sampling_coeff(setup: Setup, sampling_coeff: float = 2.0,
+                            bins_per_period: float = 3.0) -> float:
+  """``sampling_coeff``, raised where needed so the carrier spans ``bins_per_period`` time bins.
+
+  The virtual wavelength ``2 sampling_coeff Delta`` follows the scan spacing
+  ``Delta``; on a fine scan with coarse bins (a 0.6 m wall, 64 x 64, 64 ps) the
+  default is under two bins and :func:`illumination_wavelet` refuses it.
+  Returns ``max(sampling_coeff, bins_per_period * bin_length / (2 Delta))``.
+  """
+  if not bins_per_period > 2:
+    raise ValueError(f"bins_per_period must be > 2 (Nyquist), got {bins_per_period!r}")
+  return max(float(sampling_coeff), bins_per_period * setup.bin_length / (2.0 * max(setup.spacing)))
+
+
 def convolve_time(x: jax.Array, wavelet: Wavelet, axis: int = -3) -> jax.Array:
   """``(P * x)`` along ``axis`` ("same" length, centred kernel), complex.
 
