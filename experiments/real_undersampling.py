@@ -492,7 +492,8 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
         f"In-domain check (same code, the networks' own data): {synthetic['frames']} frames of"
         f" the synthetic test split of `{synthetic['file']}` at stride {synthetic['stride']},"
         " scored against the ground-truth intensity (classic methods with default options"
-        + "".join(f", {LABELS[m]} {o}" for m, o in synthetic.get("options", {}).items() if o)
+        + "".join(f", {LABELS[m]} " + ", ".join(f"{k} {v:.3g}" for k, v in o.items())
+                  for m, o in synthetic.get("options", {}).items() if o)
         + "; the adaptation is the identity there: bin factor 1, the trained wavelet):", "",
         "| method | PSNR (dB) | SSIM |", "|---|---|---|"]
     for m, r in synthetic["scores"].items():
