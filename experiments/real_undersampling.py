@@ -452,9 +452,10 @@ def _network_text(results) -> str:
   trained = results.get("trained") or {}
   if not trained:
     return "no trained network."
+  from nlosjax.checkpoints_io import default_bin_factor
   mcfg = next(iter(trained.values()))[0]
   s = mcfg.setup
-  factor = max(1, int(round(s.bin_width / CAPTURE_BIN_WIDTH)))
+  factor = default_bin_factor(s.bin_width, CAPTURE_BIN_WIDTH)   # what adapt_to_capture sums
   return (f"the networks on the sparse scan with time summed {factor} × 16 ps ="
           f" {factor * 16} ps (trained on {s.bin_width * 1e12:.0f} ps bins, {s.grid[0]} × {s.grid[1]}"
           f" scans of a {s.wall_size:g} m wall at stride {mcfg.stride}).")
@@ -535,7 +536,8 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
 
 def training_data(checkpoint) -> str:
   """The dataset a trained run read (``data.path`` of its ``config.json``), else the cpu preset's."""
-  default = "runs/data/cpu.h5"
+  from experiments.configs import get_config
+  default = get_config("cpu")["data"]["path"]
   config = pathlib.Path(checkpoint) / "config.json" if checkpoint else None
   if config is None or not config.is_file():
     return default

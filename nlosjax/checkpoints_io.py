@@ -213,6 +213,14 @@ class CaptureAdaptation:
     return x.reshape(x.shape[:-3] + (n, k) + x.shape[-2:]).sum(axis=-3)
 
 
+def default_bin_factor(trained_bin_width: float, capture_bin_width: float) -> int:
+  """Capture bins summed per network bin: ``round(trained / capture)`` bin widths (seconds), >= 1."""
+  if not (trained_bin_width > 0 and capture_bin_width > 0):
+    raise ValueError(f"bin widths must be > 0 s, got trained {trained_bin_width!r} and capture"
+                     f" {capture_bin_width!r}")
+  return max(1, int(round(trained_bin_width / capture_bin_width)))
+
+
 def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = None) -> CaptureAdaptation:
   """Move a trained model to a capture's geometry, keeping what it learned in bin units.
 
@@ -237,7 +245,7 @@ def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = N
   from nlosjax.physics.wavelet import illumination_wavelet
   trained = model_config.setup
   if bin_factor is None:
-    bin_factor = max(1, int(round(trained.bin_width / capture.bin_width)))
+    bin_factor = default_bin_factor(trained.bin_width, capture.bin_width)
   if not isinstance(bin_factor, int) or bin_factor < 1:
     raise ValueError(f"bin_factor must be a positive integer, got {bin_factor!r}")
   num_bins = capture.num_bins // bin_factor
