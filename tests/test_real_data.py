@@ -63,6 +63,9 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
   _, capture = scan
   adapted = cio.adapt_to_capture(mcfg, capture)
   assert adapted.bin_factor * capture.bin_width == pytest.approx(spec.setup.bin_width)
+  assert adapted.bin_factor == cio.default_bin_factor(spec.setup.bin_width, capture.bin_width) == 4
+  with pytest.raises(ValueError, match="bin widths"):
+    cio.default_bin_factor(spec.setup.bin_width, 0.0)
   assert adapted.setup.max_depth == pytest.approx(capture.max_depth)
   assert spec.setup.max_depth == pytest.approx(capture.max_depth)
 
@@ -84,6 +87,10 @@ def test_classic_baselines_resolve_the_phasor_wavelet_on_coarse_synthetic_bins()
   assert T.classic_options("phasor", fine) == {} and T.classic_options("lct", coarse) == {}
   with pytest.raises(ValueError, match="not resolved"):
     illumination_wavelet(coarse)
+  from nlosjax.physics.wavelet import resolved_sampling_coeff
+  for bad in (dict(sampling_coeff=float("nan")), dict(sampling_coeff=0.5), dict(bins_per_period=2.0)):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+      resolved_sampling_coeff(coarse, **bad)
   x = np.zeros((1, 64, 16, 16), np.float32)             # under-scanned at stride 4
   x[0, 30, 8, 8] = 1.0
   for method in ("phasor", "rsd"):

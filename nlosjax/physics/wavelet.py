@@ -111,8 +111,11 @@ def resolved_sampling_coeff(setup: Setup, sampling_coeff: float = 2.0,
   The virtual wavelength ``2 sampling_coeff Delta`` follows the scan spacing
   ``Delta``; on a fine scan with coarse bins (a 0.6 m wall, 64 x 64, 64 ps) the
   default is under two bins and :func:`illumination_wavelet` refuses it.
-  Returns ``max(sampling_coeff, bins_per_period * bin_length / (2 Delta))``.
+  Returns ``max(sampling_coeff, bins_per_period * bin_length / (2 Delta))``
+  (dimensionless, as ``sampling_coeff``).
   """
+  if not sampling_coeff >= 1:
+    raise ValueError(f"sampling_coeff must be >= 1 (lambda_v >= 2 x scan spacing), got {sampling_coeff!r}")
   if not bins_per_period > 2:
     raise ValueError(f"bins_per_period must be > 2 (Nyquist), got {bins_per_period!r}")
   return max(float(sampling_coeff), bins_per_period * setup.bin_length / (2.0 * max(setup.spacing)))
