@@ -42,9 +42,9 @@ import time
 
 import numpy as np
 
+from benchmarks import _machine as _machine_facts
 from experiments import configs
 from nlosjax.data import dataset as D
-from benchmarks import _machine as _machine_facts
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "data.md"
 PAPER_FRAMES = 32

@@ -43,6 +43,7 @@ import statistics
 import sys
 import time
 import traceback
+
 from benchmarks import _machine as _machine_facts
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "model.md"

@@ -47,9 +47,9 @@ import tracemalloc
 
 import numpy as np
 
+from benchmarks import _machine as _machine_facts
 from benchmarks import numpy_twins
 from nlosjax.physics.setup import Setup
-from benchmarks import _machine as _machine_facts
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "physics.md"
 WALL_SIZE = 2.0      # m

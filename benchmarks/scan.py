@@ -43,8 +43,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nlosjax.ssm import resolve_method, selective_scan
 from benchmarks import _machine as _machine_facts
+from nlosjax.ssm import resolve_method, selective_scan
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "scan.md"
 DEFAULT_SHAPES = ("256x512x32x16", "64x128x16x16", "512x256x32x16")

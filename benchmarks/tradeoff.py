@@ -69,6 +69,7 @@ import time
 from typing import Any, Callable, Sequence
 
 import numpy as np
+
 from benchmarks import _machine as _machine_facts
 
 DEFAULT_OUT_DIR = pathlib.Path(__file__).resolve().parent / "results"
