@@ -32,7 +32,10 @@ Protocol (the paper's under-scanning experiment, on measured data):
   each static scan as three identical frames;
 * scores: intensity PSNR (dB) and SSIM (``nlosjax.metrics``) against the
   reference, per scene and averaged over scenes. Nothing is tuned on these
-  scenes.
+  scenes;
+* to separate what the networks' time bins cost from what the networks do,
+  phasor and RSD are also scored on the sparse scans summed to the networks'
+  bins (:func:`binned_classic`).
 
 An in-domain check runs the same code on the networks' own data (the synthetic
 test split of ``--synthetic``, default the checkpoint's own dataset when present,
@@ -186,6 +189,46 @@ def run(files, strides, checkpoint, log=print) -> dict:
     results["scenes"][scene] = entry
   bar.close()
   return results
+
+
+def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
+  """Classic methods on the sparse scans summed to the networks' time bins (mean scores over scenes).
+
+  Tells what the networks' coarser bins cost from what the networks do: the
+  same sparse scans, interpolation and reference as :func:`run`, but time
+  summed over the bin factor :func:`nlosjax.checkpoints_io.adapt_to_capture`
+  uses, and phasor / RSD with the wavelength raised
+  to 3 bins per period where their default is unresolved on those bins
+  (``nlosjax.train.classic_options``).
+
+  Returns ``None`` without a trained network, else ``{"bin_factor": k,
+  "bin_width": s, "scores": {(method, stride): {"psnr": dB, "ssim": ...}},
+  "options": {method: [options per scene]}}`` with the scores averaged over scenes.
+  """
+  trained = results.get("trained") or {}
+  if not trained:
+    return None
+  from nlosjax import metrics
+  from nlosjax.checkpoints_io import adapt_to_capture
+  from nlosjax.data import io
+  from nlosjax.train import classic_options
+  mcfg = next(iter(trained.values()))[0]
+  rows, options = {}, {}
+  for entry in results["scenes"].values():
+    transient, capture = io.load_measurement(entry["file"])
+    adapted = adapt_to_capture(mcfg, capture)                  # the networks' time binning
+    transient, setup = np.asarray(adapted.prepare(transient)), adapted.setup
+    for method in methods:
+      opts = {**OPTIONS[method], **classic_options(method, setup)}
+      options.setdefault(method, []).append(opts)
+      for stride in results["strides"]:
+        image = classic_intensity(transient, setup, method, stride, opts)
+        rows.setdefault((method, stride), []).append(
+            (float(metrics.psnr(image, entry["reference"])), float(metrics.ssim(image, entry["reference"]))))
+  scores = {k: {"psnr": float(np.mean([v[0] for v in vals])), "ssim": float(np.mean([v[1] for v in vals]))}
+            for k, vals in rows.items()}
+  return {"bin_factor": adapted.bin_factor, "bin_width": setup.bin_width, "scores": scores,
+          "options": options}
 
 
 def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict | None:
@@ -461,8 +504,30 @@ def _network_text(results) -> str:
           f" scans of a {s.wall_size:g} m wall at stride {mcfg.stride}).")
 
 
+def _binned_lines(results, binned) -> list[str]:
+  """The table of :func:`binned_classic`: classic scores at 16 ps beside those at the networks' bins."""
+  if not binned:
+    return []
+  width = f"{binned['bin_width'] * 1e12:.0f} ps"
+  lines = [
+      f"What the networks' time bins cost: phasor and RSD on the same sparse scans summed to"
+      f" {binned['bin_factor']} × 16 ps = {width}, the networks' input (`binned_classic`;"
+      + "".join(f" {LABELS[m]} sampling_coeff per scene "
+                + " / ".join(f"{o.get('sampling_coeff', 2.0):.3g}" for o in opts) + ";"
+                for m, opts in binned["options"].items())
+      + " means over scenes, PSNR (dB) / SSIM vs the same reference):", "",
+      f"| method | input | at 16 ps | at {width} |", "|---|---|---|---|"]
+  for (m, stride), r in binned["scores"].items():
+    vals = [e["scores"][(m, stride)] for e in results["scenes"].values()]
+    p16, s16 = np.mean([v["psnr"] for v in vals]), np.mean([v["ssim"] for v in vals])
+    g = 64 // stride
+    lines.append(f"| {LABELS[m]} | {g} × {g} | {p16:.2f} / {s16:.3f} | {r['psnr']:.2f} / {r['ssim']:.3f} |")
+  return lines + [""]
+
+
 def write_report(results, out: pathlib.Path, *, timing=None, warm=None, synthetic=None,
-                 command: str, elapsed: float, figures: list[str], notes: str = "") -> None:
+                 binned=None, command: str, elapsed: float, figures: list[str],
+                 notes: str = "") -> None:
   import jax
   lines = [
       "# Under-scanning on measured scans",
@@ -488,6 +553,7 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
   wl = _winner_lines(results)
   if wl:
     lines += ["Does the trained network beat every classic method (means over scenes)?", "", *wl, ""]
+  lines += _binned_lines(results, binned)
   if synthetic:
     lines += [
         f"In-domain check (same code, the networks' own data): {synthetic['frames']} frames of"
@@ -579,15 +645,19 @@ def main(argv=None):
   synthetic_path = args.synthetic or training_data(checkpoint)
   if synthetic_path.lower() != "none":
     synthetic = synthetic_check(synthetic_path, results["trained"])
+  binned = binned_classic(results)
   notes = pathlib.Path(args.notes).read_text() if args.notes else ""
-  write_report(results, out, timing=timing, warm=warm, synthetic=synthetic,
+  write_report(results, out, timing=timing, warm=warm, synthetic=synthetic, binned=binned,
                command=command.strip(), elapsed=time.perf_counter() - t0, figures=figures,
                notes=notes)
   if args.json:
     scores = {sc: {f"{m}@{s}": v for (m, s), v in e["scores"].items()}
               for sc, e in results["scenes"].items()}
+    binned_json = None if binned is None else {
+        **binned, "scores": {f"{m}@{s}": v for (m, s), v in binned["scores"].items()}}
     pathlib.Path(args.json).write_text(json.dumps({"scores": scores, "timing": timing, "warm": warm,
-                                                   "synthetic": synthetic}, indent=2) + "\n")
+                                                   "synthetic": synthetic, "binned": binned_json},
+                                                  indent=2) + "\n")
   print(out.read_text())
 
 

@@ -100,3 +100,41 @@ def test_classic_baselines_resolve_the_phasor_wavelet_on_coarse_synthetic_bins()
     intensity, depth = T.classic_images(x, coarse, 4, method)
     assert np.isfinite(intensity).all() and np.isfinite(depth).all()
     assert intensity.max() == pytest.approx(1.0, abs=1e-6)
+
+
+def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(scan):
+  """``real_undersampling.binned_classic``: at the capture's own bins it repeats the protocol's
+  score; at a network trained on 2 x 16 ps it scores phasor on the scan summed in pairs by hand."""
+  import dataclasses
+  from experiments import real_undersampling as R
+  from nlosjax import metrics
+  from nlosjax.models.network import ModelConfig
+  transient, setup = scan
+
+  def score(image):
+    return {"psnr": float(metrics.psnr(image, ref)), "ssim": float(metrics.ssim(image, ref))}
+
+  ref = R.classic_intensity(transient, setup, "phasor", 1)
+  entry = {"file": str(io.shipped_scan_path()), "reference": ref,
+           "scores": {("phasor", 4): score(R.classic_intensity(transient, setup, "phasor", 4))}}
+  results = {"strides": [4], "scenes": {"exit_sign": entry}}
+  assert R.binned_classic({**results, "trained": {}}) is None
+
+  def binned(network_setup):
+    trained = {"ours_s": (ModelConfig(setup=network_setup, stride=4), None)}
+    return R.binned_classic({**results, "trained": trained}, methods=("phasor",))
+
+  same = binned(setup)
+  assert same["bin_factor"] == 1
+  assert same["scores"][("phasor", 4)] == pytest.approx(entry["scores"][("phasor", 4)], rel=1e-6)
+
+  coarse = dataclasses.replace(setup, bin_width=2 * setup.bin_width, num_bins=setup.num_bins // 2)
+  two = binned(coarse)
+  assert two["bin_factor"] == 2 and two["bin_width"] == pytest.approx(32e-12)
+  T, H, W = transient.shape
+  pairs = transient.reshape(T // 2, 2, H, W).sum(axis=1)
+  expected = score(R.classic_intensity(pairs, coarse, "phasor", 4))
+  assert two["scores"][("phasor", 4)] == pytest.approx(expected, rel=1e-6)
+  assert two["scores"][("phasor", 4)]["psnr"] != pytest.approx(same["scores"][("phasor", 4)]["psnr"])
+  table = "\n".join(R._binned_lines(results, two))
+  assert f"{entry['scores'][('phasor', 4)]['psnr']:.2f}" in table and f"{expected['psnr']:.2f}" in table
