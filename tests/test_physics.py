@@ -192,6 +192,43 @@ def test_lct_apply_equals_the_full_padded_fft_convolution():
   np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("depth_range", [None, (0.3, 0.6)])
+def test_lct_fft_length_stops_at_the_cone_and_changes_nothing(depth_range):
+  """On a wall small beside the depth range the cone spans few v-bins, so ``lct_domain``
+  shortens the FFT along time; backprojection (``filt=None``) and the forward model still
+  equal the linear correlation / convolution done with NumPy on twice the full length."""
+  import dataclasses
+  from nlosjax.physics.forward import render_operators
+  from nlosjax.physics.operators import cone_psf, cone_reach, lct_apply, lct_operators
+  setup = Setup(0.2, (8, 7), 32e-12, 256, depth_range=depth_range)
+  ops = lct_operators(setup, 0.0, oversample=1)
+  dom = ops.domain
+  lv = dom.fft_shape[0]
+  assert cone_reach(setup) < 40 and lv < dom.num_v + dom.num_u - 1
+  long = dataclasses.replace(dom, fft_shape=(2 * (dom.num_v + dom.num_u),) + dom.fft_shape[1:])
+  psf = cone_psf(setup, long)                                 # no wrap at this length
+  rng = np.random.default_rng(0)
+  x = rng.uniform(size=(dom.t[1] - dom.t[0], 8, 7))
+  data_v = (np.asarray(ops.to_v, np.float64) @ x.reshape(x.shape[0], -1)).reshape(-1, 8, 7)
+  spec = np.fft.rfftn(psf, axes=(0, 1, 2))
+  ref = np.fft.irfftn(np.fft.rfftn(data_v, s=long.fft_shape, axes=(0, 1, 2)) * np.conj(spec),
+                      s=long.fft_shape, axes=(0, 1, 2))[:dom.num_u, :8, :7]
+  got = np.asarray(lct_apply(jnp.asarray(x, jnp.float32), ops, None))
+  np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
+  # The forward model: volume on the u-grid -> v-grid by the same kernel (a convolution).
+  fwd = render_operators(setup)
+  fdom = fwd.domain
+  rho_u = rng.uniform(size=(fdom.num_u, 8, 7)) * (rng.uniform(size=(fdom.num_u, 8, 7)) > 0.9)
+  flong = dataclasses.replace(fdom, fft_shape=(2 * (fdom.num_v + fdom.num_u),) + fdom.fft_shape[1:])
+  scale = np.asarray(fwd.psf_fft).ravel()[0] / cone_psf(setup, fdom).sum()   # the calibration
+  fspec = np.fft.rfftn(cone_psf(setup, flong), axes=(0, 1, 2)) * scale
+  fref = np.fft.irfftn(np.fft.rfftn(rho_u, s=flong.fft_shape, axes=(0, 1, 2)) * fspec,
+                       s=flong.fft_shape, axes=(0, 1, 2))[:fdom.num_v, :8, :7]
+  fgot = np.fft.irfftn(np.fft.rfftn(rho_u, s=fdom.fft_shape, axes=(0, 1, 2)) * np.asarray(fwd.psf_fft),
+                       s=fdom.fft_shape, axes=(0, 1, 2))[:fdom.num_v, :8, :7]
+  np.testing.assert_allclose(fgot, fref, rtol=1e-4, atol=1e-5 * np.abs(fref).max())
+
+
 def test_neg_log_filter_equals_the_dense_3d_kernel():
   from nlosjax.physics.reconstruct import _neg_log_kernel, neg_log_filter
   vol = np.random.default_rng(1).normal(size=(11, 7, 9))
@@ -283,7 +320,8 @@ def test_aperture_cuts_the_cone_and_never_the_forward_model():
   rho = 0.35
   cut = s.with_aperture(rho)
   full_psf = cone_psf(s, lct_domain(s))
-  cut_psf = cone_psf(cut, lct_domain(cut))
+  cut_psf = cone_psf(cut, lct_domain(s))              # one layout (the cut cone's own FFT is shorter)
+  assert lct_domain(cut).fft_shape[0] < lct_domain(s).fft_shape[0]
   dy, dx = s.spacing
   p = np.fft.fftfreq(24, 1 / 24)                      # signed lateral offsets of the FFT layout
   lateral = np.hypot(p[:, None] * dy, p[None, :] * dx)

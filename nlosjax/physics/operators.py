@@ -86,6 +86,24 @@ class LCTDomain:
     return self.u[1] - self.u[0]
 
 
+def cone_reach(setup: Setup, oversample: int = 1) -> int:
+  """Largest v-offset (v-bins) of the confocal light cone over the scan grid: ``k_max``.
+
+  A footprint sample at lateral distance ``r`` from the scan point lands
+  ``oversample r^2 / (T dz^2)`` v-bins after its u-bin (``dz`` the depth bin
+  length), split between that bin's floor and the next. :func:`cone_psf`'s
+  samples lie within half a scan spacing of a grid point, so ``r`` is at most
+  ``(H - 1/2) dy`` by ``(W - 1/2) dx`` (or the aperture); capped at the last
+  v-bin.
+  """
+  T, tv = setup.num_bins, oversample * setup.num_bins
+  dy, dx = setup.spacing
+  reach2 = ((setup.height - 0.5) * dy) ** 2 + ((setup.width - 0.5) * dx) ** 2
+  if setup.aperture is not None:
+    reach2 = min(reach2, setup.aperture ** 2)
+  return min(tv - 1, int(math.floor(reach2 / setup.depth_bin_length ** 2 * oversample / T)) + 1)
+
+
 def lct_domain(setup: Setup, *, t_margin: int = 0, z_margin: int = 0,
                oversample: int = 1) -> LCTDomain:
   """The bin windows for ``setup`` (its depth range), widened by margins.
@@ -108,7 +126,16 @@ def lct_domain(setup: Setup, *, t_margin: int = 0, z_margin: int = 0,
   os, tv = oversample, oversample * T
   v0, v1 = (t0 * t0 * os) // T, min(tv, -(-(t1 * t1 * os) // T))
   u0, u1 = (k0 * k0 * os) // T, min(tv, -(-(k1 * k1 * os) // T))
-  lv = scipy.fft.next_fast_len(v1 - v0 + u1 - u0 - 1, real=True)
+  nv, nu, shift = v1 - v0, u1 - u0, v0 - u0
+  # FFT length of the linear convolution: a scatterer at u-bin u returns at
+  # v-bins u + k, k in [0, k_max] (the cone's v-offsets, see cone_psf), stored
+  # at offsets d = k - shift of the v-window from the u-window. Pairs of a
+  # v- and a u-bin span d in [-(nu - 1), nv - 1]; none outside the kernel's
+  # offsets [lo, hi] may wrap onto them, which takes Lv > max(nv - 1 - lo,
+  # hi + nu - 1): at most the full nv + nu - 1, less where the wall is small
+  # beside the depth range (the cone stops at the wall's diagonal).
+  lo, hi = max(-shift, 1 - nu), min(cone_reach(setup, os) - shift, nv - 1)
+  lv = scipy.fft.next_fast_len(min(nv + nu - 1, max(nv - 1 - lo, hi + nu - 1) + 1), real=True)
   return LCTDomain((t0, t1), (v0, v1), (k0, k1), (u0, u1),
                    (lv, 2 * setup.height, 2 * setup.width), oversample)
 
@@ -162,8 +189,9 @@ def linear_axis_matrix(T: int, rows: tuple[int, int], cols: tuple[int, int], *,
   return out
 
 
-def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4) -> np.ndarray:
-  """``[Lv, 2H, 2W]`` float64 light-cone PSF laid out for the domain's linear convolution.
+def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4,
+             dtype=np.float64) -> np.ndarray:
+  """``[Lv, 2H, 2W]`` light-cone PSF laid out for the domain's linear convolution.
 
   Entry ``[m, p, q]`` weights a u-bin ``u`` into the v-bin ``u + m + (v0 - u0)``
   of the scan point ``p`` rows and ``q`` columns away (indices modulo the FFT
@@ -173,6 +201,8 @@ def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4) -> np
   point smears in depth), each split linearly between the two v-bins around
   its exact offset ``oversample r_b^2 / T``. Unit L2 norm over the ungated cone.
   With ``setup.aperture``, samples laterally farther than it are dropped.
+  The cone is summed and normalised in float64 and returned as ``dtype``
+  (float32 halves the memory and the time of the spectrum of a float32 problem).
   """
   T = setup.num_bins
   H, W = setup.grid
@@ -207,13 +237,16 @@ def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4) -> np
         f" {dy:.4g} x {dx:.4g} m, maximum depth {setup.max_depth:.4g} m); use more or wider"
         " bins, or a finer scan grid")
   cone /= math.sqrt(energy)
-  psf = np.zeros(domain.fft_shape)
+  psf = np.zeros(domain.fft_shape, dtype)
   m = np.arange(tv) - shift
   keep = (m > -domain.num_u) & (m < domain.num_v)
-  rows = (p % (2 * H))[:, None]
-  cols = (q % (2 * W))[None, :]
-  for mi, c in zip(m[keep], cone[keep]):
-    psf[mi % lv, rows, cols] += c
+  reached = np.flatnonzero(keep & np.any(cone != 0, axis=(1, 2)))
+  if reached.size and not (lv > max(domain.num_v - 1 - m[reached[0]], m[reached[-1]] + domain.num_u - 1)):
+    raise AssertionError(f"internal: the cone's v-offsets {m[reached[0]]}..{m[reached[-1]]} wrap around"
+                         f" the FFT length {lv} (lct_domain's cone_reach is too small)")
+  # Distinct targets: the kept offsets span fewer than Lv v-bins, the lateral
+  # offsets fewer than 2H and 2W (so one assignment, no accumulation needed).
+  psf[np.ix_(m[keep] % lv, p % (2 * H), q % (2 * W))] = cone[keep]
   return psf
 
 
@@ -252,7 +285,8 @@ def lct_operators(setup: Setup, power: float, *, t_margin: int = 0, z_margin: in
   dom = lct_domain(setup, t_margin=t_margin, z_margin=z_margin, oversample=oversample)
   T = setup.num_bins
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
-  psf_fft = scipy.fft.rfftn(cone_psf(setup, dom), workers=-1)   # built once per Setup; all cores
+  real = np.float64 if jnp.dtype(dtype) == jnp.float64 else np.float32
+  psf_fft = scipy.fft.rfftn(cone_psf(setup, dom, dtype=real), workers=-1)   # once per Setup; all cores
   to_v = squared_axis_matrix(T, dom.v, dom.t, power=power, oversample=oversample)
   to_z = linear_axis_matrix(T, dom.z, dom.u, power=0.0, oversample=oversample)
   return LCTOperators(dom, jnp.asarray(psf_fft, cdtype), jnp.asarray(to_v, dtype),
@@ -267,13 +301,16 @@ def lct_filter(ops: LCTOperators, snr: float | None) -> jax.Array:
   return jnp.conj(f) / (jnp.abs(f) ** 2 + jnp.asarray(1.0 / snr, f.real.dtype))
 
 
-def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array) -> jax.Array:
+def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array | None) -> jax.Array:
   """One gated LCT backprojection / inversion, before the depth resampling.
 
   Args:
     x: ``[Nt, H, W]`` real time window ``transient[t0:t1]``.
     ops: operators of the problem.
-    filt: ``[Lv, 2H, W + 1]`` complex frequency-domain filter.
+    filt: ``[Lv, 2H, W + 1]`` complex frequency-domain filter
+      (:func:`lct_filter`), or ``None`` for the backprojection ``conj(F)``
+      taken inside the product (no second spectrum-sized array, nothing to
+      compile beforehand).
   Returns:
     ``[Nu, H, W]`` real, on the u-grid.
   """
@@ -287,6 +324,7 @@ def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array) -> jax.Array:
   spec = jnp.fft.rfft(data_v, n=w2, axis=2)                 # [Nv, H, W + 1]
   spec = jnp.fft.fft(spec, n=h2, axis=1)                    # [Nv, 2H, W + 1]
   spec = jnp.fft.fft(spec, n=lv, axis=0)                    # [Lv, 2H, W + 1]
+  filt = jnp.conj(ops.psf_fft) if filt is None else filt
   out = jnp.fft.ifft(spec * filt, axis=0)[:dom.num_u]       # [Nu, 2H, W + 1]
   out = jnp.fft.ifft(out, axis=1)[:, :h]                    # [Nu, H, W + 1]
   return jnp.fft.irfft(out, n=w2, axis=2)[:, :, :w]         # [Nu, H, W]

@@ -58,13 +58,17 @@ METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
 @_validate.cached_operators(maxsize=4)   # a filter is [Lv, 2H, W+1] complex: ~0.3 GB at 128^2
 def _lct_problem(setup: Setup, power: float, snr: float | None, z_margin: int, oversample: int,
                  dtype) -> tuple:
-  """``(operators, frequency-domain filter)`` of one LCT problem, built once and cached."""
+  """``(operators, frequency-domain filter)`` of one LCT problem, built once and cached.
+
+  The filter is ``None`` for a backprojection (``snr=None``): :func:`lct_apply`
+  then conjugates the PSF spectrum inside the reconstruction's own jit.
+  """
   if oversample not in (1, 2, 3, 4):
     raise ValueError(f"oversample must be 1, 2, 3 or 4, got {oversample!r}")
   # The depth margin (FBP's -LoG taps) needs the time bins of its returns too.
   ops = lct_operators(setup, power, t_margin=z_margin, z_margin=z_margin, oversample=oversample,
                       dtype=dtype)
-  return ops, jax.jit(lct_filter, static_argnums=1)(ops, snr)
+  return ops, (None if snr is None else jax.jit(lct_filter, static_argnums=1)(ops, snr))
 
 
 @jax.jit
