@@ -194,16 +194,17 @@ def test_lct_apply_equals_the_full_padded_fft_convolution():
 
 @pytest.mark.parametrize("depth_range", [None, (0.3, 0.6)])
 def test_lct_fft_length_stops_at_the_cone_and_changes_nothing(depth_range):
-  """On a wall small beside the depth range the cone spans few v-bins, so ``lct_domain``
-  shortens the FFT along time; backprojection (``filt=None``) and the forward model still
+  """On a wall small beside the depth range the cone spans few v-bins, so ``lct_domain(...,
+  fft_length="cone")`` shortens the FFT along time; backprojection (``filt=None``) and the forward model still
   equal the linear correlation / convolution done with NumPy on twice the full length."""
   import dataclasses
   from nlosjax.physics.forward import render_operators
   from nlosjax.physics.operators import cone_psf, cone_reach, lct_apply, lct_operators
   setup = Setup(0.2, (8, 7), 32e-12, 256, depth_range=depth_range)
-  ops = lct_operators(setup, 0.0, oversample=1)
+  ops = lct_operators(setup, 0.0, oversample=1, fft_length="cone")
   dom = ops.domain
   lv = dom.fft_shape[0]
+  assert lct_operators(setup, 0.0, oversample=1).domain.fft_shape[0] >= dom.num_v + dom.num_u - 1
   assert cone_reach(setup) < 40 and lv < dom.num_v + dom.num_u - 1
   long = dataclasses.replace(dom, fft_shape=(2 * (dom.num_v + dom.num_u),) + dom.fft_shape[1:])
   psf = cone_psf(setup, long)                                 # no wrap at this length
@@ -320,8 +321,8 @@ def test_aperture_cuts_the_cone_and_never_the_forward_model():
   rho = 0.35
   cut = s.with_aperture(rho)
   full_psf = cone_psf(s, lct_domain(s))
-  cut_psf = cone_psf(cut, lct_domain(s))              # one layout (the cut cone's own FFT is shorter)
-  assert lct_domain(cut).fft_shape[0] < lct_domain(s).fft_shape[0]
+  cut_psf = cone_psf(cut, lct_domain(s))
+  assert lct_domain(cut, fft_length="cone").fft_shape[0] < lct_domain(s, fft_length="cone").fft_shape[0]
   dy, dx = s.spacing
   p = np.fft.fftfreq(24, 1 / 24)                      # signed lateral offsets of the FFT layout
   lateral = np.hypot(p[:, None] * dy, p[None, :] * dx)

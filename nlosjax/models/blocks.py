@@ -484,7 +484,13 @@ class FeatureTransform(nn.Module):
     power = float(check_falloff(self.falloff)) if self.method == "lct" else 0.0
     # Built eagerly even when called inside a trace: the cache must hold arrays, not tracers.
     with jax.ensure_compile_time_eval():
-      return lct_operators(self.capture, power, oversample=self.oversample, dtype=jnp.float32)
+      return lct_operators(self.capture, power, oversample=self.oversample, dtype=jnp.float32,
+                           fft_length=self.fft_length)
+
+  @property
+  def fft_length(self) -> str:
+    """``"cone"`` for phasor (a backprojection), ``"full"`` for the Wiener inverse of "lct"."""
+    return "full" if self.method == "lct" else "cone"
 
   def __call__(self, x, time_offset: int = 0):
     if not isinstance(self.capture, Setup):
@@ -505,7 +511,7 @@ class FeatureTransform(nn.Module):
     if self.method == "phasor":
       wavelet = illumination_wavelet(self.capture, cycles=self.cycles,
                                      sampling_coeff=self.sampling_coeff)
-      filt = lct_filter(ops, None)
+      filt = None                                    # lct_apply's backprojection conj(F)
 
       def one(xi):
         field = convolve_time(xi, wavelet, axis=0)[t0 - a:t1 - a]

@@ -479,7 +479,8 @@ def model_summary(config: ModelConfig, setup: Setup | None = None, *, batch: int
 def _analytic_flops(config: ModelConfig, batch: int) -> tuple[float, float]:
   """FFT and selective-scan FLOPs of one forward pass that XLA's cost analysis misses."""
   cs = config.coarse_setup
-  dom = lct_domain(cs, oversample=config.physics_oversample)
+  dom = lct_domain(cs, oversample=config.physics_oversample,
+                   fft_length="full" if config.physics == "lct" else "cone")   # as FeatureTransform
   n = math.prod(dom.fft_shape)
   per_apply = 2 * 2.5 * n * math.log2(n)                     # rfftn + irfftn
   applies = 2 if config.physics == "phasor" else 1

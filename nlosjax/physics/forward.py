@@ -61,7 +61,7 @@ def render_operators(setup: Setup, falloff: str = "diffuse", dtype=jnp.float32,
 @_validate.cached_operators(maxsize=16)
 def _render_operators(setup: Setup, falloff: str, dtype, oversample: int) -> RenderOperators:
   q = check_falloff(falloff)
-  dom = lct_domain(setup, oversample=oversample)
+  dom = lct_domain(setup, oversample=oversample, fft_length="cone")   # a convolution with the cone
   T = setup.num_bins
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
   psf = cone_psf(setup, dom)

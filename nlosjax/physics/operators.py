@@ -104,8 +104,11 @@ def cone_reach(setup: Setup, oversample: int = 1) -> int:
   return min(tv - 1, int(math.floor(reach2 / setup.depth_bin_length ** 2 * oversample / T)) + 1)
 
 
+FFT_LENGTHS = ("full", "cone")
+
+
 def lct_domain(setup: Setup, *, t_margin: int = 0, z_margin: int = 0,
-               oversample: int = 1) -> LCTDomain:
+               oversample: int = 1, fft_length: str = "full") -> LCTDomain:
   """The bin windows for ``setup`` (its depth range), widened by margins.
 
   Args:
@@ -115,9 +118,17 @@ def lct_domain(setup: Setup, *, t_margin: int = 0, z_margin: int = 0,
     oversample: v- and u-bins per time bin. The u-grid is coarse near the
       wall (one u-bin spans ``T / (2 oversample k)`` depth bins at bin ``k``),
       which biases LCT depths close to the wall; 2 halves that.
+    fft_length: time length of the FFT box. ``"full"``: ``num_v + num_u - 1``
+      (rounded up to a fast length), the public algorithm's padding, needed by
+      the Wiener inverse, whose kernel is not compact. ``"cone"``: only as long
+      as the light cone's reach needs for an exact linear convolution or
+      correlation with the cone itself (backprojection, phasor, the forward
+      model): shorter where the wall is small beside the depth range.
   """
   if not (isinstance(oversample, int) and oversample >= 1):
     raise ValueError(f"oversample must be a positive integer, got {oversample!r}")
+  if fft_length not in FFT_LENGTHS:
+    raise ValueError(f"fft_length must be one of {FFT_LENGTHS}, got {fft_length!r}")
   T = setup.num_bins
   t0, t1 = setup.time_bins
   k0, k1 = setup.depth_bins
@@ -133,9 +144,13 @@ def lct_domain(setup: Setup, *, t_margin: int = 0, z_margin: int = 0,
   # v- and a u-bin span d in [-(nu - 1), nv - 1]; none outside the kernel's
   # offsets [lo, hi] may wrap onto them, which takes Lv > max(nv - 1 - lo,
   # hi + nu - 1): at most the full nv + nu - 1, less where the wall is small
-  # beside the depth range (the cone stops at the wall's diagonal).
-  lo, hi = max(-shift, 1 - nu), min(cone_reach(setup, os) - shift, nv - 1)
-  lv = scipy.fft.next_fast_len(min(nv + nu - 1, max(nv - 1 - lo, hi + nu - 1) + 1), real=True)
+  # beside the depth range (the cone stops at the wall's diagonal). Exact for
+  # the cone itself, not for the Wiener inverse (fft_length="full").
+  length = nv + nu - 1
+  if fft_length == "cone":
+    lo, hi = max(-shift, 1 - nu), min(cone_reach(setup, os) - shift, nv - 1)
+    length = min(length, max(nv - 1 - lo, hi + nu - 1) + 1)
+  lv = scipy.fft.next_fast_len(length, real=True)
   return LCTDomain((t0, t1), (v0, v1), (k0, k1), (u0, u1),
                    (lv, 2 * setup.height, 2 * setup.width), oversample)
 
@@ -271,7 +286,7 @@ class LCTOperators:
 
 @_validate.cached_operators(maxsize=16)
 def lct_operators(setup: Setup, power: float, *, t_margin: int = 0, z_margin: int = 0,
-                  oversample: int = 2, dtype=jnp.float32) -> LCTOperators:
+                  oversample: int = 2, dtype=jnp.float32, fft_length: str = "full") -> LCTOperators:
   """Build (once, cached) the operators to backproject or invert the LCT for ``setup``.
 
   Args:
@@ -281,8 +296,11 @@ def lct_operators(setup: Setup, power: float, *, t_margin: int = 0, z_margin: in
     t_margin, z_margin: widen the windows (see :func:`lct_domain`).
     oversample: v- and u-bins per time bin (see :func:`lct_domain`).
     dtype: float dtype of the real operators (complex counterpart for the PSF).
+    fft_length: ``"full"`` (any filter) or ``"cone"`` (backprojection only:
+      ``lct_apply(..., filt=None)``); see :func:`lct_domain`.
   """
-  dom = lct_domain(setup, t_margin=t_margin, z_margin=z_margin, oversample=oversample)
+  dom = lct_domain(setup, t_margin=t_margin, z_margin=z_margin, oversample=oversample,
+                   fft_length=fft_length)
   T = setup.num_bins
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
   real = np.float64 if jnp.dtype(dtype) == jnp.float64 else np.float32

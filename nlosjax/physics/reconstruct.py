@@ -66,8 +66,9 @@ def _lct_problem(setup: Setup, power: float, snr: float | None, z_margin: int, o
   if oversample not in (1, 2, 3, 4):
     raise ValueError(f"oversample must be 1, 2, 3 or 4, got {oversample!r}")
   # The depth margin (FBP's -LoG taps) needs the time bins of its returns too.
+  # A backprojection convolves with the cone itself: the FFT box need only span its reach.
   ops = lct_operators(setup, power, t_margin=z_margin, z_margin=z_margin, oversample=oversample,
-                      dtype=dtype)
+                      dtype=dtype, fft_length="full" if snr is not None else "cone")
   return ops, (None if snr is None else jax.jit(lct_filter, static_argnums=1)(ops, snr))
 
 
