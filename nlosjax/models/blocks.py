@@ -426,6 +426,12 @@ def volume_window(setup: Setup, time_stride: int, method: str, *, cycles: float 
   return (ca * time_stride, min(setup.num_bins, cb * time_stride))
 
 
+def physics_fft_length(method: str) -> str:
+  """``lct_domain``'s ``fft_length`` of the physics layer: ``"cone"`` for "phasor" (a
+  backprojection), ``"full"`` for the Wiener inverse of "lct"."""
+  return "full" if method == "lct" else "cone"
+
+
 class FeatureTransform(nn.Module):
   """The physics layer: each feature channel -> its phasor-field / LCT volume.
 
@@ -489,8 +495,7 @@ class FeatureTransform(nn.Module):
 
   @property
   def fft_length(self) -> str:
-    """``"cone"`` for phasor (a backprojection), ``"full"`` for the Wiener inverse of "lct"."""
-    return "full" if self.method == "lct" else "cone"
+    return physics_fft_length(self.method)
 
   def __call__(self, x, time_offset: int = 0):
     if not isinstance(self.capture, Setup):

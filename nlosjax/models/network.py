@@ -480,7 +480,7 @@ def _analytic_flops(config: ModelConfig, batch: int) -> tuple[float, float]:
   """FFT and selective-scan FLOPs of one forward pass that XLA's cost analysis misses."""
   cs = config.coarse_setup
   dom = lct_domain(cs, oversample=config.physics_oversample,
-                   fft_length="full" if config.physics == "lct" else "cone")   # as FeatureTransform
+                   fft_length=blocks.physics_fft_length(config.physics))
   n = math.prod(dom.fft_shape)
   per_apply = 2 * 2.5 * n * math.log2(n)                     # rfftn + irfftn
   applies = 2 if config.physics == "phasor" else 1

@@ -243,7 +243,8 @@ def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4,
       s1 = np.minimum(s0 + 1, tv)
       np.add.at(cone, (s1, pp + H - 1, qq + W - 1), np.where(s0 + 1 < tv, frac, 0.0))
   cone = cone[:tv]
-  energy = float(np.sum(cone ** 2))
+  row_energy = np.einsum("kpq,kpq->k", cone, cone)   # one pass: the norm and the v-offsets reached
+  energy = float(row_energy.sum())
   if energy == 0.0:
     # Every footprint sample of every cone column lies beyond the last bin: the
     # PSF is empty, and dividing by its norm would fill every volume with NaN.
@@ -255,7 +256,7 @@ def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4,
   psf = np.zeros(domain.fft_shape, dtype)
   m = np.arange(tv) - shift
   keep = (m > -domain.num_u) & (m < domain.num_v)
-  reached = np.flatnonzero(keep & np.any(cone != 0, axis=(1, 2)))
+  reached = np.flatnonzero(keep & (row_energy > 0))
   if reached.size and not (lv > max(domain.num_v - 1 - m[reached[0]], m[reached[-1]] + domain.num_u - 1)):
     raise AssertionError(f"internal: the cone's v-offsets {m[reached[0]]}..{m[reached[-1]]} wrap around"
                          f" the FFT length {lv} (lct_domain's cone_reach is too small)")
@@ -342,7 +343,7 @@ def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array | None) -> jax.Ar
   spec = jnp.fft.rfft(data_v, n=w2, axis=2)                 # [Nv, H, W + 1]
   spec = jnp.fft.fft(spec, n=h2, axis=1)                    # [Nv, 2H, W + 1]
   spec = jnp.fft.fft(spec, n=lv, axis=0)                    # [Lv, 2H, W + 1]
-  filt = jnp.conj(ops.psf_fft) if filt is None else filt
+  filt = lct_filter(ops, None) if filt is None else filt
   out = jnp.fft.ifft(spec * filt, axis=0)[:dom.num_u]       # [Nu, 2H, W + 1]
   out = jnp.fft.ifft(out, axis=1)[:, :h]                    # [Nu, H, W + 1]
   return jnp.fft.irfft(out, n=w2, axis=2)[:, :, :w]         # [Nu, H, W]
