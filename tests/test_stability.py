@@ -438,8 +438,11 @@ def test_network_bfloat16_end_to_end_stays_close_to_float32(net, net_out):
       a, b = np.asarray(bf[k][row], np.float64), np.asarray(out[k][row], np.float64)
       rms = np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-30)
       assert rms < 2e-2 and rel_dev(a, b) < 4e-2, (k, row, rms, rel_dev(a, b))
-  # The normalisation runs in float32 before the cast: saturation changes nothing in bfloat16.
-  _same_reconstruction(bf, 1, 0, 1e-5)
+  # The normalisation runs in float32 before the cast, so 1e9x the counts stays in range. The
+  # two rows' normalised inputs differ in float32's last bit, and a bfloat16 rounding can turn
+  # that into one bfloat16 ulp (7.8e-3 of a value): they agree to about one bfloat16 eps of the
+  # peak (measured 4.0e-3 on an AMD EPYC, 0 elsewhere), not to float32's.
+  _same_reconstruction(bf, 1, 0, 1e-2)
 
 
 def _extreme_ssm(params: dict) -> dict:
@@ -597,15 +600,18 @@ def test_videos_of_64_frames_and_of_one_frame(net, tmp_path):
   assert one["measurement"].shape == (1, 3, 64, 4, 4)
   np.testing.assert_array_equal(one["measurement"][0, 0], one["measurement"][0, 2])
   np.testing.assert_array_equal(one["measurement"][0, 0], one["measurement"][0, 1])
+  # Four identical rows agree to float32 reassociation: XLA:CPU may vectorise the last rows of a
+  # batch differently (measured up to 1.9e-6 of the peak on an AMD EPYC); mixing rows up would
+  # differ by O(1).
   ours = apply(params, one["measurement"].repeat(4, 0))
   _check_outputs(ours, cfg)
-  _same_reconstruction(ours, 3, 0, 1e-6)
+  _same_reconstruction(ours, 3, 0, 1e-5)
   cfg_s, params_s = _ours_s(cfg, params)
   model_s = STMambaNet(cfg_s)
   ours_s = jax.jit(lambda p, v: model_s.apply({"params": p}, v))(
       params_s, one["measurement"][:, 1:2].repeat(4, 0))
   _check_outputs(ours_s, cfg_s)
-  _same_reconstruction(ours_s, 3, 0, 1e-6)
+  _same_reconstruction(ours_s, 3, 0, 1e-5)
 
 
 # ------------------------------------------------------- smallest grid, depth ranges
