@@ -1,9 +1,10 @@
 """Side benchmark: pure-PyTorch parallel selective scans on the shapes of ``benchmarks.scan``.
 
-PyTorch is NOT a dependency of nlosjax. Run this with an interpreter that has
-torch (for example a separate virtual environment outside the repository):
+PyTorch is NOT a dependency of nlosjax; it comes with the optional ``bench`` extra
+(install a CPU build of torch first if you do not want its CUDA packages):
 
-    /tmp/torchvenv/bin/python benchmarks/scan_torch.py [--shapes 256x512x32x16 ...] [--repeats 5]
+    pip install -e ".[bench]"
+    python -m benchmarks.scan_torch [--shapes 256x512x32x16 ...] [--repeats 5]
 
 It prints one Markdown table (forward and forward+backward medians, ms) to paste
 next to ``benchmarks/results/scan.md``. Two parallel formulations, both written
@@ -31,7 +32,12 @@ import statistics
 import time
 
 import numpy as np
-import torch
+
+try:
+  import torch
+except ImportError:
+  raise SystemExit("benchmarks.scan_torch compares against PyTorch, which is not a dependency "
+                   "of nlosjax: install the optional extra with  pip install -e \".[bench]\"") from None
 
 DEFAULT_SHAPES = ("256x512x32x16", "64x128x16x16", "512x256x32x16")
 
