@@ -26,4 +26,18 @@ def test_ci_runs_the_readme_test_command_in_a_fresh_environment():
   assert any(l.startswith("python3 -m venv") for l in ci)
   venv = next(i for i, l in enumerate(ci) if l.startswith("python3 -m venv"))
   assert ci.index(install) > venv and ci.index(test) > ci.index(install)
+  # The main job too (under CI), in the same environment, after the tests.
+  assert ci.index(quick_start_commands()[0]) > ci.index(test)
 
+
+
+def test_lock_file_is_generated_and_installable_as_the_readme_says():
+  readme = (ROOT / "README.md").read_text()
+  lock = (ROOT / "requirements-lock.txt").read_text()
+  assert 'pip install -r requirements-lock.txt -e ".[test]"' in readme
+  assert "Written whole by: bash .ci/lock" in lock
+  pins = [l for l in lock.splitlines() if l and not l.startswith("#")]
+  assert pins and all(re.fullmatch(r"[A-Za-z0-9._-]+==[A-Za-z0-9.+!_-]+", p) for p in pins), pins
+  names = {p.split("==")[0].lower().replace("_", "-") for p in pins}
+  for needed in ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy", "pytest"):
+    assert needed in names, needed
