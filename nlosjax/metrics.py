@@ -1,4 +1,10 @@
-"""Image and depth-map quality metrics: PSNR, SSIM, RMSE, MAD.
+"""Image and depth-map quality metrics: PSNR, SSIM, RMSE, MAD, and object-aware depth scores.
+
+Whole-image depth RMSE/MAD count every background pixel (true depth 0 m), which
+a method scores well on by writing 0 m everywhere but the brightest object. The
+object-aware scores (:func:`surface_scores`: ``rmse_object``, ``mad_object``,
+``recall``, ``precision``, ``f1``) score the objects themselves; see
+"Surfaces" below.
 
 Every function takes ``pred`` and ``target`` of the same shape ``[..., H, W]``
 (any number of leading batch dimensions, ``H, W`` being the last two axes) and
@@ -38,6 +44,28 @@ Conventions:
   value checks cannot run: NaN then propagates to the output, and an image
   whose mask selects no pixel scores as if it had no error (MSE 0: RMSE and
   MAD 0, PSNR the 100 dB cap, SSIM 1).
+
+Surfaces (one definition for every method, learned or classic):
+
+* A pixel is a **true surface** where the ground-truth depth is > 0 (the
+  datasets write 0 m at background).
+* A pixel is **reconstructed as surface** where the predicted depth is
+  >= :data:`SURFACE_MIN_DEPTH` (0.1 m). Classic methods write 0 m where their
+  intensity is below the surface threshold
+  (:func:`nlosjax.physics.intensity_depth`); the networks' soft depth fades
+  towards 0 m without reaching it, so "0 m exactly" would call their
+  background surface.
+* With ``TP`` true surface pixels reconstructed as surface, ``FN`` true
+  surface pixels not, ``FP`` background pixels reconstructed as surface:
+  ``recall = TP / (TP + FN)``, ``precision = TP / (TP + FP)``,
+  ``f1 = 2 TP / (2 TP + FP + FN)``; ``rmse_object`` and ``mad_object`` are the
+  depth errors (metres) over the true surface pixels, whatever was
+  reconstructed there.
+* A score whose denominator is empty is NaN, not a number chosen for it: an
+  image with no true surface has NaN ``recall``, ``rmse_object`` and
+  ``mad_object``; one with nothing reconstructed as surface has NaN
+  ``precision``; ``f1`` is NaN only when both are empty. Tables average these
+  with NaN skipped and report how many frames each mean covers.
 """
 
 from __future__ import annotations
@@ -49,7 +77,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["PSNR_CAP_DB", "psnr", "ssim", "rmse", "mad"]
+__all__ = ["PSNR_CAP_DB", "SURFACE_MIN_DEPTH", "OBJECT_METRICS", "psnr", "ssim", "rmse", "mad",
+           "surface", "surface_scores", "rmse_object", "mad_object", "recall", "precision", "f1"]
 
 PSNR_CAP_DB = 100.0
 """PSNR (dB) returned for identical images: MSE is floored at
@@ -58,6 +87,12 @@ PSNR_CAP_DB = 100.0
 _PSNR_MSE_FLOOR = 10.0 ** (-PSNR_CAP_DB / 10.0)  # relative to data_range**2
 
 _GAUSSIAN_TRUNCATE = 3.5  # scikit-image's truncation for gaussian_weights=True
+
+SURFACE_MIN_DEPTH = 0.1
+"""Depth (metres) from which a reconstructed pixel counts as surface (see "Surfaces")."""
+
+OBJECT_METRICS = ("rmse_object", "mad_object", "recall", "precision", "f1")
+"""The keys of :func:`surface_scores`, in table order."""
 
 
 # --------------------------------------------------------------------------
@@ -403,3 +438,113 @@ def mad(pred, target, *, mask=None):
   _check_mask_values("mad", mask)
   pred, target, mask, _ = _prepare(pred, target, mask)
   return _mad(pred, target, mask)
+
+
+# --------------------------------------------------------------------------
+# Object-aware depth scores.
+
+
+def surface(depth, *, min_depth: float = SURFACE_MIN_DEPTH):
+  """Pixels reconstructed as surface: ``depth >= min_depth``.
+
+  Args:
+    depth: ``[..., H, W]`` depth map, metres.
+    min_depth: metres (default :data:`SURFACE_MIN_DEPTH`), > 0.
+  Returns:
+    ``[..., H, W]`` bool.
+  """
+  _check_scalar("surface", "min_depth", min_depth, allow_zero=False)
+  return jnp.asarray(depth) >= min_depth
+
+
+@jax.jit
+def _surface_scores(pred, target, min_depth):
+  nan = jnp.array(jnp.nan, pred.dtype)
+  truth = target > 0
+  found = pred >= min_depth
+  axes = (-2, -1)
+  tp = jnp.sum(truth & found, axis=axes, dtype=pred.dtype)
+  fn = jnp.sum(truth & ~found, axis=axes, dtype=pred.dtype)
+  fp = jnp.sum(~truth & found, axis=axes, dtype=pred.dtype)
+  n_true = tp + fn
+
+  def ratio(num, den):
+    return jnp.where(den > 0, num / jnp.maximum(den, 1), nan)
+
+  err = jnp.where(truth, pred - target, 0)
+  mse = ratio(jnp.sum(jnp.square(err), axis=axes), n_true)
+  return {
+      # where-guard: sqrt(0) has an infinite derivative.
+      "rmse_object": jnp.where(mse > 0, jnp.sqrt(jnp.where(mse > 0, mse, 1.0)), mse),
+      "mad_object": ratio(jnp.sum(jnp.abs(err), axis=axes), n_true),
+      "recall": ratio(tp, n_true),
+      "precision": ratio(tp, tp + fp),
+      "f1": ratio(2 * tp, 2 * tp + fp + fn),
+  }
+
+
+def surface_scores(pred_depth, target_depth, *, min_depth: float = SURFACE_MIN_DEPTH) -> dict:
+  """Object-aware depth scores of each image (see "Surfaces" in the module docstring).
+
+  Args:
+    pred_depth: ``[..., H, W]`` reconstructed depth map, metres (background
+      below ``min_depth``, e.g. 0 m).
+    target_depth: ``[..., H, W]`` true depth map, metres, 0 at background.
+    min_depth: metres from which a reconstructed pixel is surface.
+
+  Returns:
+    ``{name: [...] float32}`` for the names in :data:`OBJECT_METRICS`:
+    ``rmse_object``, ``mad_object`` (metres, over true surface pixels),
+    ``recall``, ``precision``, ``f1`` (in [0, 1]). NaN where the score's
+    denominator is empty (module docstring).
+
+  Raises:
+    ValueError: shapes differ, rank < 2, NaN in a concrete input, ``min_depth`` <= 0.
+  """
+  _check_images("surface_scores", pred_depth, target_depth, None)
+  _check_scalar("surface_scores", "min_depth", min_depth, allow_zero=False)
+  pred, target, _, dtype = _prepare(pred_depth, target_depth, None)
+  scores = _surface_scores(pred, target, jnp.asarray(min_depth, dtype))
+  return {k: scores[k] for k in OBJECT_METRICS}      # jit returns keys sorted
+
+
+def rmse_object(pred_depth, target_depth):
+  """Depth RMSE (metres) over each image's true surface pixels; ``[...]``, NaN if it has none.
+
+  ``pred_depth``, ``target_depth``: ``[..., H, W]`` metres (0 = background in the target).
+  """
+  return surface_scores(pred_depth, target_depth)["rmse_object"]
+
+
+def mad_object(pred_depth, target_depth):
+  """Depth mean absolute difference (metres) over each image's true surface pixels; ``[...]``.
+
+  ``pred_depth``, ``target_depth``: ``[..., H, W]`` metres. NaN for an image with no surface.
+  """
+  return surface_scores(pred_depth, target_depth)["mad_object"]
+
+
+def recall(pred_depth, target_depth, *, min_depth: float = SURFACE_MIN_DEPTH):
+  """Share of true surface pixels reconstructed as surface; ``[...]`` in [0, 1], NaN if none.
+
+  ``pred_depth``, ``target_depth``: ``[..., H, W]`` metres.
+  """
+  return surface_scores(pred_depth, target_depth, min_depth=min_depth)["recall"]
+
+
+def precision(pred_depth, target_depth, *, min_depth: float = SURFACE_MIN_DEPTH):
+  """Share of reconstructed surface pixels that are true surface; ``[...]``, NaN if none.
+
+  ``pred_depth``, ``target_depth``: ``[..., H, W]`` metres.
+  """
+  return surface_scores(pred_depth, target_depth, min_depth=min_depth)["precision"]
+
+
+def f1(pred_depth, target_depth, *, min_depth: float = SURFACE_MIN_DEPTH):
+  """Harmonic mean of recall and precision, ``2 TP / (2 TP + FP + FN)``; ``[...]`` in [0, 1].
+
+  ``pred_depth``, ``target_depth``: ``[..., H, W]`` metres. NaN only when neither
+  image has any surface pixel.
+  """
+  return surface_scores(pred_depth, target_depth, min_depth=min_depth)["f1"]
+

@@ -331,3 +331,90 @@ def test_ssim_size_and_parameter_errors():
     metrics.ssim(np.zeros((12, 12)), np.zeros((12, 12)), sigma=0.0)
   with pytest.raises(ValueError, match="data_range"):
     metrics.psnr(np.zeros((4, 4)), np.zeros((4, 4)), data_range=0.0)
+
+
+# --------------------------------------------------------------------------
+# Object-aware depth scores, against hand-computed cases and a per-pixel loop.
+
+# True depth (0 = background): 3 surface pixels.
+GT_DEPTH = np.array([[0.0, 1.0, 1.0, 0.0],
+                     [0.0, 2.0, 0.0, 0.0],
+                     [0.0, 0.0, 0.0, 0.0]])
+# Reconstructed: 0.05 m is below SURFACE_MIN_DEPTH (background); 4 pixels are surface.
+PRED_DEPTH = np.array([[0.05, 1.5, 0.0, 0.5],
+                       [0.0, 2.0, 0.0, 0.0],
+                       [0.0, 0.0, 0.0, 0.2]])
+
+
+def test_surface_scores_by_hand():
+  # TP = (0,1), (1,1); FN = (0,2); FP = (0,3), (2,3).
+  s = {k: float(v) for k, v in metrics.surface_scores(PRED_DEPTH, GT_DEPTH).items()}
+  assert s["recall"] == pytest.approx(2 / 3)
+  assert s["precision"] == pytest.approx(2 / 4)
+  assert s["f1"] == pytest.approx(4 / 7)                     # 2TP / (2TP + FP + FN)
+  # Depth errors over the true surface: 0.5, -1.0 (missed, 0 m), 0.0.
+  assert s["rmse_object"] == pytest.approx(np.sqrt(1.25 / 3))
+  assert s["mad_object"] == pytest.approx(0.5)
+  assert tuple(metrics.surface_scores(PRED_DEPTH, GT_DEPTH)) == metrics.OBJECT_METRICS
+  # The single-score functions are the same numbers.
+  assert float(metrics.recall(PRED_DEPTH, GT_DEPTH)) == pytest.approx(2 / 3)
+  assert float(metrics.precision(PRED_DEPTH, GT_DEPTH)) == pytest.approx(0.5)
+  assert float(metrics.f1(PRED_DEPTH, GT_DEPTH)) == pytest.approx(4 / 7)
+  assert float(metrics.rmse_object(PRED_DEPTH, GT_DEPTH)) == pytest.approx(np.sqrt(1.25 / 3))
+  assert float(metrics.mad_object(PRED_DEPTH, GT_DEPTH)) == pytest.approx(0.5)
+  # A higher threshold makes the 0.2 m false positive background.
+  assert float(metrics.precision(PRED_DEPTH, GT_DEPTH, min_depth=0.3)) == pytest.approx(2 / 3)
+
+
+def test_surface_scores_empty_denominators_are_nan_not_invented():
+  empty = np.zeros_like(GT_DEPTH)
+  # No true surface, something reconstructed: recall and object depth undefined, all FP.
+  s = metrics.surface_scores(PRED_DEPTH, empty)
+  assert np.isnan(s["recall"]) and np.isnan(s["rmse_object"]) and np.isnan(s["mad_object"])
+  assert float(s["precision"]) == 0.0 and float(s["f1"]) == 0.0
+  # Nothing reconstructed, a true surface: recall 0, precision undefined, the depth error is
+  # the true depth itself.
+  s = metrics.surface_scores(empty, GT_DEPTH)
+  assert float(s["recall"]) == 0.0 and np.isnan(s["precision"]) and float(s["f1"]) == 0.0
+  assert float(s["mad_object"]) == pytest.approx(4 / 3)
+  # Neither has a surface: every score is undefined.
+  assert all(np.isnan(v) for v in metrics.surface_scores(empty, empty).values())
+  # Perfect reconstruction: errors exactly 0 (guarded sqrt), rates 1.
+  s = metrics.surface_scores(GT_DEPTH, GT_DEPTH)
+  assert float(s["rmse_object"]) == 0.0 and float(s["f1"]) == 1.0
+
+
+def test_surface_scores_match_a_pixel_loop_batched_and_jitted():
+  rng = np.random.default_rng(7)
+  gt = np.where(rng.random((2, 3, 9, 11)) < 0.3, rng.uniform(0.3, 2.5, (2, 3, 9, 11)), 0.0)
+  gt[0, 1] = 0.0                                               # one frame without an object
+  pred = np.where(rng.random(gt.shape) < 0.6, gt + rng.normal(0, 0.2, gt.shape), 0.0)
+  pred = np.clip(pred + np.where(rng.random(gt.shape) < 0.1, 0.8, 0.0), 0, None)
+  got = jax.jit(metrics.surface_scores)(pred.astype(np.float32), gt.astype(np.float32))
+  for i, j in np.ndindex(2, 3):
+    tp = fp = fn = 0
+    sq = ab = 0.0
+    for y, x in np.ndindex(9, 11):
+      t, p = gt[i, j, y, x], pred[i, j, y, x]
+      is_true, is_found = t > 0, p >= metrics.SURFACE_MIN_DEPTH
+      tp += is_true and is_found
+      fn += is_true and not is_found
+      fp += is_found and not is_true
+      if is_true:
+        sq += (p - t) ** 2
+        ab += abs(p - t)
+    n = tp + fn
+    want = {"recall": tp / n if n else np.nan, "precision": tp / (tp + fp) if tp + fp else np.nan,
+            "f1": 2 * tp / (2 * tp + fp + fn) if 2 * tp + fp + fn else np.nan,
+            "rmse_object": np.sqrt(sq / n) if n else np.nan, "mad_object": ab / n if n else np.nan}
+    for k, v in want.items():
+      np.testing.assert_allclose(got[k][i, j], v, rtol=1e-5, err_msg=f"{k} [{i}, {j}]")
+
+
+def test_surface_scores_reject_bad_input():
+  with pytest.raises(ValueError, match="shape"):
+    metrics.surface_scores(PRED_DEPTH, GT_DEPTH[:2])
+  with pytest.raises(ValueError, match="NaN"):
+    metrics.surface_scores(np.full_like(GT_DEPTH, np.nan), GT_DEPTH)
+  with pytest.raises(ValueError, match="min_depth"):
+    metrics.surface_scores(PRED_DEPTH, GT_DEPTH, min_depth=0.0)
