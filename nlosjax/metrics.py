@@ -208,6 +208,12 @@ def _rmse(pred, target, mask):
   return jnp.where(positive, jnp.sqrt(jnp.where(positive, mse, 1.0)), 0.0)
 
 
+def _sqrt_guarded(mse):
+  """``sqrt(mse)``, exactly 0 at 0 with a zero (finite) gradient there (where-guard); NaN stays NaN."""
+  positive = mse > 0
+  return jnp.where(positive, jnp.sqrt(jnp.where(positive, mse, 1.0)), mse)
+
+
 @jax.jit
 def _mad(pred, target, mask):
   return _masked_mean(jnp.abs(pred - target), mask)
@@ -461,7 +467,7 @@ def surface(depth, *, min_depth: float = SURFACE_MIN_DEPTH):
 def _surface_scores(pred, target, min_depth):
   nan = jnp.array(jnp.nan, pred.dtype)
   truth = target > 0
-  found = pred >= min_depth
+  found = surface(pred, min_depth=min_depth)
   axes = (-2, -1)
   tp = jnp.sum(truth & found, axis=axes, dtype=pred.dtype)
   fn = jnp.sum(truth & ~found, axis=axes, dtype=pred.dtype)
@@ -474,8 +480,7 @@ def _surface_scores(pred, target, min_depth):
   err = jnp.where(truth, pred - target, 0)
   mse = ratio(jnp.sum(jnp.square(err), axis=axes), n_true)
   return {
-      # where-guard: sqrt(0) has an infinite derivative.
-      "rmse_object": jnp.where(mse > 0, jnp.sqrt(jnp.where(mse > 0, mse, 1.0)), mse),
+      "rmse_object": _sqrt_guarded(mse),
       "mad_object": ratio(jnp.sum(jnp.abs(err), axis=axes), n_true),
       "recall": ratio(tp, n_true),
       "precision": ratio(tp, tp + fp),
