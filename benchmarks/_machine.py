@@ -56,3 +56,35 @@ def load_average(sep: str = " ") -> str:
     return sep.join(f"{v:.2f}" for v in os.getloadavg())
   except OSError:
     return "n/a"
+
+
+def git_commit(repo=None) -> str:
+  """The checked-out commit (short hash), with ``+changes`` when tracked files differ from it.
+
+  ``"unknown"`` outside a git checkout. A results file names this so a reader
+  can check out the code that wrote it.
+  """
+  import pathlib
+  import subprocess
+  where = pathlib.Path(repo) if repo else pathlib.Path(__file__).resolve().parents[1]
+  try:
+    head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=where, check=True,
+                          capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=where,
+                           check=True, capture_output=True, text=True).stdout.strip()
+  except (OSError, subprocess.CalledProcessError):
+    return "unknown"
+  return head + (" +changes (uncommitted edits to tracked files)" if dirty else "")
+
+
+def provenance(command: str) -> list[str]:
+  """Markdown lines every results file starts with: command, date, machine, commit."""
+  import datetime
+  import jax
+  return [f"Produced by `{command}`.", "",
+          f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
+          f"- Machine: {cpu_model()}; {usable_cores()} usable cores; memory {memory_text()}; "
+          f"JAX backend {jax.default_backend()} ({jax.devices()[0].device_kind}); "
+          f"Python {platform.python_version()}, jax {jax.__version__}",
+          f"- Commit: {git_commit()}",
+          f"- Load average (1, 5, 15 min) when written: {load_average(', ')}"]

@@ -81,7 +81,7 @@ def _load_rate(path, stride, in_memory, repeats, ends="valid", target="clean"):
 
 def bench_cpu(n_seq, repeats, workdir):
   data = configs.get_config("cpu")["data"]
-  spec = D.DatasetSpec.from_config(data, num_train=n_seq, num_test=0)
+  spec = D.DatasetSpec.from_config(data, num_train=n_seq, num_test=0, num_val=0)
   t0 = time.perf_counter()
   D.simulate_sequence(spec, "test", 0)
   cold = time.perf_counter() - t0
@@ -90,7 +90,7 @@ def bench_cpu(n_seq, repeats, workdir):
   D.write_dataset(path, spec, progress=False)
   warm = (time.perf_counter() - t0) / n_seq
   full = D.DatasetSpec.from_config(data)
-  total = full.num_train + full.num_test
+  total = full.num_sequences
   rows = {"preset": "cpu", "setup": spec.setup, "frames": spec.frames, "clean": spec.store_clean,
           "cold_s": cold, "warm_s": warm, "seq_per_min": 60 / warm,
           "preset_minutes": (cold + warm * (total - 1)) / 60, "preset_sequences": total,
@@ -104,7 +104,7 @@ def bench_cpu(n_seq, repeats, workdir):
 
 def bench_paper(frames, repeats, workdir):
   data = configs.get_config("paper")["data"]
-  spec = D.DatasetSpec.from_config(data, frames=frames, num_train=1, num_test=0)
+  spec = D.DatasetSpec.from_config(data, frames=frames, num_train=1, num_test=0, num_val=0)
   t0 = time.perf_counter()
   D.simulate_sequence(spec, "test", 0)
   cold = time.perf_counter() - t0
@@ -115,8 +115,8 @@ def bench_paper(frames, repeats, workdir):
   per_seq = warm * PAPER_FRAMES / frames
   rows = {"preset": "paper", "setup": spec.setup, "frames": PAPER_FRAMES, "clean": spec.store_clean,
           "cold_s": cold * PAPER_FRAMES / frames, "warm_s": per_seq, "seq_per_min": 60 / per_seq,
-          "preset_minutes": per_seq * (data["num_sequences"]["train"] + data["num_sequences"]["test"]) / 60,
-          "preset_sequences": data["num_sequences"]["train"] + data["num_sequences"]["test"],
+          "preset_minutes": per_seq * sum(data["num_sequences"].values()) / 60,
+          "preset_sequences": sum(data["num_sequences"].values()),
           "measured": f"1 sequence of {frames} frames, x{PAPER_FRAMES / frames:g} extrapolated",
           "mib_per_seq": path.stat().st_size / 2 ** 20 * PAPER_FRAMES / frames}
   stride = data["input_stride"]

@@ -22,8 +22,10 @@ NLOS dataset"), from other shapes and other motions:
   albedo volume.
 
 Then it evaluates the run's checkpoints and every classic method on the file
-(:func:`nlosjax.train.evaluate`, the same code as ``experiments.evaluate``) and
-writes the table to ``--out`` (and ``.json``).
+(:func:`nlosjax.evaluation.protocol.evaluate`, the same code as
+``experiments.evaluate``; classic settings as the run chose them on its
+validation split) and writes the table with intervals over sequences to
+``--out`` (and ``.json``).
 """
 
 from __future__ import annotations
@@ -166,28 +168,40 @@ def main(argv=None):
   args = parser.parse_args(argv)
   from nlosjax import checkpoints_io
   from nlosjax import train as T
-  from benchmarks.model import machine
+  from nlosjax.evaluation import protocol, report
+  from benchmarks._machine import provenance
   t0 = time.perf_counter()
   config, trained = checkpoints_io.load_run(args.checkpoint)
   config = T.with_defaults(config)
   data = pathlib.Path(args.data)
   if not data.exists():
     write_testset(data, config["data"], args.sequences, args.frames, args.seed)
-  table, images = T.evaluate(config, data, trained)
-  info = machine()
+  chosen = pathlib.Path(args.checkpoint) / "results" / "validation.json"
+  choices = json.loads(chosen.read_text()) if chosen.exists() else {}
+  settings, best = choices.get("classic", {}), choices.get("best_classic")
+  evaluation = protocol.evaluate(config, data, trained, classic_settings=settings)
+  table, comparisons = protocol.tabulate(evaluation, best_classic_method=best)
   cmd = "python -m benchmarks.independent_test " + " ".join(sys.argv[1:] if argv is None else argv)
-  caption = (f"Command: `{cmd.strip()}`. Date {datetime.date.today().isoformat()}. Models from"
-             f" `{args.checkpoint}` (the main job's CPU preset), evaluated on {args.sequences}"
-             f" sequences x {args.frames} frames written by this script's own generator (rings,"
-             " crosses, ellipses, triangles, L-shapes; bouncing linear motion with depth"
-             " oscillation; no helix), the run's Setup and detector ranges; classic methods on the"
-             f" interpolated under-scanned input. {info['cpu']}, {info['cores']} cores, JAX"
-             f" {info['backend']}; {time.perf_counter() - t0:.0f} s.")
+  where = (f"the settings the run chose on its validation split (`{chosen}`)" if settings
+           else "their defaults (the run recorded no validation choices)")
+  caption = (f"Models from `{args.checkpoint}` (the main job's CPU preset; each variant's "
+             f"checkpoint chosen on validation), evaluated on {args.sequences} sequences x "
+             f"{args.frames} frames written by this script's own generator (rings, crosses, "
+             "ellipses, triangles, L-shapes; bouncing linear motion with depth oscillation; no "
+             "helix), the run's Setup and detector ranges; classic methods on the interpolated "
+             f"under-scanned input with {where}. Nothing is chosen on this file. "
+             f"{time.perf_counter() - t0:.0f} s.")
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
-  out.write_text("# Table 1 on independently generated test sequences\n\n" + T.format_table(table, caption))
-  out.with_suffix(".json").write_text(json.dumps(table, indent=2) + "\n")
-  T.plot_comparison(images, out.with_name(out.stem + "_comparison.png"))
+  text = ["# Table 1 on independently generated test sequences", ""] + provenance(cmd.strip()) + [""]
+  body = report.format_tables(table, caption)
+  if comparisons:
+    body += "\n" + report.format_comparisons(comparisons)
+  out.write_text("\n".join(text) + "\n" + body)
+  out.with_suffix(".json").write_text(json.dumps({"table": table, "comparisons": comparisons},
+                                                 indent=2) + "\n")
+  from nlosjax.evaluation.figures import plot_comparison
+  plot_comparison(evaluation["images"], out.with_name(out.stem + "_comparison.png"))
   print(out.read_text())
 
 

@@ -249,7 +249,7 @@ def interleaved_times(fns: dict, inputs: dict, *, rounds: int) -> dict:
 def classic_pipeline(method: str, setup, stride: int, *, volume: bool = False) -> Callable:
   """``x [B, T, h, w] -> {"intensity", "depth" [B, H, W] (, "volume" [B, Z, H, W])}``.
 
-  The evaluation protocol of :func:`nlosjax.train.classic_images`: the
+  The evaluation protocol of :func:`nlosjax.evaluation.baselines.classic_images`: the
   under-scanned counts interpolated bilinearly onto ``setup``'s grid, the
   method's volume (``sqrt`` of f-k's albedo squared), then
   :func:`nlosjax.physics.intensity_depth`. Jittable.
@@ -258,7 +258,7 @@ def classic_pipeline(method: str, setup, stride: int, *, volume: bool = False) -
   import jax.numpy as jnp
 
   from nlosjax.physics import intensity_depth, reconstruct
-  from nlosjax.train import upsample_scan
+  from nlosjax.evaluation.baselines import upsample_scan
   if method not in CLASSIC:
     raise ValueError(f"method must be one of {CLASSIC}, got {method!r}")
 
@@ -384,8 +384,10 @@ class TestSplit:
 
 def scores(intensity, depth, gt_i, gt_d) -> dict:
   """``metric -> [mean, std]`` over frames: ``psnr``, ``ssim``, ``rmse``, ``mad``."""
-  from nlosjax.train import image_metrics, summarise
-  return summarise(image_metrics(intensity, depth, gt_i, gt_d))
+  from nlosjax.evaluation.scores import frame_scores
+  per_frame = frame_scores(intensity, depth, gt_i, gt_d)
+  return {k: [float(np.mean(per_frame[k])), float(np.std(per_frame[k]))]
+          for k in ("psnr", "ssim", "rmse", "mad")}
 
 
 # ----------------------------------------------------------------- learned
@@ -479,7 +481,7 @@ def train_learned(spec: Learned, config: dict, setup, root: pathlib.Path, steps:
 
   from nlosjax import losses
   from nlosjax.models.network import STMambaNet
-  from nlosjax.train import (BATCH_KEYS, Checkpointer, OptimConfig, _select_frames,
+  from nlosjax.train import (BATCH_KEYS, Checkpointer, OptimConfig, select_frames,
                              create_train_state, make_mesh, make_optimizer, make_train_step,
                              shard_batch)
   tr = config["train"]
@@ -521,7 +523,7 @@ def train_learned(spec: Learned, config: dict, setup, root: pathlib.Path, steps:
       for step in range(start, steps):
         host = loader.batch(step)
         batch = {k: host[k] for k in BATCH_KEYS}
-        batch["measurement"] = _select_frames(batch["measurement"], mcfg.frames)
+        batch["measurement"] = select_frames(batch["measurement"], mcfg.frames)
         state, metrics = step_fn(state, shard_batch(batch, mesh), jax.random.fold_in(loop_key, step))
         ckpt.save(state, step + 1, force=(step + 1 == steps))
         bar.update(1)
@@ -682,7 +684,9 @@ def run(args) -> dict:
   from tqdm import tqdm
 
   from experiments.configs import get_config
-  from nlosjax.train import METHOD_LABELS, ensure_dataset, upsample_scan, with_defaults
+  from nlosjax.evaluation.baselines import upsample_scan
+  from nlosjax.evaluation.report import METHOD_LABELS
+  from nlosjax.train import ensure_dataset, with_defaults
   t_start = time.perf_counter()
   config = with_defaults(get_config("cpu"))
   config["train"]["steps"] = args.steps
@@ -1027,7 +1031,7 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
 
 def gating_markdown(res: dict) -> list[str]:
   """The time-gating section: times and ratios, accuracy inside the range, the stage profile."""
-  from nlosjax.train import METHOD_LABELS
+  from nlosjax.evaluation.report import METHOD_LABELS
   g, st = res["gating"], res["stages"]
   labels = list(next(iter(g.values())))
   halvings = [("full", "full/2"), ("R", "R/2"), ("R/2", "R/4")]

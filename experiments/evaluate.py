@@ -11,8 +11,12 @@ folder. ``--data`` is any file in the documented dataset layout (README,
 "Dynamic NLOS dataset"), not only ones our generator made; the models are
 moved to the file's Setup (same parameters, physics layer rebuilt) and the
 classic methods get the under-scanned input interpolated to the full grid,
-as in the paper. Prints the table and writes ``OUT/table.md``,
-``OUT/table.json`` (method -> metric -> [mean, std]) and ``OUT/comparison.png``.
+as in the paper, with the settings the run chose on its validation split
+(``WORKDIR/results/validation.json``; defaults when the run has none, or
+``--retune`` to choose them on this file's ``val`` split). Prints the table
+and writes ``OUT/table.md``, ``OUT/table.json`` (method -> metric ->
+``{"mean", "ci95", "std", "n_sequences", "n_frames", "n_seeds"}``; intervals
+over sequences), ``OUT/comparisons.json`` and ``OUT/comparison.png``.
 """
 
 from __future__ import annotations
@@ -33,18 +37,23 @@ def main(argv=None) -> dict:
                       help="output folder (default: <workdir>/eval_<data file stem>)")
   parser.add_argument("--classic", default="fbp,lct,fk,phasor,rsd",
                       help="comma-separated classic methods to include ('' for none)")
+  parser.add_argument("--retune", action="store_true",
+                      help="choose the classic settings on this file's val split")
   args = parser.parse_args(argv)
 
+  import json
+
   from nlosjax import checkpoints_io, train
+  from nlosjax.evaluation import baselines, protocol
   from nlosjax.data.dataset import open_dataset
   t0 = time.perf_counter()
   data = pathlib.Path(args.data)
   if not data.is_file():
     raise SystemExit(f"--data {data}: no such file")
   classic = tuple(m for m in args.classic.split(",") if m)
-  unknown = set(classic) - set(train.CLASSIC_METHODS)
+  unknown = set(classic) - set(baselines.CLASSIC_METHODS)
   if unknown:
-    raise SystemExit(f"--classic: unknown method(s) {sorted(unknown)}; known {train.CLASSIC_METHODS}")
+    raise SystemExit(f"--classic: unknown method(s) {sorted(unknown)}; known {baselines.CLASSIC_METHODS}")
   try:
     with open_dataset(data) as ds:
       setup = ds.setup
@@ -52,14 +61,34 @@ def main(argv=None) -> dict:
         raise ValueError(f"{data}: no sequence in split {args.split!r}")
     config, trained = checkpoints_io.load_run(args.checkpoint, setup=setup)
     config = train.with_defaults(config)
-    table, images = train.evaluate(config, data, trained, split=args.split, methods=classic)
+    workdir, _, _ = checkpoints_io.find_checkpoints(args.checkpoint)
+    chosen = workdir / "results" / "validation.json"
+    settings, best, source = {}, None, "defaults (the run chose none)"
+    if args.retune:
+      batch = int(config["train"]["eval_batch_size"])
+      val = protocol.load_split(config, data, "val", batch_size=batch)
+      val["loader"].close()
+      settings = baselines.tune(val["measurement"], val["intensity"], val["depth"], val["setup"],
+                                val["stride"], methods=classic, batch_size=batch)
+      source = f"chosen on the val split of `{data}`"
+    elif chosen.exists():
+      run_choices = json.loads(chosen.read_text())
+      settings, best = run_choices.get("classic", {}), run_choices.get("best_classic")
+      source = f"chosen on the run's validation split (`{chosen}`)"
+    if settings and best is None:
+      best = max(settings, key=lambda m: settings[m]["psnr"])
+    evaluation = protocol.evaluate(config, data, trained, split=args.split, methods=classic,
+                                   classic_settings=settings)
+    table, comparisons = protocol.tabulate(
+        evaluation, best_classic_method=best if best in classic else None)
   except ValueError as e:
     raise SystemExit(f"error: {e}") from None
-  workdir, _, _ = checkpoints_io.find_checkpoints(args.checkpoint)
   out = pathlib.Path(args.out) if args.out else workdir / f"eval_{data.stem}"
-  caption = (f"`{args.split}` split of `{data}` ({len(images['gt']['intensity'])} frames); "
-             f"models from `{args.checkpoint}`; evaluated in {time.perf_counter() - t0:.0f} s.")
-  train.write_results(table, images, out, caption=caption)
+  caption = (f"`{args.split}` split of `{data}` ({evaluation['n_frames']} frames); "
+             f"models from `{args.checkpoint}`; classic settings {source}; "
+             f"evaluated in {time.perf_counter() - t0:.0f} s.")
+  protocol.write_results(out, table, comparisons, evaluation["images"], caption=caption)
+  print((out / "table.md").read_text())
   print(f"results written to {out}")
   return table
 

@@ -15,7 +15,7 @@ Protocol (the paper's under-scanning experiment, on measured data):
 * the scan is interval-sampled with stride 4 (16 x 16) and 8 (8 x 8) at the
   points ``stride // 2 + stride i`` (the network's convention);
 * classic methods (FBP, LCT, f-k, phasor, RSD) reconstruct the sparse scan
-  linearly interpolated back to 64 x 64 (``nlosjax.train.upsample_scan``), with
+  linearly interpolated back to 64 x 64 (``nlosjax.evaluation.baselines.upsample_scan``), with
   the options these retroreflective scenes were published with (LCT snr 0.8
   and FBP with the t^2 falloff; f-k, phasor, RSD defaults);
 * the trained networks (Ours-S and Ours of ``--checkpoint``, default
@@ -199,7 +199,7 @@ def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
   summed over the bin factor :func:`nlosjax.checkpoints_io.adapt_to_capture`
   uses, and phasor / RSD with the wavelength raised
   to 3 bins per period where their default is unresolved on those bins
-  (``nlosjax.train.classic_options``).
+  (``nlosjax.evaluation.baselines.default_options``).
 
   Returns ``None`` without a trained network, else ``{"bin_factor": k,
   "bin_width": s, "scores": {(method, stride): {"psnr": dB, "ssim": ...}},
@@ -211,7 +211,7 @@ def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
   from nlosjax import metrics
   from nlosjax.checkpoints_io import adapt_to_capture
   from nlosjax.data import io
-  from nlosjax.train import classic_options
+  from nlosjax.evaluation.baselines import default_options as classic_options
   mcfg = next(iter(trained.values()))[0]
   rows, options = {}, {}
   for entry in results["scenes"].values():
@@ -240,7 +240,7 @@ def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict
   points at the domain gap, not at the reading or the adaptation.
   """
   from nlosjax import metrics
-  from nlosjax import train as T
+  from nlosjax.evaluation import baselines as B
   from nlosjax.data import dataset, io
   path = pathlib.Path(path)
   if not path.is_file() or not trained:
@@ -255,13 +255,13 @@ def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict
         gt = ds.read(name, "intensity", frames=fr)
         for m in scores:
           image = (model_intensity(trained[m], x, setup, stride) if m in trained
-                   else classic_intensity(x, setup, m, stride, options=T.classic_options(m, setup)))
+                   else classic_intensity(x, setup, m, stride, options=B.default_options(m, setup)))
           scores[m]["psnr"].append(float(metrics.psnr(image, gt)))
           scores[m]["ssim"].append(float(metrics.ssim(image, gt)))
   shown = path.resolve()
   shown = shown.relative_to(REPO) if shown.is_relative_to(REPO) else shown
   return {"file": str(shown), "frames": len(scores[CLASSIC[0]]["psnr"]), "stride": stride,
-          "options": {m: T.classic_options(m, setup) for m in CLASSIC},
+          "options": {m: B.default_options(m, setup) for m in CLASSIC},
           "scores": {m: {k: float(np.mean(v)) for k, v in d.items()} for m, d in scores.items()}}
 
 

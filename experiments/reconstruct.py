@@ -214,7 +214,7 @@ def reconstruct_classic(transient, setup, method: str, options: dict, stride: in
   x = transient
   if stride is not None and stride > 1:
     from nlosjax.models.network import underscan
-    from nlosjax.train import upsample_scan
+    from nlosjax.evaluation.baselines import upsample_scan
     x = upsample_scan(underscan(x, stride), setup.grid, stride)
   volume = np.asarray(jax.block_until_ready(physics.reconstruct(x, setup, method, **options)))
   linear = edge_masked(np.sqrt(np.maximum(volume, 0)) if method == "fk" else volume, setup,

@@ -5,9 +5,12 @@ Usage::
   python -m experiments.train                               # CPU preset, runs/default
   python -m experiments.train --config paper --workdir runs/paper   # paper scale (GPU)
   python -m experiments.train --config.train.steps=50 --config.train.seed=1
+  python -m experiments.train --seeds 3 --workdir runs/seeds3   # Table 1 over 3 training seeds
 
-Writes ``WORKDIR/results/{table.md, table.json, comparison.png,
-training_curves.png}``; rerun the same command after an interruption to
+Every choice (classic settings, checkpoints) is made on the validation split;
+the test split only writes the tables. Writes ``WORKDIR/results/{table.md,
+table.json, comparisons.json, validation.json, comparison.png,
+training_curves.png}`` (see :mod:`nlosjax.main_job`); rerun the same command after an interruption to
 resume from the last checkpoint.
 """
 
@@ -20,9 +23,16 @@ def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--config", default="cpu", help="preset name (cpu, paper) or a .py file")
   parser.add_argument("--workdir", default="runs/default", help="output folder")
+  parser.add_argument("--seeds", type=int, default=None,
+                      help="training seeds per variant (default: the config's train.seeds, 1); "
+                           "tables then cover seeds too")
   args, overrides = parser.parse_known_args(argv)
   config = apply_overrides(load_config(args.config), overrides)
-  from nlosjax.train import train_and_evaluate
+  if args.seeds is not None:
+    if args.seeds < 1:
+      parser.error(f"--seeds must be >= 1, got {args.seeds}")
+    config.setdefault("train", {})["seeds"] = args.seeds
+  from nlosjax.main_job import train_and_evaluate
   train_and_evaluate(config, args.workdir)
 
 

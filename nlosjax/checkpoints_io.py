@@ -142,7 +142,9 @@ def load_run(path, *, setup: Setup | None = None, log=print) -> tuple[dict, dict
   """Every trained variant of a run, for evaluation: ``(config, variant -> (model_config, params))``.
 
   ``path`` as in :func:`find_checkpoints`: a workdir gives each variant that
-  has a checkpoint, a variant's folder gives that one. With ``setup`` the
+  has a checkpoint, a variant's folder gives that one. Each variant's
+  checkpoint is the one its ``selection.json`` names (chosen on validation by
+  the main job), else the latest. With ``setup`` the
   models move to it (:meth:`~nlosjax.models.network.ModelConfig.with_setup`:
   the same parameters, the physics layer rebuilt), e.g. a dataset file's
   Setup; without it they keep the training Setup.
@@ -158,7 +160,10 @@ def load_run(path, *, setup: Setup | None = None, log=print) -> tuple[dict, dict
     ckpt = workdir / variant / "checkpoints"
     if not (ckpt.is_dir() and any(c.name.isdigit() for c in ckpt.iterdir())):
       continue
-    mcfg, params, info = load_trained(workdir, variant)
+    from nlosjax.train import read_selection
+    selection = read_selection(workdir / variant)    # the checkpoint chosen on validation
+    mcfg, params, info = load_trained(workdir, variant,
+                                      step=selection["step"] if selection else None)
     log(f"[{variant}] restored step {info['step']} from {ckpt}")
     config = info["config"]
     trained[variant] = (mcfg if setup is None or setup == mcfg.setup else mcfg.with_setup(setup), params)

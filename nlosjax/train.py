@@ -1,4 +1,4 @@
-"""Training and evaluation of ST-Mamba: state, one pure train step, checkpoints, the main job.
+"""Training of ST-Mamba: optimiser, state, one pure train step, checkpoints, the training loop.
 
 The pieces, each usable alone:
 
@@ -12,7 +12,11 @@ The pieces, each usable alone:
 * :class:`Checkpointer` -- orbax ``CheckpointManager`` saving params, optimizer
   state, step and the data position; restores the latest automatically and
   refuses a checkpoint written by another model config.
-* :func:`train_and_evaluate` -- the main job behind ``python -m experiments.train``.
+* :func:`train_model` -- the loop: one variant, one seed, resumable.
+
+Evaluation (classic baselines, scores, tables, figures) is
+:mod:`nlosjax.evaluation`; the main job behind ``python -m experiments.train``
+is :func:`nlosjax.main_job.train_and_evaluate`.
 
 Batches are dicts of arrays: ``measurement [B, F, T, h, w]`` (under-scanned
 noisy counts of ``F`` adjacent frames), ``transient [B, T, H, W]`` (clean
@@ -72,8 +76,13 @@ class OptimConfig:
   b2: float = 0.999
 
 
+@functools.lru_cache(maxsize=16)
 def make_optimizer(cfg: OptimConfig, total_steps: int) -> optax.GradientTransformation:
-  """AdamW with the configured schedule and clipping."""
+  """AdamW with the configured schedule and clipping.
+
+  Cached: the same settings give the same object, so train states built for
+  several seeds share one static ``tx`` and one compiled train step.
+  """
   if not cfg.learning_rate > 0:
     raise ValueError(f"learning_rate must be > 0, got {cfg.learning_rate!r}")
   if not cfg.weight_decay >= 0:
@@ -249,12 +258,22 @@ class Checkpointer:
                                                      meta=ocp.args.JsonSave(meta)), force=force)
     return True
 
+  def all_steps(self) -> list[int]:
+    """Steps of the kept checkpoints, ascending."""
+    return sorted(self.manager.all_steps())
+
   def restore_latest(self, state: TrainState) -> tuple[TrainState, int] | None:
     """``(state, data_position)`` from the latest checkpoint, or None when there is none."""
     step = self.latest_step()
     if step is None:
       return None
+    return self.restore(state, step)
+
+  def restore(self, state: TrainState, step: int) -> tuple[TrainState, int]:
+    """``(state, data_position)`` from the checkpoint of ``step`` (ValueError if absent or refused)."""
     ocp = self._ocp
+    if step not in self.manager.all_steps():
+      raise ValueError(f"{self.directory}: no checkpoint of step {step} (kept: {self.all_steps()})")
     where = self.directory / str(step)
     try:
       meta = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
@@ -281,114 +300,17 @@ class Checkpointer:
     self.manager.close()
 
 
-# ------------------------------------------------------------- evaluation
-CLASSIC_METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
-TABLE_METHODS = CLASSIC_METHODS + ("ours_s", "ours")
-METHOD_LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "RSD",
-                 "ours_s": "Ours-S", "ours": "Ours"}
-
-
-def interpolation_matrix(full: int, stride: int) -> np.ndarray:
-  """``[full, n]`` linear interpolation from the under-scanned samples to every scan point.
-
-  Sample ``i`` sits at full-grid index ``stride // 2 + stride * i`` (the
-  model's :func:`~nlosjax.models.network.underscan`); points outside the
-  sampled span take the nearest sample.
-  """
-  n = len(range(stride // 2, full, stride))
-  pos = (np.arange(full) - stride // 2) / stride
-  pos = np.clip(pos, 0, n - 1)
-  lo = np.minimum(np.floor(pos).astype(int), max(n - 2, 0))
-  frac = pos - lo
-  m = np.zeros((full, n))
-  m[np.arange(full), lo] += 1 - frac
-  if n > 1:
-    m[np.arange(full), lo + 1] += frac
-  return m
-
-
-def upsample_scan(transient, grid: tuple[int, int], stride: int) -> jax.Array:
-  """``[..., T, h, w] -> [..., T, H, W]`` bilinear interpolation onto the full scan grid (paper protocol)."""
-  my = jnp.asarray(interpolation_matrix(grid[0], stride), jnp.float32)
-  mx = jnp.asarray(interpolation_matrix(grid[1], stride), jnp.float32)
-  if transient.shape[-2:] != (my.shape[1], mx.shape[1]):
-    raise ValueError(f"under-scanned grid {transient.shape[-2:]} does not match grid {grid} "
-                     f"at stride {stride} ({my.shape[1]}, {mx.shape[1]})")
-  return jnp.einsum("Hh,...thw,Ww->...tHW", my, jnp.asarray(transient, jnp.float32), mx)
-
-
-def classic_options(method: str, setup) -> dict:
-  """Options of a classic baseline on ``setup``: the defaults, with a resolved phasor wavelet.
-
-  Phasor and RSD get ``sampling_coeff`` from
-  :func:`~nlosjax.physics.wavelet.resolved_sampling_coeff` where their default
-  virtual wavelength (4 scan spacings) is under 3 time bins (the ``real``
-  preset); elsewhere (``cpu``, ``paper``, the measured scans) ``{}``.
-  """
-  from nlosjax.physics.wavelet import resolved_sampling_coeff
-  if method not in ("phasor", "rsd"):
-    return {}
-  coeff = resolved_sampling_coeff(setup)
-  return {} if coeff <= 2.0 else {"sampling_coeff": coeff}
-
-
-def classic_images(measurement, setup, stride: int, method: str) -> tuple[np.ndarray, np.ndarray]:
-  """Intensity and depth of a classic method on under-scanned input.
-
-  Args:
-    measurement: ``[N, T, h, w]`` counts of the frames to reconstruct.
-    setup: the full-grid Setup.
-    stride: the under-scan stride (the input is interpolated to the full grid).
-    method: one of :data:`CLASSIC_METHODS` (options: :func:`classic_options`).
-  Returns:
-    ``(intensity [N, H, W] in [0, 1], depth [N, H, W] metres)`` as NumPy.
-  """
-  from nlosjax.physics import intensity_depth, reconstruct
-  full = upsample_scan(measurement, setup.grid, stride)
-  vol = reconstruct(full, setup, method, **classic_options(method, setup))
-  if method == "fk":
-    vol = jnp.sqrt(vol)                      # f-k returns albedo squared
-  inten, depth = intensity_depth(vol, setup)
-  return np.asarray(inten), np.asarray(depth)
-
-
-def image_metrics(intensity, depth, gt_intensity, gt_depth) -> dict:
-  """Per-frame ``psnr``, ``ssim`` (intensity, data range 1) and ``rmse``, ``mad`` (depth, metres)."""
-  from nlosjax import metrics
-  return {"psnr": np.asarray(metrics.psnr(intensity, gt_intensity)),
-          "ssim": np.asarray(metrics.ssim(intensity, gt_intensity)),
-          "rmse": np.asarray(metrics.rmse(depth, gt_depth)),
-          "mad": np.asarray(metrics.mad(depth, gt_depth))}
-
-
-def summarise(per_frame: dict) -> dict:
-  """``metric -> [mean, std]`` over frames."""
-  return {k: [float(np.mean(v)), float(np.std(v))] for k, v in per_frame.items()}
-
-
-def format_table(table: dict, caption: str = "") -> str:
-  """Markdown of ``method -> metric -> [mean, std]`` in the paper's Table 1 layout."""
-  lines = ([caption, ""] if caption else []) + [
-      "| method | intensity PSNR (dB) ↑ | intensity SSIM ↑ | depth RMSE (m) ↓ | depth MAD (m) ↓ |",
-      "|---|---|---|---|---|"]
-  for m in TABLE_METHODS:
-    if m not in table:
-      continue
-    r = table[m]
-    lines.append(f"| {METHOD_LABELS[m]} | {r['psnr'][0]:.2f} ± {r['psnr'][1]:.2f} | "
-                 f"{r['ssim'][0]:.3f} ± {r['ssim'][1]:.3f} | {r['rmse'][0]:.4f} ± {r['rmse'][1]:.4f} | "
-                 f"{r['mad'][0]:.4f} ± {r['mad'][1]:.4f} |")
-  return "\n".join(lines) + "\n"
-
-
 # --------------------------------------------------------------- main job
 VARIANT_FRAMES = {"ours": 3, "ours_s": 1}
 
 #: Defaults of a config's ``train`` section (the presets override some).
+#: ``seeds``: training seeds per variant (``seed``, ``seed + 1``, ...; tables
+#: then cover seeds too); ``select_checkpoint``: ``"last"`` or ``"val"`` (the
+#: kept checkpoint with the best validation intensity PSNR).
 TRAIN_DEFAULTS = {
-    "steps": 300, "batch_size": 4, "seed": 0, "log_every": 10, "checkpoint_every": 50,
+    "steps": 300, "batch_size": 4, "seed": 0, "seeds": 1, "log_every": 10, "checkpoint_every": 50,
     "keep_checkpoints": 2, "eval_batch_size": 8, "variants": ("ours_s", "ours"),
-    "data_workers": 1, "optim": {}, "loss": {},
+    "data_workers": 1, "optim": {}, "loss": {}, "select_checkpoint": "last",
 }
 
 
@@ -410,13 +332,14 @@ def model_config_for(config: dict, setup, variant: str):
   return ModelConfig(setup=setup, stride=int(config["data"]["input_stride"]), **overrides)
 
 
-def _select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
+def select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
   """``[B, 3, T, h, w] -> [B, frames, T, h, w]`` centred on the middle frame."""
   mid = measurement.shape[1] // 2
   return measurement[:, mid - frames // 2:mid + frames // 2 + 1]
 
 
-def _loader(config: dict, path, split: str, *, batch_size: int, shuffle: bool, seed: int):
+def make_loader(config: dict, path, split: str, *, batch_size: int, shuffle: bool, seed: int):
+  """The config's :class:`~nlosjax.data.dataset.TripletLoader` of ``split`` (the model's under-scan offset checked)."""
   from nlosjax.data.dataset import TripletLoader
   data = config["data"]
   opts = data.get("loader", {})
@@ -432,15 +355,29 @@ def _loader(config: dict, path, split: str, *, batch_size: int, shuffle: bool, s
 
 
 def ensure_dataset(config: dict, path: pathlib.Path, log: Callable[[str], None] = print) -> None:
-  """Generate the config's dataset at ``path`` unless a file is already there."""
-  from nlosjax.data.dataset import DatasetSpec, write_dataset
+  """Generate the config's dataset at ``path``, or add the sequences an existing file lacks.
+
+  An existing file made with the same data configuration but fewer sequences
+  (e.g. before the validation split existed) is extended in place, keeping
+  every stored sequence (:func:`~nlosjax.data.dataset.extend_dataset`); a file
+  made with another configuration is used as it is.
+  """
+  from nlosjax.data.dataset import DatasetSpec, extend_dataset, write_dataset
+  path = pathlib.Path(path)
+  spec = DatasetSpec.from_config(config["data"])
+  workers = int(config["train"].get("data_workers", 1))
   if path.exists():
-    log(f"dataset: using {path}")
+    try:
+      result = extend_dataset(path, spec, workers=workers)
+    except ValueError as e:
+      log(f"dataset: using {path} as it is ({e})")
+      return
+    log(f"dataset: using {path}" + (f" (added {result.generated} sequences the config asks for)"
+                                    if result.generated else ""))
     return
   log(f"dataset: generating {path} ...")
   t0 = time.perf_counter()
-  spec = DatasetSpec.from_config(config["data"])
-  write_dataset(path, spec, workers=int(config["train"].get("data_workers", 1)))
+  write_dataset(path, spec, workers=workers)
   log(f"dataset: done in {time.perf_counter() - t0:.0f} s")
 
 
@@ -482,19 +419,33 @@ def run_signature(mcfg, params, optim: OptimConfig, weights: losses.LossWeights,
                      "batch_size": int(batch_size), "seed": int(seed)}, sort_keys=True)
 
 
-def train_model(config: dict, data_path, workdir, variant: str, *,
+def train_model(config: dict, data_path, workdir, variant: str, *, folder: str | None = None,
+                validate: Callable[[Any, Any], float] | None = None,
                 log: Callable[[str], None] = print) -> tuple[Any, TrainState]:
-  """Train one variant (``"ours"`` or ``"ours_s"``), resuming from ``workdir/<variant>``.
+  """Train one variant (``"ours"`` or ``"ours_s"``), resuming from ``workdir/<folder>``.
 
-  Returns ``(model_config, state)`` after ``config["train"]["steps"]`` steps.
+  Args:
+    config: the run config (:func:`with_defaults`); the seed is ``config["train"]["seed"]``.
+    data_path: the dataset file.
+    workdir: the run folder.
+    variant: ``"ours"`` or ``"ours_s"``.
+    folder: sub-folder of this model (default ``variant``).
+    validate: ``(model_config, params) -> score`` on the validation split
+      (higher is better). With ``config["train"]["select_checkpoint"] ==
+      "val"`` every kept checkpoint is scored after training and the best is
+      returned; the scores and the choice go to ``<folder>/selection.json``
+      (:func:`read_selection`).
+  Returns:
+    ``(model_config, state)``: after ``config["train"]["steps"]`` steps, or at
+    the checkpoint chosen on validation.
   """
   from nlosjax.models.network import STMambaNet, format_summary, model_summary
   from tqdm import tqdm
   tr = config["train"]
   steps, batch_size, seed = int(tr["steps"]), int(tr["batch_size"]), int(tr.get("seed", 0))
-  vdir = pathlib.Path(workdir) / variant
+  vdir = pathlib.Path(workdir) / (folder or variant)
   vdir.mkdir(parents=True, exist_ok=True)
-  loader = _loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed)
+  loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed)
   mcfg = model_config_for(config, loader.setup, variant)
   log(f"[{variant}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{variant}] "))
   model = STMambaNet(mcfg)
@@ -525,7 +476,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *,
     for step in range(start, steps):
       host = loader.batch(step)
       batch = {k: host[k] for k in BATCH_KEYS}
-      batch["measurement"] = _select_frames(batch["measurement"], mcfg.frames)
+      batch["measurement"] = select_frames(batch["measurement"], mcfg.frames)
       state, metrics = step_fn(state, shard_batch(batch, mesh), jax.random.fold_in(loop_key, step))
       done = step + 1
       if done % log_every == 0 or done == steps:
@@ -538,163 +489,35 @@ def train_model(config: dict, data_path, workdir, variant: str, *,
         bar.set_postfix(loss=f"{m['loss']:.4f}")
       ckpt.save(state, done, force=(done == steps))
       bar.update(1)
-  ckpt.close()
   loader.close()
+  selection = {"select": str(tr.get("select_checkpoint", "last")), "step": int(state.step),
+               "val_psnr": {}}
+  if selection["select"] not in ("last", "val"):
+    raise ValueError(f'train.select_checkpoint must be "last" or "val", got {selection["select"]!r}')
+  if selection["select"] == "val" and validate is not None:
+    candidates = {}
+    for step in ckpt.all_steps():
+      candidate, _ = ckpt.restore(state, step)
+      selection["val_psnr"][step] = float(validate(mcfg, candidate.params))
+      candidates[step] = candidate
+    best = max(selection["val_psnr"], key=lambda k: (selection["val_psnr"][k], k))
+    state = candidates[best]
+    selection["step"] = int(best)
+    log(f"[{variant}] checkpoint chosen on validation: step {best} "
+        f"({', '.join(f'{k}: {v:.2f} dB' for k, v in selection['val_psnr'].items())})")
+  ckpt.close()
+  (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
   return mcfg, state
 
 
-def evaluate_model(mcfg, params, loader) -> dict:
-  """Per-frame images of a trained model on a loader's examples (in order).
+def read_selection(folder) -> dict | None:
+  """A model folder's ``selection.json`` (written by :func:`train_model`), or None.
 
-  Returns ``{"intensity": [N, H, W], "depth": [N, H, W]}`` NumPy.
+  ``{"select": "last" | "val", "step": chosen step, "val_psnr": {step: dB}}``.
   """
-  from nlosjax.models.network import STMambaNet
-  model = STMambaNet(mcfg)
-  apply = jax.jit(lambda p, x: model.apply({"params": p}, x))
-  inten, depth = [], []
-  for step in range(len(loader)):
-    b = loader.batch(step)
-    x = _select_frames(b["measurement"], mcfg.frames)
-    out = apply(params, jnp.asarray(x))
-    inten.append(np.asarray(out["intensity"]))
-    depth.append(np.asarray(out["depth"]))
-  return {"intensity": np.concatenate(inten), "depth": np.concatenate(depth)}
-
-
-def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
-             methods: tuple[str, ...] = CLASSIC_METHODS,
-             log: Callable[[str], None] = print) -> tuple[dict, dict]:
-  """Table 1 on ``split``: classic methods (under-scanned input interpolated) and trained models.
-
-  Args:
-    config: the run config.
-    data_path: an HDF5 file in the documented layout.
-    trained: ``variant -> (model_config, params)``.
-    methods: the classic methods to include.
-  Returns:
-    ``(table, images)``: ``method -> metric -> [mean, std]`` and
-    ``method -> {"intensity", "depth"}`` arrays ``[N, H, W]`` (plus ``"gt"``).
-  """
-  from tqdm import tqdm
-  batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
-  loader = _loader(config, data_path, split, batch_size=batch_size, shuffle=False, seed=0)
-  gt_i, gt_d, mid = [], [], []
-  for step in range(len(loader)):
-    b = loader.batch(step)
-    gt_i.append(b["intensity"])
-    gt_d.append(b["depth"])
-    mid.append(b["measurement"][:, 1])
-  gt = {"intensity": np.concatenate(gt_i), "depth": np.concatenate(gt_d)}
-  mid = np.concatenate(mid)
-  images = {"gt": gt}
-  table = {}
-  for method in tqdm(methods, desc="classic methods", unit="method", disable=not methods):
-    out_i, out_d = [], []
-    for s in range(0, len(mid), batch_size):
-      i, d = classic_images(mid[s:s + batch_size], loader.setup, loader.stride, method)
-      out_i.append(i)
-      out_d.append(d)
-    images[method] = {"intensity": np.concatenate(out_i), "depth": np.concatenate(out_d)}
-  for variant, (mcfg, params) in trained.items():
-    images[variant] = evaluate_model(mcfg, params, loader)
-  for method, im in images.items():
-    if method != "gt":
-      table[method] = summarise(image_metrics(im["intensity"], im["depth"], gt["intensity"],
-                                              gt["depth"]))
-  loader.close()
-  log(format_table(table, f"{split} split of {data_path}: {len(mid)} frames"))
-  return table, images
-
-
-# ---------------------------------------------------------------- figures
-def plot_comparison(images: dict, path, *, frames: int = 3, max_depth: float | None = None) -> None:
-  """Intensity (top) and depth (bottom) rows per test frame: ground truth, then each method."""
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
-  methods = ["gt"] + [m for m in TABLE_METHODS if m in images]
-  n = min(frames, len(images["gt"]["intensity"]))
-  idx = np.linspace(0, len(images["gt"]["intensity"]) - 1, n).round().astype(int)
-  dmax = max_depth or float(np.max(images["gt"]["depth"])) or 1.0
-  fig, axes = plt.subplots(2 * n, len(methods), figsize=(1.6 * len(methods), 3.2 * n), squeeze=False)
-  for r, k in enumerate(idx):
-    for c, m in enumerate(methods):
-      for j, (key, kw) in enumerate((("intensity", dict(cmap="gray", vmin=0, vmax=1)),
-                                     ("depth", dict(cmap="viridis", vmin=0, vmax=dmax)))):
-        ax = axes[2 * r + j, c]
-        ax.imshow(images[m][key][k], **kw)
-        ax.set_xticks([])
-        ax.set_yticks([])
-        if r == 0 and j == 0:
-          ax.set_title("GT" if m == "gt" else METHOD_LABELS[m], fontsize=9)
-        if c == 0:
-          ax.set_ylabel(f"frame {k}\n{key}", fontsize=8)
-  fig.suptitle(f"intensity (gray, [0, 1]) and depth (viridis, 0-{dmax:.2f} m)", fontsize=9)
-  fig.tight_layout()
-  fig.savefig(path, dpi=110)
-  plt.close(fig)
-
-
-def plot_training_curves(logs: dict, path) -> None:
-  """Total loss and each term against step, one line per variant."""
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
-  keys = ["loss", "pf", "t", "int", "dep"]
-  fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 2.8))
-  for ax, k in zip(axes, keys):
-    for variant, rows in logs.items():
-      rows = [r for r in rows if k in r]
-      if rows:
-        ax.plot([r["step"] for r in rows], [r[k] for r in rows], label=METHOD_LABELS[variant])
-    ax.set_title(k)
-    ax.set_xlabel("step")
-    ax.set_yscale("log")
-  axes[0].legend()
-  fig.tight_layout()
-  fig.savefig(path, dpi=110)
-  plt.close(fig)
-
-
-def write_results(table: dict, images: dict, out_dir, *, caption: str, logs: dict | None = None) -> None:
-  """``table.md``, ``table.json``, ``comparison.png`` (and ``training_curves.png``) in ``out_dir``."""
-  out = pathlib.Path(out_dir)
-  out.mkdir(parents=True, exist_ok=True)
-  (out / "table.json").write_text(json.dumps(table, indent=2) + "\n")
-  (out / "table.md").write_text(format_table(table, caption))
-  plot_comparison(images, out / "comparison.png")
-  if logs:
-    plot_training_curves(logs, out / "training_curves.png")
-
-
-def train_and_evaluate(config: dict, workdir) -> dict:
-  """The main job: make the dataset if absent, train Ours-S and Ours, evaluate, write results.
-
-  Writes into ``workdir``: ``<variant>/checkpoints``, ``<variant>/metrics.jsonl``,
-  ``config.json``, and ``results/{table.md, table.json, comparison.png,
-  training_curves.png}``. Resumes from the checkpoints of an earlier,
-  interrupted run with the same config.
-
-  Returns:
-    the table ``method -> metric -> [mean, std]``.
-  """
-  config = with_defaults(config)
-  workdir = pathlib.Path(workdir)
-  workdir.mkdir(parents=True, exist_ok=True)
-  (workdir / "config.json").write_text(json.dumps(config, indent=2, default=str) + "\n")
-  t0 = time.perf_counter()
-  data_path = pathlib.Path(config["data"]["path"])
-  ensure_dataset(config, data_path)
-  trained, logs = {}, {}
-  for variant in config["train"].get("variants", ("ours_s", "ours")):
-    mcfg, state = train_model(config, data_path, workdir, variant)
-    trained[variant] = (mcfg, state.params)
-    logs[variant] = read_metrics(workdir / variant / "metrics.jsonl")
-  table, images = evaluate(config, data_path, trained)
-  caption = (f"Test split of `{data_path}` ({len(images['gt']['intensity'])} frames); "
-             f"{config['train']['steps']} steps of batch {config['train']['batch_size']}; "
-             f"{jax.devices()[0].platform}, {jax.device_count()} device(s); "
-             f"main job wall time {time.perf_counter() - t0:.0f} s.")
-  write_results(table, images, workdir / "results", caption=caption, logs=logs)
-  print(f"results written to {workdir / 'results'} ({time.perf_counter() - t0:.0f} s in all)")
-  return table
+  path = pathlib.Path(folder) / "selection.json"
+  if not path.exists():
+    return None
+  d = json.loads(path.read_text())
+  d["val_psnr"] = {int(k): v for k, v in d.get("val_psnr", {}).items()}
+  return d

@@ -5,6 +5,7 @@ the stored intensity and depth maps, the SPAD rate written out with a NumPy
 convolution, the helix equation, and plain array slicing of the stored data.
 """
 
+import dataclasses
 import json
 import math
 import shutil
@@ -21,7 +22,7 @@ from nlosjax.physics import Setup, render_points
 from nlosjax.physics.noise import jitter_kernel
 
 # Tiny capture: 16 x 16 on a 2 m wall, 64 bins of 264 ps (2.53 m of depth, as the presets).
-TINY = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, num_train=3, num_test=1,
+TINY = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, num_train=3, num_test=1, num_val=0,
             store_albedo=True, render_batch=4)
 
 
@@ -261,7 +262,31 @@ def test_sequences_are_reproducible_and_independent_of_the_split_counts(tiny):
     for key, arr in again["arrays"].items():
       np.testing.assert_array_equal(ds.read("train-00002", key), arr)
   seeds = {D.sequence_seed(0, s, i) for s in D.SPLITS for i in range(50)}
-  assert len(seeds) == 100
+  assert len(seeds) == 50 * len(D.SPLITS)
+  assert D.SPLITS[:2] == ("train", "test")     # new splits go last: old files keep their seeds
+
+
+def test_extend_dataset_adds_the_validation_split_and_keeps_every_stored_sequence(tiny, tmp_path):
+  path, spec = tiny
+  out = tmp_path / "extended.h5"
+  shutil.copy(path, out)
+  with D.open_dataset(out) as ds:
+    before = {n: ds.read(n, "measurement") for n in ds.names()}
+  wider = dataclasses.replace(spec, num_val=2)
+  result = D.extend_dataset(out, wider, progress=False)
+  assert (result.generated, result.resumed) == (2, 4)
+  with D.open_dataset(out) as ds:
+    assert ds.names("val") == ["val-00000", "val-00001"]
+    for name, arr in before.items():
+      np.testing.assert_array_equal(ds.read(name, "measurement"), arr)
+    fresh = D.simulate_sequence(wider, "val", 1)
+    np.testing.assert_array_equal(ds.read("val-00001", "measurement"), fresh["arrays"]["measurement"])
+    assert json.loads(ds.attrs["spec"])["num_sequences"]["val"] == 2
+  assert D.extend_dataset(out, wider, progress=False).generated == 0        # nothing missing
+  with pytest.raises(ValueError, match="more sequences"):
+    D.extend_dataset(out, dataclasses.replace(spec, num_train=1), progress=False)
+  with pytest.raises(ValueError, match="another data configuration"):
+    D.extend_dataset(out, dataclasses.replace(wider, seed=9), progress=False)
 
 
 # ------------------------------------------------------- under-scanning
@@ -474,7 +499,7 @@ def test_presets_keep_the_paper_ratios():
     assert spec.scene.depth_range[1] < spec.setup.max_depth
   paper = D.DatasetSpec.from_config(configs.get_config("paper")["data"])
   assert paper.setup == Setup(2.0, (128, 128), 33e-12, 512)
-  assert (paper.frames, paper.num_train + paper.num_test) == (32, 265)
+  assert (paper.frames, paper.num_sequences, paper.num_test) == (32, 265, 17)
   assert configs.get_config("paper")["data"]["input_stride"] == 8
 
 

@@ -79,12 +79,12 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
 
 
 def test_classic_baselines_resolve_the_phasor_wavelet_on_coarse_synthetic_bins():
-  """``train.classic_options``: defaults where they work, a carrier over 3 bins where not."""
-  from nlosjax import train as T
+  """``baselines.default_options``: defaults where they work, a carrier over 3 bins where not."""
+  from nlosjax.evaluation import baselines as B
   from nlosjax.physics.wavelet import illumination_wavelet
   fine = physics.Setup(wall_size=2.0, grid=16, bin_width=132e-12, num_bins=64)
   coarse = physics.Setup(wall_size=0.6, grid=64, bin_width=64e-12, num_bins=64)   # the real preset's
-  assert T.classic_options("phasor", fine) == {} and T.classic_options("lct", coarse) == {}
+  assert B.default_options("phasor", fine) == {} and B.default_options("lct", coarse) == {}
   with pytest.raises(ValueError, match="not resolved"):
     illumination_wavelet(coarse)
   from nlosjax.physics.wavelet import resolved_sampling_coeff
@@ -94,10 +94,10 @@ def test_classic_baselines_resolve_the_phasor_wavelet_on_coarse_synthetic_bins()
   x = np.zeros((1, 64, 16, 16), np.float32)             # under-scanned at stride 4
   x[0, 30, 8, 8] = 1.0
   for method in ("phasor", "rsd"):
-    options = T.classic_options(method, coarse)
+    options = B.default_options(method, coarse)
     wl = illumination_wavelet(coarse, sampling_coeff=options["sampling_coeff"])
     assert wl.wavelength == pytest.approx(3 * coarse.bin_length)
-    intensity, depth = T.classic_images(x, coarse, 4, method)
+    intensity, depth = B.classic_images(x, coarse, 4, method)
     assert np.isfinite(intensity).all() and np.isfinite(depth).all()
     assert intensity.max() == pytest.approx(1.0, abs=1e-6)
 

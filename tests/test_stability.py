@@ -556,7 +556,7 @@ def _video(path, frames: int) -> None:
   """Write one training sequence of ``frames`` frames on the ``NET`` geometry (CPU scenes)."""
   spec = D.DatasetSpec.from_config(configs.get_config("cpu")["data"], grid=NET.grid[0],
                                    num_bins=NET.num_bins, bin_width=NET.bin_width, frames=frames,
-                                   num_train=1, num_test=0, render_batch=64)
+                                   num_train=1, num_test=0, num_val=0, render_batch=64)
   assert spec.setup == NET
   D.write_dataset(path, spec, progress=False)
 

@@ -183,7 +183,7 @@ def test_lct_stages_compose_to_lct():
 def test_end_to_end_classic_configuration(tmp_path):
   """One classic configuration through evaluate -> timing -> scores -> Markdown and plot."""
   from nlosjax import physics
-  from nlosjax.train import classic_images
+  from nlosjax.evaluation.baselines import classic_images
   setup = Setup(wall_size=1.0, grid=(12, 12), bin_width=64e-12, num_bins=32)
   rng = np.random.default_rng(0)
   albedo = np.zeros((3, 32, 12, 12), np.float32)

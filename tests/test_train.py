@@ -19,27 +19,49 @@ def data_path(tmp_path_factory):
 
 
 def test_main_job_writes_table_and_figures(data_path, tmp_path):
-  cfg = tiny_config(data_path, steps=2)
-  table = T.train_and_evaluate(cfg, tmp_path)
+  from nlosjax.evaluation import report, scores
+  from nlosjax.main_job import train_and_evaluate
+  cfg = tiny_config(data_path, steps=2, seeds=2, select_checkpoint="val", keep_checkpoints=2,
+                    checkpoint_every=1)
+  table = train_and_evaluate(cfg, tmp_path, log=lambda s: None)
   saved = json.loads((tmp_path / "results" / "table.json").read_text())
-  assert set(saved) == set(T.TABLE_METHODS)
+  assert set(saved) == set(report.TABLE_METHODS)
   for method, row in saved.items():
-    assert set(row) == {"psnr", "ssim", "rmse", "mad"}
-    assert all(np.isfinite(v).all() and len(v) == 2 for v in row.values()), method
+    assert set(row) == set(scores.METRICS), method
+    for metric, cell in row.items():
+      assert set(cell) == {"mean", "ci95", "std", "n_sequences", "n_frames", "n_seeds"}
+      lo, hi = cell["ci95"]
+      if metric in ("psnr", "ssim", "rmse", "mad"):      # defined on every frame
+        assert np.isfinite([cell["mean"], lo, hi]).all() and lo <= cell["mean"] <= hi, (method, metric)
+      assert cell["n_sequences"] == 1 and cell["n_frames"] == 2 * cell["n_seeds"]
+      assert cell["n_seeds"] == (2 if method.startswith("ours") else 1)
     assert_nested_close(row, table[method], path=method)
-  for name in ("table.md", "comparison.png", "training_curves.png"):
+  comparisons = json.loads((tmp_path / "results" / "comparisons.json").read_text())
+  validation = json.loads((tmp_path / "results" / "validation.json").read_text())
+  best = validation["best_classic"]
+  assert [(c["a"], c["b"]) for c in comparisons] == [("ours", "ours_s"), ("ours", best), ("ours_s", best)]
+  assert set(validation["classic"]) == {"fbp", "lct", "fk", "phasor", "rsd"}
+  assert set(validation["checkpoints"]) == {"ours_s", "ours_s-seed1", "ours", "ours-seed1"}
+  for c in validation["checkpoints"].values():      # both kept steps scored on validation
+    assert sorted(int(k) for k in c["val_psnr"]) == [1, 2] and c["step"] in (1, 2)
+  text = (tmp_path / "results" / "table.md").read_text()
+  for needle in ("object recall", "Ours - Ours-S", f"Ours - {report.label(best)}", "validation split"):
+    assert needle in text, needle
+  for name in ("comparison.png", "training_curves.png"):
     assert (tmp_path / "results" / name).stat().st_size > 0
   rows = [json.loads(l) for l in (tmp_path / "ours" / "metrics.jsonl").read_text().splitlines()]
   assert [r["step"] for r in rows] == [1, 2]
   assert all(np.isfinite(r["loss"]) for r in rows)
-  # The evaluate CLI restores the same checkpoints from disk and reproduces the table.
+  # The evaluate CLI restores the chosen checkpoints (seed 0) from disk with the run's
+  # validation choices and reproduces the classic rows and the seed-0 model scores.
   from experiments import evaluate
-  evaluated = evaluate.main(["--checkpoint", str(tmp_path), "--data", str(data_path),
-                             "--out", str(tmp_path / "eval")])
+  evaluate.main(["--checkpoint", str(tmp_path), "--data", str(data_path),
+                 "--out", str(tmp_path / "eval")])
   again = json.loads((tmp_path / "eval" / "table.json").read_text())
-  assert set(again) == set(T.TABLE_METHODS)
-  assert_nested_close(again, saved, rtol=1e-5, atol=1e-6)
-  assert_nested_close(evaluated["ours"], again["ours"], path="ours")
+  assert set(again) == set(report.TABLE_METHODS)
+  for method in ("fbp", "lct", "fk", "phasor", "rsd"):
+    assert_nested_close(again[method], saved[method], rtol=1e-5, atol=1e-6, path=method)
+  assert again["ours"]["psnr"]["n_seeds"] == 1
   # One variant's folder selects that variant only.
   from nlosjax import checkpoints_io
   _, only = checkpoints_io.load_run(tmp_path / "ours_s" / "checkpoints", log=lambda s: None)
@@ -71,7 +93,8 @@ def test_bad_configs_raise(data_path, tmp_path):
 
 
 def test_upsample_scan_interpolates_linearly_between_samples():
-  m = T.interpolation_matrix(16, 4)              # samples at 2, 6, 10, 14
+  from nlosjax.evaluation.baselines import interpolation_matrix
+  m = interpolation_matrix(16, 4)              # samples at 2, 6, 10, 14
   x = np.array([1.0, 3.0, 5.0, 7.0])
   y = m @ x
   np.testing.assert_allclose(y[[2, 6, 10, 14]], x)

@@ -5,7 +5,7 @@ from nlosjax import train as T
 
 # 16 x 16 capture, every 4th point in (4 x 4), 64 bins of 264 ps; a model a few thousand parameters big.
 TINY_DATA = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, input_stride=4, input_offset=2,
-                 num_sequences={"train": 2, "test": 1}, render_batch=4)
+                 num_sequences={"train": 2, "val": 1, "test": 1}, render_batch=4)
 TINY_MODEL = dict(width=4, d_state=2, extract_time_stride=2, extract_blocks=1, st_depth=1,
                   cross_depth=1, spread_min_width=1, volume_features=1, refine_width=2)
 

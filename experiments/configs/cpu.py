@@ -18,7 +18,8 @@ def get_config() -> dict:
       "input_offset": 2,           # first kept point (stride // 2, the model's convention)
       # Sequences.
       "frames": 8,                 # F per sequence (6 triplets each with ends="valid")
-      "num_sequences": {"train": 48, "test": 8},
+      # val: every choice (classic settings, checkpoint); test: final tables only.
+      "num_sequences": {"train": 48, "val": 8, "test": 8},
       "seed": 0,
       # Detector (per sequence): efficiency uniform, photons and ambient log-uniform.
       "efficiency": (0.01, 0.30),
@@ -60,6 +61,8 @@ def get_config() -> dict:
   train = {
       "steps": 300, "batch_size": 4, "seed": 0, "log_every": 10, "checkpoint_every": 50,
       "eval_batch_size": 8, "variants": ("ours_s", "ours"),
+      # Every checkpoint is kept; the one with the best validation PSNR is evaluated.
+      "keep_checkpoints": 6, "select_checkpoint": "val",
       "optim": {"learning_rate": 1e-3, "weight_decay": 1e-4, "warmup_steps": 20, "cosine": True,
                 "clip_norm": 1.0},
   }

@@ -1,7 +1,7 @@
 """Paper preset (ST-Mamba, Sec. 3.2): 128 x 128 x 512 at 33 ps, 32 frames, 265 sequences.
 
 Input: every 8th scan point (16 x 16). The paper trains on 150 and tests on 17
-of its 265 sequences; here all 265 are generated (248 train, 17 test). Clean
+of its 265 sequences; here all 265 are generated (232 train, 16 validation for every choice, 17 test). Clean
 transients are not stored (about 1 GiB per sequence uncompressed); the
 loader's target is then the full-resolution measurement, as in USM.
 Generation takes minutes per sequence on a CPU (see benchmarks/results/data.md).
@@ -21,7 +21,7 @@ def get_config() -> dict:
       "input_stride": 8,           # 128 -> 16
       "input_offset": 4,           # first kept point (stride // 2, the model's convention)
       "frames": 32,
-      "num_sequences": {"train": 248, "test": 17},
+      "num_sequences": {"train": 232, "val": 16, "test": 17},
       "store_clean": False,
       "render_batch": 4,
       "loader": {"ends": "valid", "target": "measurement", "in_memory": False, "prefetch": 4},

@@ -26,9 +26,9 @@ HDF5 layout (:data:`FORMAT_NAME`, version :data:`FORMAT_VERSION`)::
   /                                  attrs: format, format_version, generator_version,
                                      nlosjax_version, wall_size (m), grid [H, W],
                                      bin_width (s), num_bins, spec (JSON of the DatasetSpec),
-                                     seed, num_train, num_test, background_depth (m),
+                                     seed, num_train, num_test, num_val, background_depth (m),
                                      complete, created
-  /sequences/<split>-<index:05d>/    attrs: split ("train" | "test"), index, seed, efficiency,
+  /sequences/<split>-<index:05d>/    attrs: split ("train" | "test" | "val"), index, seed, efficiency,
                                      photons, signal_scale, ambient (per bin), dark_counts
                                      (per bin), jitter, frame_rate (Hz), helix_center [3],
                                      helix_axis [3], helix_ref [3], helix_radius, helix_pitch,
@@ -104,14 +104,18 @@ __all__ = [
     "undersampled_positions",
     "undersampled_setup",
     "write_dataset",
+    "extend_dataset",
 ]
 
 #: Value of the root ``format`` attribute.
 FORMAT_NAME = "nlosjax-dynamic-nlos"
 #: Layout version; readers refuse newer files.
 FORMAT_VERSION = 1
-#: Train/test split names (group-name prefixes and the ``split`` attribute).
-SPLITS = ("train", "test")
+#: Split names (group-name prefixes and the ``split`` attribute). ``val`` is
+#: the validation split every choice is made on (classic-method settings,
+#: checkpoints, hyperparameters); ``test`` only writes final tables. The order
+#: fixes each split's seed stream (:func:`sequence_seed`): new splits go last.
+SPLITS = ("train", "test", "val")
 #: Per-sequence datasets: name -> whether every file has it.
 DATASETS = {"measurement": True, "clean": False, "albedo": False, "intensity": True,
             "depth": True, "trajectory": True}
@@ -140,7 +144,8 @@ class DatasetSpec:
   Attributes:
     setup: the full-resolution capture (ungated).
     frames: ``F`` frames per sequence.
-    num_train, num_test: sequences per split.
+    num_train, num_test, num_val: sequences per split (``val``: validation,
+      with its own seeds; 0 in files written before the split existed).
     seed: base seed.
     efficiency: ``(low, high)`` detection efficiency, uniform per sequence.
     photons: ``(low, high)`` signal budget ``S`` (mean incident signal photons
@@ -170,6 +175,7 @@ class DatasetSpec:
   frames: int = 8
   num_train: int = 32
   num_test: int = 8
+  num_val: int = 0
   seed: int = 0
   efficiency: tuple[float, float] = (0.01, 0.30)
   photons: tuple[float, float] = (1e3, 1e4)
@@ -190,7 +196,8 @@ class DatasetSpec:
       raise ValueError(f"setup must be a nlosjax.physics.Setup, got {type(self.setup).__name__}")
     if self.setup.depth_range is not None:
       raise ValueError("setup must not have a depth_range: datasets store every time bin")
-    for name, low in (("frames", 1), ("num_train", 0), ("num_test", 0), ("seed", 0),
+    for name, low in (("frames", 1), ("num_train", 0), ("num_test", 0), ("num_val", 0),
+                      ("seed", 0),
                       ("render_batch", 1), ("compression_level", 0)):
       v = getattr(self, name)
       if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
@@ -237,7 +244,8 @@ class DatasetSpec:
     (``num_train``, ``frames``, ...).
 
     Reads ``wall_size``, ``grid`` (int or ``[H, W]``), ``bin_width``,
-    ``num_bins``, ``num_sequences`` (``{"train": n, "test": m}``) and the
+    ``num_bins``, ``num_sequences`` (``{"train": n, "test": m, "val": k}``,
+    ``val`` optional) and the
     fields of this class; ignores the load-time keys ``input_stride``,
     ``input_offset``, ``loader`` and ``path``; raises on unknown keys.
     """
@@ -255,9 +263,10 @@ class DatasetSpec:
     counts = d.pop("num_sequences", None)
     if counts is not None:
       if not isinstance(counts, Mapping) or set(counts) - set(SPLITS):
-        raise ValueError(f"num_sequences must be {{'train': n, 'test': m}}, got {counts!r}")
+        raise ValueError(f"num_sequences must be {{'train': n, 'test': m, 'val': k}}, got {counts!r}")
       d["num_train"] = counts.get("train", 0)
       d["num_test"] = counts.get("test", 0)
+      d["num_val"] = counts.get("val", 0)
     d.update(overrides)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(d) - names)
@@ -272,7 +281,8 @@ class DatasetSpec:
     s = self.setup
     return {"wall_size": s.wall_size, "grid": list(s.grid), "bin_width": s.bin_width,
             "num_bins": s.num_bins, "frames": self.frames,
-            "num_sequences": {"train": self.num_train, "test": self.num_test},
+            "num_sequences": {"train": self.num_train, "test": self.num_test,
+                              **({"val": self.num_val} if self.num_val else {})},
             "seed": self.seed, "efficiency": list(self.efficiency), "photons": list(self.photons),
             "ambient": list(self.ambient), "dark_counts": self.dark_counts, "jitter": self.jitter,
             "store_clean": self.store_clean, "store_albedo": self.store_albedo,
@@ -290,7 +300,13 @@ class DatasetSpec:
 
   def count(self, split: str) -> int:
     """Number of sequences of ``split``."""
-    return {"train": self.num_train, "test": self.num_test}[_check_split(split)]
+    return {"train": self.num_train, "test": self.num_test,
+            "val": self.num_val}[_check_split(split)]
+
+  @property
+  def num_sequences(self) -> int:
+    """Sequences of every split."""
+    return self.num_train + self.num_test + self.num_val
 
 
 def _grid(value):
@@ -615,7 +631,7 @@ def write_dataset(path, spec: DatasetSpec, *, overwrite: bool = False, workers: 
     jobs = [(split, i) for split in SPLITS for i in range(spec.count(split))
             if sequence_name(split, i) not in done]
     from tqdm.auto import tqdm
-    total = spec.num_train + spec.num_test
+    total = spec.num_sequences
     bar = tqdm(total=total, initial=total - len(jobs), unit="seq", desc=f"writing {path.name}",
                disable=not progress)
     if workers == 1 or len(jobs) <= 1:
@@ -639,12 +655,49 @@ def write_dataset(path, spec: DatasetSpec, *, overwrite: bool = False, workers: 
     bar.close()
     f.attrs["num_train"] = spec.num_train
     f.attrs["num_test"] = spec.num_test
+    f.attrs["num_val"] = spec.num_val
+    f.attrs["spec"] = json.dumps(spec.to_dict())    # the counts of a resumed or extended file
     f.attrs["complete"] = True
     f.flush()
   finally:
     f.close()
   os.replace(tmp, path)
   return WriteResult(path=path, generated=len(jobs), resumed=len(done))
+
+
+def extend_dataset(path, spec: DatasetSpec, *, workers: int = 1, progress: bool = True) -> WriteResult:
+  """Add to the complete file ``path`` the sequences ``spec`` has and it lacks.
+
+  For a file made before a split existed (e.g. ``val``) or with fewer
+  sequences: the stored sequences are kept byte for byte (a sequence depends
+  on its seed, not on the counts), the missing ones are simulated, and the
+  file is replaced atomically as :func:`write_dataset` does (the original
+  stays untouched until the extended file is complete).
+
+  Returns:
+    :class:`WriteResult` (``generated`` 0 when nothing was missing).
+  Raises:
+    ValueError: ``path`` was made with another generation configuration, or
+      holds more sequences of a split than ``spec`` asks for.
+  """
+  import shutil
+  path = pathlib.Path(path)
+  with h5py.File(path, "r") as f:
+    if _generation_key(f.attrs.get("spec")) != spec.generation_key() or \
+        f.attrs.get("generator_version") != scenes.GENERATOR_VERSION:
+      raise ValueError(f"{path}: made with another data configuration or generator version; "
+                       "move it away (or point data.path elsewhere) to generate this one")
+    have = {split: sum(1 for n in f["sequences"] if n.startswith(split + "-")) for split in SPLITS}
+  more = {s: have[s] for s in SPLITS if have[s] > spec.count(s)}
+  if more:
+    raise ValueError(f"{path}: holds more sequences than the config asks for ({more}); "
+                     "use a config with at least these counts")
+  if all(have[s] == spec.count(s) for s in SPLITS):
+    return WriteResult(path=path, generated=0, resumed=sum(have.values()))
+  tmp = _partial_path(path)
+  if not tmp.exists():
+    shutil.copyfile(path, tmp)
+  return write_dataset(path, spec, overwrite=True, workers=workers, progress=progress)
 
 
 # ------------------------------------------------------------ under-scanning
@@ -942,7 +995,7 @@ class TripletLoader:
 
   Args:
     dataset: a path or an open :class:`DynamicDataset`.
-    split: ``"train"`` or ``"test"``.
+    split: ``"train"``, ``"test"`` or ``"val"``.
     batch_size: examples per batch ``B``.
     stride, offset: under-scanning of the input (:func:`undersample`).
     seed: shuffling seed.

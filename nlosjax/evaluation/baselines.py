@@ -1,0 +1,194 @@
+"""Classic baselines on under-scanned input, and their settings chosen on the validation split.
+
+The paper's protocol: a classic method cannot read an under-scanned grid, so
+the ``h x w`` input is interpolated bilinearly to the full ``H x W`` grid
+(:func:`upsample_scan`) and reconstructed there; intensity and depth come
+from :func:`nlosjax.physics.intensity_depth` (max over depth, normalised; the
+depth of the maximum where the intensity reaches the surface ``threshold``).
+
+Every setting a classic method has is chosen on the **validation** split
+(:func:`tune`), never on the test split, from the small grid
+:func:`option_grid` (FBP falloff; LCT Wiener ``snr`` x falloff; phasor and
+RSD virtual wavelength ``sampling_coeff``; f-k has none) and the surface
+thresholds :data:`THRESHOLDS`:
+
+* the reconstruction option with the highest mean validation intensity PSNR
+  wins (the threshold does not change the intensity image);
+* then, on that option's volumes, the threshold with the highest mean
+  validation surface F1 (:func:`nlosjax.metrics.surface_scores`: recall and
+  precision of "reconstructed as surface", the one rule every method is
+  scored by).
+
+Ties keep the earlier grid entry. ``tune`` returns every grid row's scores
+too, so a report can show what the choice was made from.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Callable
+
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["CLASSIC_METHODS", "THRESHOLDS", "DEFAULT_THRESHOLD", "interpolation_matrix",
+           "upsample_scan", "default_options", "option_grid", "classic_volume",
+           "classic_images", "tune"]
+
+CLASSIC_METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
+#: Surface thresholds (fraction of the image's peak intensity) tried on validation.
+THRESHOLDS = (0.05, 0.1, 0.2, 0.3, 0.5)
+#: :func:`nlosjax.physics.intensity_depth`'s default, used where nothing was tuned.
+DEFAULT_THRESHOLD = 0.1
+
+
+def interpolation_matrix(full: int, stride: int) -> np.ndarray:
+  """``[full, n]`` linear interpolation from the under-scanned samples to every scan point.
+
+  Sample ``i`` sits at full-grid index ``stride // 2 + stride * i`` (the
+  model's :func:`~nlosjax.models.network.underscan`); points outside the
+  sampled span take the nearest sample.
+  """
+  n = len(range(stride // 2, full, stride))
+  pos = (np.arange(full) - stride // 2) / stride
+  pos = np.clip(pos, 0, n - 1)
+  lo = np.minimum(np.floor(pos).astype(int), max(n - 2, 0))
+  frac = pos - lo
+  m = np.zeros((full, n))
+  m[np.arange(full), lo] += 1 - frac
+  if n > 1:
+    m[np.arange(full), lo + 1] += frac
+  return m
+
+
+def upsample_scan(transient, grid: tuple[int, int], stride: int):
+  """``[..., T, h, w] -> [..., T, H, W]`` bilinear interpolation onto the full scan grid (paper protocol)."""
+  my = jnp.asarray(interpolation_matrix(grid[0], stride), jnp.float32)
+  mx = jnp.asarray(interpolation_matrix(grid[1], stride), jnp.float32)
+  if transient.shape[-2:] != (my.shape[1], mx.shape[1]):
+    raise ValueError(f"under-scanned grid {transient.shape[-2:]} does not match grid {grid} "
+                     f"at stride {stride} ({my.shape[1]}, {mx.shape[1]})")
+  return jnp.einsum("Hh,...thw,Ww->...tHW", my, jnp.asarray(transient, jnp.float32), mx)
+
+
+def default_options(method: str, setup) -> dict:
+  """Options of a classic method on ``setup`` before tuning: the defaults, with a resolved phasor wavelet.
+
+  Phasor and RSD get ``sampling_coeff`` from
+  :func:`~nlosjax.physics.wavelet.resolved_sampling_coeff` where their default
+  virtual wavelength (4 scan spacings) is under 3 time bins (the ``real``
+  preset); elsewhere (``cpu``, ``paper``, the measured scans) ``{}``.
+  """
+  from nlosjax.physics.wavelet import resolved_sampling_coeff
+  _check_method(method)
+  if method not in ("phasor", "rsd"):
+    return {}
+  coeff = resolved_sampling_coeff(setup)
+  return {} if coeff <= 2.0 else {"sampling_coeff": coeff}
+
+
+def option_grid(method: str, setup) -> list[dict]:
+  """The reconstruction options :func:`tune` tries for ``method`` (first entry: :func:`default_options`)."""
+  _check_method(method)
+  if method == "fbp":
+    return [{"falloff": f} for f in ("diffuse", "retroreflective")]
+  if method == "lct":
+    return [{"snr": s, "falloff": f}
+            for f, s in itertools.product(("diffuse", "retroreflective"), (0.1, 0.01, 1.0, 10.0))]
+  if method in ("phasor", "rsd"):
+    base = float(default_options(method, setup).get("sampling_coeff", 2.0))
+    return [{"sampling_coeff": round(base * k, 6)} for k in (1.0, 1.5, 2.0, 3.0)]
+  return [{}]
+
+
+def _check_method(method):
+  if method not in CLASSIC_METHODS:
+    raise ValueError(f"classic method must be one of {CLASSIC_METHODS}, got {method!r}")
+
+
+def classic_volume(measurement, setup, stride: int, method: str, options: dict | None = None):
+  """``[N, T, h, w]`` counts -> ``[N, Z, H, W]`` albedo volume of a classic method (interpolated input).
+
+  f-k's volume (albedo squared) is square-rooted so every method returns albedo.
+  """
+  from nlosjax.physics import reconstruct
+  _check_method(method)
+  opts = default_options(method, setup) if options is None else dict(options)
+  vol = reconstruct(upsample_scan(measurement, setup.grid, stride), setup, method, **opts)
+  return jnp.sqrt(vol) if method == "fk" else vol
+
+
+def classic_images(measurement, setup, stride: int, method: str, options: dict | None = None,
+                   threshold: float = DEFAULT_THRESHOLD) -> tuple[np.ndarray, np.ndarray]:
+  """Intensity and depth of a classic method on under-scanned input.
+
+  Args:
+    measurement: ``[N, T, h, w]`` counts of the frames to reconstruct.
+    setup: the full-grid Setup.
+    stride: the under-scan stride (the input is interpolated to the full grid).
+    method: one of :data:`CLASSIC_METHODS`.
+    options: reconstruction options (default :func:`default_options`).
+    threshold: surface threshold of :func:`nlosjax.physics.intensity_depth`.
+  Returns:
+    ``(intensity [N, H, W] in [0, 1], depth [N, H, W] metres)`` as NumPy.
+  """
+  from nlosjax.physics import intensity_depth
+  vol = classic_volume(measurement, setup, stride, method, options)
+  inten, depth = intensity_depth(vol, setup, threshold=threshold)
+  return np.asarray(inten), np.asarray(depth)
+
+
+def _batched_volumes(measurement, setup, stride, method, options, batch_size):
+  return [classic_volume(measurement[s:s + batch_size], setup, stride, method, options)
+          for s in range(0, len(measurement), batch_size)]
+
+
+def tune(measurement, gt_intensity, gt_depth, setup, stride: int, *,
+         methods=CLASSIC_METHODS, thresholds=THRESHOLDS, batch_size: int = 8,
+         log: Callable[[str], None] = print) -> dict:
+  """Each classic method's best setting on validation frames (rules in the module docstring).
+
+  Args:
+    measurement: ``[N, T, h, w]`` under-scanned counts of the validation frames.
+    gt_intensity, gt_depth: ``[N, H, W]`` their ground truth.
+    setup, stride: the full-grid Setup and the under-scan stride.
+    methods: classic methods to tune.
+    thresholds: surface thresholds to try.
+    batch_size: frames per reconstruction call.
+  Returns:
+    ``method -> {"options": dict, "threshold": float, "psnr": float, "f1": float,
+    "grid": [{"options", "psnr", "f1_by_threshold"}, ...]}`` (validation means;
+    options that a method refuses on this Setup are left out of ``grid``).
+  """
+  from nlosjax import metrics
+  from nlosjax.physics import intensity_depth
+  gt_i = np.asarray(gt_intensity)
+  gt_d = np.asarray(gt_depth)
+  out = {}
+  for method in methods:
+    rows = []
+    best = None
+    for options in option_grid(method, setup):
+      try:
+        vols = _batched_volumes(measurement, setup, stride, method, options, batch_size)
+      except ValueError as e:        # e.g. a wavelength the Setup cannot carry
+        log(f"[tune] {method} {options}: skipped ({e})")
+        continue
+      inten = np.concatenate([np.asarray(intensity_depth(v, setup)[0]) for v in vols])
+      psnr = float(np.mean(np.asarray(metrics.psnr(inten, gt_i))))
+      f1 = {}
+      for th in thresholds:
+        depth = np.concatenate([np.asarray(intensity_depth(v, setup, threshold=th)[1]) for v in vols])
+        f1[float(th)] = float(np.nanmean(np.asarray(metrics.surface_scores(depth, gt_d)["f1"])))
+      rows.append({"options": options, "psnr": psnr, "f1_by_threshold": f1})
+      if best is None or psnr > best["psnr"]:
+        best = rows[-1]
+    if best is None:
+      raise ValueError(f"no option of {method!r} works on {setup}")
+    f1 = best["f1_by_threshold"]
+    th = max(f1, key=lambda t: (f1[t], -list(f1).index(t)))
+    out[method] = {"options": best["options"], "threshold": th, "psnr": best["psnr"],
+                   "f1": f1[th], "grid": rows}
+    log(f"[tune] {method}: {best['options'] or 'no options'}, threshold {th} "
+        f"(validation intensity PSNR {best['psnr']:.2f} dB, surface F1 {f1[th]:.3f})")
+  return out

@@ -1,0 +1,203 @@
+"""The evaluation protocol: every method on one split of a dataset file, scored per frame.
+
+:func:`evaluate` reads a split with the config's loader (frames in file
+order: sequence, then middle frame), reconstructs the middle frame of each
+triplet with every classic method (under-scanned input interpolated to the
+full grid, settings from :func:`nlosjax.evaluation.baselines.tune`) and every
+trained model (each of its seeds), and scores each frame
+(:func:`nlosjax.evaluation.scores.frame_scores`). :func:`tabulate` turns that
+into the table (mean and 95 % interval over sequences and seeds) and the
+paired comparisons a claim rests on; :func:`write_results` writes them.
+
+Which split is read is the caller's choice: ``"val"`` for every choice
+(classic settings, checkpoints, the best classic method), ``"test"`` only for
+final tables.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import pathlib
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from nlosjax.evaluation import baselines, figures, report, scores
+
+__all__ = ["load_split", "model_images", "validation_psnr", "evaluate", "tabulate",
+           "best_classic", "write_results"]
+
+
+def load_split(config: dict, data_path, split: str, *, batch_size: int) -> dict:
+  """Ground truth and middle-frame input of every example of ``split``.
+
+  Returns:
+    ``{"intensity" [N, H, W], "depth" [N, H, W], "measurement" [N, T, h, w]
+    (the middle frame), "sequence" [N] int, "setup", "stride", "loader"}``;
+    the open ``loader`` (unshuffled) feeds :func:`model_images`; close it.
+  """
+  from nlosjax.train import make_loader
+  loader = make_loader(config, data_path, split, batch_size=batch_size, shuffle=False, seed=0)
+  gi, gd, mid, seq = [], [], [], []
+  for step in range(len(loader)):
+    b = loader.batch(step)
+    gi.append(b["intensity"])
+    gd.append(b["depth"])
+    mid.append(b["measurement"][:, b["measurement"].shape[1] // 2])
+    seq.append(b["sequence"])
+  return {"intensity": np.concatenate(gi), "depth": np.concatenate(gd),
+          "measurement": np.concatenate(mid), "sequence": np.concatenate(seq),
+          "setup": loader.setup, "stride": loader.stride, "loader": loader}
+
+
+@functools.lru_cache(maxsize=8)
+def _jitted_apply(mcfg):
+  """The model's jitted forward, one per model config (checkpoints and seeds share it)."""
+  from nlosjax.models.network import STMambaNet
+  model = STMambaNet(mcfg)
+  return jax.jit(lambda p, x: model.apply({"params": p}, x))
+
+
+def model_images(mcfg, params, loader) -> dict:
+  """Intensity and depth of a trained model on a loader's examples (in order).
+
+  Returns ``{"intensity": [N, H, W], "depth": [N, H, W]}`` NumPy.
+  """
+  from nlosjax.train import select_frames
+  apply = _jitted_apply(mcfg)
+  inten, depth = [], []
+  for step in range(len(loader)):
+    x = select_frames(loader.batch(step)["measurement"], mcfg.frames)
+    out = apply(params, jnp.asarray(x))
+    inten.append(np.asarray(out["intensity"]))
+    depth.append(np.asarray(out["depth"]))
+  return {"intensity": np.concatenate(inten), "depth": np.concatenate(depth)}
+
+
+def validation_psnr(config: dict, data_path, *, split: str = "val") -> Callable:
+  """``(model_config, params) -> mean intensity PSNR (dB)`` on ``split``: the checkpoint criterion."""
+  from nlosjax import metrics
+  batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
+
+  def score(mcfg, params) -> float:
+    data = load_split(config, data_path, split, batch_size=batch_size)
+    try:
+      im = model_images(mcfg, params, data["loader"])
+    finally:
+      data["loader"].close()
+    return float(np.mean(np.asarray(metrics.psnr(im["intensity"], data["intensity"]))))
+
+  return score
+
+
+def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
+             methods: tuple[str, ...] = baselines.CLASSIC_METHODS,
+             classic_settings: dict | None = None,
+             log: Callable[[str], None] = print) -> dict:
+  """Every method on ``split`` of ``data_path``, scored per frame.
+
+  Args:
+    config: the run config (its ``data`` and ``train.eval_batch_size``).
+    data_path: an HDF5 file in the documented layout.
+    trained: ``variant -> (model_config, params)`` or ``variant -> [(model_config,
+      params), ...]`` (one per training seed).
+    split: the split to read.
+    methods: the classic methods to include.
+    classic_settings: ``method -> {"options", "threshold"}`` (from
+      :func:`~nlosjax.evaluation.baselines.tune`); a method without an entry
+      runs with its defaults.
+  Returns:
+    ``{"scores": method -> metric -> [N] (classic) or [K, N] (K seeds),
+    "sequence": [N], "images": method -> {"intensity", "depth"} (first seed;
+    plus "gt"), "split", "data", "n_frames"}``.
+  """
+  from tqdm import tqdm
+  batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
+  classic_settings = classic_settings or {}
+  data = load_split(config, data_path, split, batch_size=batch_size)
+  gt = {"intensity": data["intensity"], "depth": data["depth"]}
+  images, per_frame = {"gt": gt}, {}
+  try:
+    for method in tqdm(methods, desc="classic methods", unit="method", disable=not methods):
+      setting = classic_settings.get(method, {})
+      out_i, out_d = [], []
+      for s in range(0, len(data["measurement"]), batch_size):
+        i, d = baselines.classic_images(data["measurement"][s:s + batch_size], data["setup"],
+                                        data["stride"], method, setting.get("options"),
+                                        setting.get("threshold", baselines.DEFAULT_THRESHOLD))
+        out_i.append(i)
+        out_d.append(d)
+      images[method] = {"intensity": np.concatenate(out_i), "depth": np.concatenate(out_d)}
+      per_frame[method] = scores.frame_scores(images[method]["intensity"], images[method]["depth"],
+                                              gt["intensity"], gt["depth"])
+    for variant, models in trained.items():
+      models = [models] if isinstance(models, tuple) else list(models)
+      seeds = []
+      for mcfg, params in models:
+        im = model_images(mcfg, params, data["loader"])
+        images.setdefault(variant, im)
+        seeds.append(scores.frame_scores(im["intensity"], im["depth"], gt["intensity"],
+                                         gt["depth"]))
+      per_frame[variant] = {k: np.stack([s[k] for s in seeds]) for k in scores.METRICS}
+  finally:
+    data["loader"].close()
+  return {"scores": per_frame, "sequence": data["sequence"], "images": images, "split": split,
+          "data": str(data_path), "n_frames": int(len(data["sequence"]))}
+
+
+def best_classic(evaluation: dict, metric: str = "psnr") -> str | None:
+  """The classic method with the best mean ``metric`` in an evaluation (use a validation one)."""
+  sign = 1.0 if scores.HIGHER_IS_BETTER[metric] else -1.0
+  found = {m: sign * float(np.nanmean(s[metric])) for m, s in evaluation["scores"].items()
+           if m in baselines.CLASSIC_METHODS}
+  return max(found, key=found.get) if found else None
+
+
+def tabulate(evaluation: dict, *, best_classic_method: str | None = None, n_boot: int | None = None
+             ) -> tuple[dict, list[dict]]:
+  """The table and the paired comparisons of an :func:`evaluate` result.
+
+  Comparisons, where both sides were evaluated: Ours - Ours-S, and each
+  learned model - ``best_classic_method`` (chosen on validation by the caller).
+
+  Returns:
+    ``(table, comparisons)``: ``method -> metric -> {"mean", "ci95", "std",
+    "n_sequences", "n_frames", "n_seeds"}``, and a list of ``{"a", "b",
+    "label", "diff": metric -> the same keys for a - b}``.
+  """
+  kw = {} if n_boot is None else {"n_boot": n_boot}
+  per_frame, seq = evaluation["scores"], evaluation["sequence"]
+  table = {m: scores.summarize_scores(s, seq, **kw) for m, s in per_frame.items()}
+  pairs = [("ours", "ours_s")]
+  if best_classic_method is not None:
+    pairs += [(v, best_classic_method) for v in ("ours", "ours_s")]
+  comparisons = [{"a": a, "b": b, "label": f"{report.label(a)} - {report.label(b)}",
+                  "diff": scores.compare_scores(per_frame[a], per_frame[b], seq, **kw)}
+                 for a, b in pairs if a in per_frame and b in per_frame]
+  return table, comparisons
+
+
+def write_results(out_dir, table: dict, comparisons: list[dict], images: dict, *, caption: str,
+                  validation: dict | None = None, logs: dict | None = None) -> None:
+  """``table.json``, ``comparisons.json``, ``validation.json``, ``table.md``, figures in ``out_dir``.
+
+  ``table.json`` is ``method -> metric -> {"mean", "ci95": [lo, hi], "std",
+  "n_sequences", "n_frames", "n_seeds"}``.
+  """
+  out = pathlib.Path(out_dir)
+  out.mkdir(parents=True, exist_ok=True)
+  (out / "table.json").write_text(json.dumps(table, indent=2) + "\n")
+  (out / "comparisons.json").write_text(json.dumps(comparisons, indent=2) + "\n")
+  text = report.format_tables(table, caption)
+  if comparisons:
+    text += "\n" + report.format_comparisons(comparisons)
+  if validation:
+    (out / "validation.json").write_text(json.dumps(validation, indent=2, default=str) + "\n")
+    text += "\n" + report.format_choices(validation)
+  (out / "table.md").write_text(text)
+  figures.plot_comparison(images, out / "comparison.png")
+  if logs:
+    figures.plot_training_curves(logs, out / "training_curves.png")

@@ -1,0 +1,136 @@
+"""Markdown of an evaluation: Table 1 with intervals, the object-aware table, paired comparisons.
+
+Input is what :func:`nlosjax.evaluation.protocol.tabulate` returns: ``table``
+(``method -> metric -> summary``) and ``comparisons`` (a list of ``{"a", "b",
+"label", "diff": metric -> summary}``). Each cell is ``mean [lo, hi]``, the
+95 % bootstrap interval over sequences (and seeds). The sentences under the
+comparison table are written from the numbers: a difference is called only
+where its interval excludes 0.
+"""
+
+from __future__ import annotations
+
+import math
+
+from nlosjax import stats
+from nlosjax.evaluation.scores import HIGHER_IS_BETTER
+
+__all__ = ["METHOD_LABELS", "TABLE_METHODS", "METRIC_LABELS", "label", "format_tables",
+           "format_comparisons", "format_choices"]
+
+METHOD_LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "RSD",
+                 "ours_s": "Ours-S", "ours": "Ours"}
+#: Row order of every table.
+TABLE_METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "ours_s", "ours")
+METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2), "ssim": ("intensity SSIM", "", 3),
+                 "rmse": ("depth RMSE", "m", 3), "mad": ("depth MAD", "m", 3),
+                 "rmse_object": ("object depth RMSE", "m", 3),
+                 "mad_object": ("object depth MAD", "m", 3),
+                 "recall": ("object recall", "", 3), "precision": ("surface precision", "", 3),
+                 "f1": ("surface F1", "", 3)}
+PAPER_METRICS = ("psnr", "ssim", "rmse", "mad")
+OBJECT_METRICS = ("rmse_object", "mad_object", "recall", "precision", "f1")
+
+
+def label(method: str) -> str:
+  """Display name of a method (the key itself when unknown)."""
+  return METHOD_LABELS.get(method, method)
+
+
+def _cell(s: dict, digits: int, signed: bool = False) -> str:
+  if not math.isfinite(s["mean"]):
+    return "n/a"
+  f = f"{{:{'+' if signed else ''}.{digits}f}}"
+  lo, hi = s["ci95"]
+  return f"{f.format(s['mean'])} [{f.format(lo)}, {f.format(hi)}]"
+
+
+def _header(metric: str) -> str:
+  name, unit, _ = METRIC_LABELS[metric]
+  arrow = "↑" if HIGHER_IS_BETTER[metric] else "↓"
+  return f"{name}{f' ({unit})' if unit else ''} {arrow}"
+
+
+def _rows(table: dict) -> list[str]:
+  return [m for m in TABLE_METHODS if m in table] + [m for m in table if m not in TABLE_METHODS]
+
+
+def _grid(table: dict, metrics: tuple[str, ...]) -> list[str]:
+  lines = ["| method | " + " | ".join(_header(k) for k in metrics) + " | sequences / frames / seeds |",
+           "|---|" + "---|" * len(metrics) + "---|"]
+  for m in _rows(table):
+    r = table[m]
+    first = r[metrics[0]]
+    counts = f"{first['n_sequences']} / {first['n_frames']} / {first.get('n_seeds', 1)}"
+    lines.append(f"| {label(m)} | " + " | ".join(_cell(r[k], METRIC_LABELS[k][2]) for k in metrics)
+                 + f" | {counts} |")
+  return lines
+
+
+def format_tables(table: dict, caption: str = "") -> str:
+  """Markdown: the paper's Table 1 metrics, then the object-aware scores; ``mean [95 % CI]``."""
+  lines = ([caption, ""] if caption else [])
+  lines += ["Mean [95 % bootstrap interval over sequences, and over training seeds where there "
+            "are several]; a frame's scores count once per seed.", "",
+            "**The paper's metrics** (whole-image depth counts every background pixel):", ""]
+  lines += _grid(table, PAPER_METRICS)
+  lines += ["", "**On the objects** (depth error over the true surface pixels; recall: share of "
+            "them reconstructed as surface; precision: share of the reconstructed surface that is "
+            "true surface; surface = depth >= 0.1 m for every method):", ""]
+  lines += _grid(table, OBJECT_METRICS)
+  return "\n".join(lines) + "\n"
+
+
+def _verdict(c: dict, metric: str) -> str:
+  d = c["diff"][metric]
+  name, unit, digits = METRIC_LABELS[metric]
+  lo, hi = d["ci95"]
+  span = f"{d['mean']:+.{digits}f}{f' {unit}' if unit else ''} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
+  if not math.isfinite(d["mean"]):
+    return f"{c['label']}, {name}: undefined."
+  if not stats.excludes_zero(d):
+    return f"{c['label']}, {name}: {span}; the interval includes 0, no difference is called."
+  better = (d["mean"] > 0) == HIGHER_IS_BETTER[metric]
+  return (f"{c['label']}, {name}: {span}; {label(c['a'])} is "
+          f"{'better' if better else 'worse'} than {label(c['b'])}.")
+
+
+def format_comparisons(comparisons: list[dict], metrics=("psnr", "ssim", "rmse_object", "recall",
+                                                         "f1")) -> str:
+  """Markdown table of paired differences ``a - b`` and one sentence per comparison and metric."""
+  if not comparisons:
+    return ""
+  lines = ["**Paired differences** (a - b on the same frames; 95 % bootstrap interval over "
+           "sequences and seeds):", "",
+           "| comparison | " + " | ".join(_header(k) for k in metrics) + " |",
+           "|---|" + "---|" * len(metrics)]
+  for c in comparisons:
+    lines.append(f"| {c['label']} | " + " | ".join(
+        _cell(c["diff"][k], METRIC_LABELS[k][2], signed=True) for k in metrics) + " |")
+  lines += [""] + [f"- {_verdict(c, k)}" for c in comparisons for k in ("psnr", "rmse_object",
+                                                                         "recall")]
+  return "\n".join(lines) + "\n"
+
+
+def format_choices(validation: dict) -> str:
+  """Markdown of the choices made on the validation split (classic settings, checkpoints)."""
+  lines = ["**Chosen on the validation split** (the test split only writes the tables above):", ""]
+  classic = validation.get("classic", {})
+  if classic:
+    lines += ["| method | options | surface threshold | val. intensity PSNR (dB) | val. surface F1 | grid |",
+              "|---|---|---|---|---|---|"]
+    for m, c in classic.items():
+      opts = ", ".join(f"{k}={v}" for k, v in c["options"].items()) or "none"
+      lines.append(f"| {label(m)} | {opts} | {c['threshold']} | {c['psnr']:.2f} | {c['f1']:.3f} "
+                   f"| {len(c['grid'])} option(s) x {len(c['grid'][0]['f1_by_threshold'])} thresholds |")
+    if validation.get("best_classic"):
+      lines += ["", f"Best classic method on validation (intensity PSNR): "
+                f"{label(validation['best_classic'])}."]
+  checkpoints = validation.get("checkpoints", {})
+  if checkpoints:
+    lines += ["", "| model | seed | checkpoint step | val. intensity PSNR (dB) at each kept step |",
+              "|---|---|---|---|"]
+    for name, c in checkpoints.items():
+      steps = ", ".join(f"{s}: {v:.2f}" for s, v in c["val_psnr"].items())
+      lines.append(f"| {label(c['variant'])} | {c['seed']} | {c['step']} | {steps} |")
+  return "\n".join(lines) + "\n"

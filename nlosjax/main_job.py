@@ -1,0 +1,96 @@
+"""The main job behind ``python -m experiments.train``: data, training, choices on validation, the test table.
+
+1. Make the config's dataset (train, val and test splits) unless it exists;
+   extend an existing file that lacks a split.
+2. Train each variant (Ours-S, Ours) for each seed
+   (``train.seed``, ``train.seed + 1``, ... ``train.seeds`` of them;
+   :func:`nlosjax.train.train_model`), choosing the checkpoint on validation
+   where ``train.select_checkpoint == "val"``.
+3. On the **validation** split: tune every classic method
+   (:func:`nlosjax.evaluation.baselines.tune`) and pick the best classic
+   method (validation intensity PSNR).
+4. On the **test** split, once: every method, per frame; the table (mean,
+   95 % interval over sequences and seeds) and the paired comparisons Ours -
+   Ours-S and learned - best classic.
+
+Writes into ``workdir``: ``config.json``, ``<variant>[-seed<k>]/{checkpoints,
+metrics.jsonl, selection.json}``, and ``results/{table.md, table.json,
+comparisons.json, validation.json, comparison.png, training_curves.png}``.
+Rerunning after an interruption resumes from the checkpoints.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import time
+
+import jax
+
+from nlosjax import train
+from nlosjax.evaluation import baselines, protocol
+
+__all__ = ["model_folder", "train_and_evaluate"]
+
+
+def model_folder(variant: str, seed: int, base_seed: int) -> str:
+  """Folder of one trained model: ``variant`` for the config's own seed, else ``variant-seed<k>``."""
+  return variant if seed == base_seed else f"{variant}-seed{seed}"
+
+
+def _tune_classic(config: dict, data_path, log) -> dict:
+  batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
+  data = protocol.load_split(config, data_path, "val", batch_size=batch_size)
+  data["loader"].close()
+  return baselines.tune(data["measurement"], data["intensity"], data["depth"], data["setup"],
+                        data["stride"], batch_size=batch_size, log=log)
+
+
+def train_and_evaluate(config: dict, workdir, *, log=print) -> dict:
+  """Run the main job (module docstring); returns the test table ``method -> metric -> summary``."""
+  config = train.with_defaults(config)
+  tr = config["train"]
+  workdir = pathlib.Path(workdir)
+  workdir.mkdir(parents=True, exist_ok=True)
+  (workdir / "config.json").write_text(json.dumps(config, indent=2, default=str) + "\n")
+  t0 = time.perf_counter()
+  data_path = pathlib.Path(config["data"]["path"])
+  train.ensure_dataset(config, data_path, log=log)
+  n_seeds = int(tr.get("seeds", 1))
+  if n_seeds < 1:
+    raise ValueError(f"train.seeds must be >= 1, got {n_seeds}")
+  base = int(tr.get("seed", 0))
+  validate = protocol.validation_psnr(config, data_path)
+  trained, logs, checkpoints = {}, {}, {}
+  for variant in tr.get("variants", ("ours_s", "ours")):
+    for seed in range(base, base + n_seeds):
+      folder = model_folder(variant, seed, base)
+      run_config = {**config, "train": {**tr, "seed": seed}}
+      mcfg, state = train.train_model(run_config, data_path, workdir, variant, folder=folder,
+                                      validate=validate, log=log)
+      trained.setdefault(variant, []).append((mcfg, state.params))
+      if seed == base:
+        logs[variant] = train.read_metrics(workdir / folder / "metrics.jsonl")
+      selection = train.read_selection(workdir / folder) or {}
+      checkpoints[folder] = {"variant": variant, "seed": seed, "step": selection.get("step"),
+                             "val_psnr": selection.get("val_psnr", {})}
+  log("validation: tuning the classic methods ...")
+  settings = _tune_classic(config, data_path, log)
+  best = max(settings, key=lambda m: settings[m]["psnr"])
+  validation = {"split": "val", "classic": settings, "best_classic": best,
+                "checkpoints": checkpoints}
+  evaluation = protocol.evaluate(config, data_path, trained, split="test",
+                                 classic_settings=settings, log=log)
+  table, comparisons = protocol.tabulate(evaluation, best_classic_method=best)
+  n_frames = evaluation["n_frames"]
+  n_seq = len(set(evaluation["sequence"].tolist()))
+  caption = (f"Test split of `{data_path}` ({n_seq} sequences, {n_frames} frames); "
+             f"{tr['steps']} steps of batch {tr['batch_size']} per model, "
+             f"{n_seeds} seed(s) ({base}-{base + n_seeds - 1}); "
+             f"{jax.devices()[0].platform}, {jax.device_count()} device(s); "
+             f"main job wall time {time.perf_counter() - t0:.0f} s.")
+  protocol.write_results(workdir / "results", table, comparisons, evaluation["images"],
+                         caption=caption, validation=validation, logs=logs)
+  log((workdir / "results" / "table.md").read_text())
+  log(f"results written to {workdir / 'results'} ({time.perf_counter() - t0:.0f} s in all)")
+  return table
