@@ -39,14 +39,15 @@ def main(argv=None):
   config = apply_overrides(load_config(args.config), overrides)
   config.setdefault("train", {})["seeds"] = args.seeds
   t0 = time.perf_counter()
+  cmd = "python -m benchmarks.table1 " + " ".join(sys.argv[1:] if argv is None else argv)
+  facts = provenance(cmd.strip())          # the commit the run starts from
   workdir = pathlib.Path(args.workdir)
   train_and_evaluate(config, workdir)
   results = workdir / "results"
-  cmd = "python -m benchmarks.table1 " + " ".join(sys.argv[1:] if argv is None else argv)
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
   head = [f"# Table 1 at the `{args.config}` preset, {args.seeds} training seed(s)", ""]
-  head += provenance(cmd.strip())
+  head += facts
   head += [f"- Wall time of this command: {(time.perf_counter() - t0) / 60:.1f} min "
            "(a rerun reuses finished models)", ""]
   out.write_text("\n".join(head) + "\n" + (results / "table.md").read_text())
