@@ -31,7 +31,6 @@ validation split) and writes the table with intervals over sequences to
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import math
 import pathlib

@@ -9,9 +9,12 @@ Protocol (the paper's under-scanning experiment, on measured data):
   default ``../shared/data/real`` next to the repository when it exists, else
   the shipped exit-sign scan) is loaded with the published preparation
   (16 ps, 512 bins);
-* the reference is the phasor-field reconstruction of the full 64 x 64 scan
-  (default options); its intensity image (max over depth, normalised) is the
-  target;
+* the references are the five classic reconstructions of the full 64 x 64
+  scan (FBP, LCT, f-k, phasor, RSD with the options below); their intensity
+  images (max over depth, normalised) are the targets. A method is scored
+  against every reference except its own full-scan image (a phasor-only
+  reference favours phasor and RSD by construction), one column each, and
+  their mean is its score;
 * the scan is interval-sampled with stride 4 (16 x 16) and 8 (8 x 8) at the
   points ``stride // 2 + stride i`` (the network's convention);
 * classic methods (FBP, LCT, f-k, phasor, RSD) reconstruct the sparse scan
@@ -30,7 +33,7 @@ Protocol (the paper's under-scanning experiment, on measured data):
   (full-grid points ``0, 2, ..., 62``, so its inputs ``2 + 4 i`` are the full
   grid's ``4 + 8 i``), which is linearly interpolated to 64 x 64. "Ours" reads
   each static scan as three identical frames;
-* scores: intensity PSNR (dB) and SSIM (``nlosjax.metrics``) against the
+* scores: intensity PSNR (dB) and SSIM (``nlosjax.metrics``) against each
   reference, per scene and averaged over scenes. Nothing is tuned on these
   scenes;
 * to separate what the networks' time bins cost from what the networks do,
@@ -54,11 +57,9 @@ Writes the Markdown report (``--out``) and, beside it, ``real_<scene>.png``
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import pathlib
-import platform
 import subprocess
 import sys
 import tempfile
@@ -66,7 +67,6 @@ import time
 
 import numpy as np
 
-from benchmarks import _machine as _machine_facts
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
@@ -76,7 +76,8 @@ LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "R
 #: Options of the classic methods on these retroreflective scans (O'Toole et al. 2018: snr 0.8, t^2).
 OPTIONS = {"fbp": {"falloff": "retroreflective"}, "lct": {"snr": 0.8, "falloff": "retroreflective"},
            "fk": {}, "phasor": {}, "rsd": {}}
-REFERENCE = "phasor"
+#: The full-scan reconstructions a sparse-scan image is scored against (each but its own).
+REFERENCES = CLASSIC
 #: Bin width of the measured scans after the published preparation (s).
 CAPTURE_BIN_WIDTH = 16e-12
 
@@ -147,7 +148,6 @@ def model_intensity(trained, transient, setup, stride: int) -> np.ndarray:
 def run(files, strides, checkpoint, log=print) -> dict:
   """Every method on every scan and stride; returns the images and scores."""
   from tqdm import tqdm
-  from nlosjax import metrics
   from nlosjax.data import io
   trained = {}
   if checkpoint is not None:
@@ -168,27 +168,43 @@ def run(files, strides, checkpoint, log=print) -> dict:
   for path in files:
     transient, setup = io.load_measurement(path)
     scene = scene_name(path)
-    ref = classic_intensity(transient, setup, REFERENCE, 1)
-    entry = {"file": str(path), "setup": repr(setup), "reference": ref, "images": {}, "scores": {}}
+    refs = {}
+    for m in REFERENCES:
+      refs[m] = classic_intensity(transient, setup, m, 1)
+      bar.update(1)
+    entry = {"file": str(path), "setup": repr(setup), "references": refs, "images": {},
+             "scores": {}}
     for method in methods:
       for stride in (1,) + tuple(strides):
-        if stride == 1 and method in trained:
+        if stride == 1 and (method in trained or method in refs):
+          if method in refs:
+            entry["images"][(method, 1)] = refs[method]
           continue
         t0 = time.perf_counter()
         if method in trained:
           image = model_intensity(trained[method], transient, setup, stride)
         else:
-          image = ref if (stride == 1 and method == REFERENCE) else \
-              classic_intensity(transient, setup, method, stride)
+          image = classic_intensity(transient, setup, method, stride)
+        elapsed = time.perf_counter() - t0
         entry["images"][(method, stride)] = image
-        if stride > 1:
-          entry["scores"][(method, stride)] = {
-              "psnr": float(metrics.psnr(image, ref)), "ssim": float(metrics.ssim(image, ref)),
-              "time_s": time.perf_counter() - t0}
+        entry["scores"][(method, stride)] = {**score_against(image, refs, method),
+                                             "time_s": elapsed}
         bar.update(1)
     results["scenes"][scene] = entry
   bar.close()
   return results
+
+
+def score_against(image, references: dict, method: str) -> dict:
+  """PSNR / SSIM of ``image`` against every reference but ``method``'s own, and their means.
+
+  Returns ``{"vs": {reference: {"psnr", "ssim"}}, "psnr": mean, "ssim": mean}``.
+  """
+  from nlosjax import metrics
+  vs = {r: {"psnr": float(metrics.psnr(image, ref)), "ssim": float(metrics.ssim(image, ref))}
+        for r, ref in references.items() if r != method}
+  return {"vs": vs, "psnr": float(np.mean([v["psnr"] for v in vs.values()])),
+          "ssim": float(np.mean([v["ssim"] for v in vs.values()]))}
 
 
 def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
@@ -208,7 +224,6 @@ def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
   trained = results.get("trained") or {}
   if not trained:
     return None
-  from nlosjax import metrics
   from nlosjax.checkpoints_io import adapt_to_capture
   from nlosjax.data import io
   from nlosjax.evaluation.baselines import default_options as classic_options
@@ -223,8 +238,8 @@ def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
       options.setdefault(method, []).append(opts)
       for stride in results["strides"]:
         image = classic_intensity(transient, setup, method, stride, opts)
-        rows.setdefault((method, stride), []).append(
-            (float(metrics.psnr(image, entry["reference"])), float(metrics.ssim(image, entry["reference"]))))
+        sc = score_against(image, entry["references"], method)
+        rows.setdefault((method, stride), []).append((sc["psnr"], sc["ssim"]))
   scores = {k: {"psnr": float(np.mean([v[0] for v in vals])), "ssim": float(np.mean([v[1] for v in vals]))}
             for k, vals in rows.items()}
   return {"bin_factor": adapted.bin_factor, "bin_width": setup.bin_width, "scores": scores,
@@ -378,10 +393,11 @@ def _table(results) -> list[str]:
   scenes = list(results["scenes"])
   lines = []
   for stride in strides:
-    n = None
-    rows = []
+    grid = 64 // stride
+    rows, by_ref = [], []
     for m in methods:
       cells, ps, ss = [], [], []
+      per_ref = {r: [] for r in REFERENCES}
       for sc in scenes:
         s = results["scenes"][sc]["scores"].get((m, stride))
         if s is None:
@@ -390,11 +406,22 @@ def _table(results) -> list[str]:
         cells.append(f"{s['psnr']:.2f} / {s['ssim']:.3f}")
         ps.append(s["psnr"])
         ss.append(s["ssim"])
+        for r, v in s["vs"].items():
+          per_ref[r].append(v)
       mean = f"**{np.mean(ps):.2f} / {np.mean(ss):.3f}**" if ps else "–"
       rows.append(f"| {LABELS[m]} | " + " | ".join(cells) + f" | {mean} |")
-    grid = 64 // stride
-    lines += [f"### Input {grid} × {grid} (stride {stride}): intensity PSNR (dB) / SSIM vs phasor on 64 × 64",
-              "", "| method | " + " | ".join(scenes) + " | mean |",
+      ref_cells = [(f"{np.mean([v['psnr'] for v in per_ref[r]]):.2f} / "
+                    f"{np.mean([v['ssim'] for v in per_ref[r]]):.3f}") if per_ref[r] else "(own)"
+                   for r in REFERENCES]
+      by_ref.append(f"| {LABELS[m]} | " + " | ".join(ref_cells) + f" | {mean} |")
+    lines += [f"### Input {grid} × {grid} (stride {stride}): intensity PSNR (dB) / SSIM, mean over scenes, "
+              "against each full-scan reconstruction", "",
+              "| method | " + " | ".join(f"vs {LABELS[r]} 64 × 64" for r in REFERENCES)
+              + " | mean of the columns |",
+              "|---|" + "---|" * (len(REFERENCES) + 1), *by_ref, "",
+              f"Per scene (input {grid} × {grid}; each cell the mean over the references but the "
+              "method's own):", "",
+              "| method | " + " | ".join(scenes) + " | mean |",
               "|---|" + "---|" * (len(scenes) + 1), *rows, ""]
   return lines
 
@@ -451,7 +478,7 @@ def write_figures(results, out_dir: pathlib.Path) -> list[str]:
         else:
           ax.imshow(img, cmap="gray", vmin=0, vmax=1)
           sc = entry["scores"].get((m, s))
-          tag = "reference" if (s == 1 and m == REFERENCE) else (
+          tag = "full-scan reference" if (s == 1 and m in REFERENCES) else (
               f"{sc['psnr']:.1f} dB / {sc['ssim']:.2f}" if sc else "")
           ax.set_title(tag, fontsize=7)
         if c == 0:
@@ -460,7 +487,7 @@ def write_figures(results, out_dir: pathlib.Path) -> list[str]:
           g = 64 // s
           ax.set_xlabel(f"{g} × {g}" + (" (full)" if s == 1 else f" (stride {s})"), fontsize=8)
           ax.xaxis.set_label_position("top")
-    fig.suptitle(f"{scene}: intensity per method (PSNR / SSIM vs phasor on the full scan)",
+    fig.suptitle(f"{scene}: intensity per method (PSNR / SSIM: mean vs the other methods' full-scan images)",
                  fontsize=8)
     fig.tight_layout()
     name = f"real_{scene}.png"
@@ -515,7 +542,7 @@ def _binned_lines(results, binned) -> list[str]:
       + "".join(f" {LABELS[m]} sampling_coeff per scene "
                 + " / ".join(f"{o.get('sampling_coeff', 2.0):.3g}" for o in opts) + ";"
                 for m, opts in binned["options"].items())
-      + " means over scenes, PSNR (dB) / SSIM vs the same reference):", "",
+      + " means over scenes, PSNR (dB) / SSIM: mean over the same references):", "",
       f"| method | input | at 16 ps | at {width} |", "|---|---|---|---|"]
   for (m, stride), r in binned["scores"].items():
     vals = [e["scores"][(m, stride)] for e in results["scenes"].values()]
@@ -526,23 +553,15 @@ def _binned_lines(results, binned) -> list[str]:
 
 
 def write_report(results, out: pathlib.Path, *, timing=None, warm=None, synthetic=None,
-                 binned=None, command: str, elapsed: float, figures: list[str],
+                 binned=None, facts: list[str], elapsed: float, figures: list[str],
                  notes: str = "") -> None:
-  import jax
-  lines = [
-      "# Under-scanning on measured scans",
-      "",
-      f"Produced by `{command}` in {elapsed / 60:.1f} min.",
-      "",
-      f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
-      f"- Machine: {_machine_facts.cpu_model()}, {_machine_facts.usable_cores()} cores, JAX"
-      f" backend {jax.default_backend()}; load average (1, 5, 15 min) at the end"
-      f" {_machine_facts.load_average(', ')}; Python {platform.python_version()}, jax"
-      f" {jax.__version__}, numpy {np.__version__}",
+  lines = ["# Under-scanning on measured scans", ""] + facts + [
+      f"- Wall time: {elapsed / 60:.1f} min; numpy {np.__version__}",
       "- Scans: " + ", ".join(f"`{pathlib.Path(e['file']).name}`" for e in results["scenes"].values()) +
       " (O'Toole et al. 2018, 64 × 64 × 512 after the published preparation, 16 ps bins)",
-      "- Protocol: see the docstring of `experiments/real_undersampling.py`: reference = phasor"
-      " field on the full 64 × 64 scan; sparse scans = scan points `stride // 2 + stride i`;"
+      "- Protocol: see the docstring of `experiments/real_undersampling.py`: references = each"
+      " classic method on the full 64 × 64 scan, a method scored against every reference but its"
+      " own; sparse scans = scan points `stride // 2 + stride i`;"
       " classic methods on the sparse scan interpolated to 64 × 64 (LCT snr 0.8 and FBP with"
       " the retroreflective t² falloff, f-k / phasor / RSD defaults); " + _network_text(results),
       "",
@@ -628,6 +647,10 @@ def main(argv=None):
   parser.add_argument("--notes", default=None, help="a Markdown file whose text is added after the tables")
   args = parser.parse_args(argv)
   t0 = time.perf_counter()
+  command = "python -m experiments.real_undersampling " + " ".join(
+      sys.argv[1:] if argv is None else argv)
+  from benchmarks._machine import provenance
+  facts = provenance(command.strip())              # the commit the run starts from
   files = default_files(args.data_dir)
   checkpoint = None if args.checkpoint.lower() == "none" else args.checkpoint
   results = run(files, args.strides, checkpoint)
@@ -639,8 +662,6 @@ def main(argv=None):
     timing = {"file": files[0].name, "repeats": args.timing_repeats,
               "methods": time_cli(files[0], repeats=args.timing_repeats)}
     warm = time_warm(files[0])
-  command = "python -m experiments.real_undersampling " + " ".join(
-      sys.argv[1:] if argv is None else argv)
   synthetic = None
   synthetic_path = args.synthetic or training_data(checkpoint)
   if synthetic_path.lower() != "none":
@@ -648,7 +669,7 @@ def main(argv=None):
   binned = binned_classic(results)
   notes = pathlib.Path(args.notes).read_text() if args.notes else ""
   write_report(results, out, timing=timing, warm=warm, synthetic=synthetic, binned=binned,
-               command=command.strip(), elapsed=time.perf_counter() - t0, figures=figures,
+               facts=facts, elapsed=time.perf_counter() - t0, figures=figures,
                notes=notes)
   if args.json:
     scores = {sc: {f"{m}@{s}": v for (m, s), v in e["scores"].items()}

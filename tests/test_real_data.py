@@ -111,11 +111,12 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
   from nlosjax.models.network import ModelConfig
   transient, setup = scan
 
-  def score(image):
+  def score(image):      # phasor is scored against every reference but its own: here FBP's
     return {"psnr": float(metrics.psnr(image, ref)), "ssim": float(metrics.ssim(image, ref))}
 
-  ref = R.classic_intensity(transient, setup, "phasor", 1)
-  entry = {"file": str(io.shipped_scan_path()), "reference": ref,
+  ref = R.classic_intensity(transient, setup, "fbp", 1)
+  references = {"fbp": ref, "phasor": R.classic_intensity(transient, setup, "phasor", 1)}
+  entry = {"file": str(io.shipped_scan_path()), "references": references,
            "scores": {("phasor", 4): score(R.classic_intensity(transient, setup, "phasor", 4))}}
   results = {"strides": [4], "scenes": {"exit_sign": entry}}
   assert R.binned_classic({**results, "trained": {}}) is None

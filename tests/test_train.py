@@ -101,3 +101,16 @@ def test_upsample_scan_interpolates_linearly_between_samples():
   np.testing.assert_allclose(y[4], 2.0)
   np.testing.assert_allclose(y[:2], 1.0)        # before the first sample: nearest
   np.testing.assert_allclose(y[15], 7.0)
+
+
+def test_train_cli_seeds_flag_sets_the_config(monkeypatch):
+  from experiments import train as cli
+  from nlosjax import main_job
+  seen = {}
+  monkeypatch.setattr(main_job, "train_and_evaluate",
+                      lambda config, workdir: seen.update(config=config, workdir=workdir))
+  cli.main(["--seeds", "3", "--workdir", "runs/x", "--config.train.steps=5"])
+  assert seen["config"]["train"]["seeds"] == 3 and seen["config"]["train"]["steps"] == 5
+  assert seen["workdir"] == "runs/x"
+  with pytest.raises(SystemExit):
+    cli.main(["--seeds", "0"])
