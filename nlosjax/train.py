@@ -121,15 +121,38 @@ def create_train_state(model: nn.Module, input_shape: tuple[int, ...], tx, key: 
     mesh: devices to replicate over (default: every device).
   """
   mesh = mesh or make_mesh()
-  dummy = jax.ShapeDtypeStruct(tuple(input_shape), jnp.float32)
+  init = _jitted_init(model, tuple(input_shape), tx, mesh)
+  return init(key, jnp.zeros(tuple(input_shape), jnp.float32))
 
+
+@functools.lru_cache(maxsize=8)
+def _jitted_init(model: nn.Module, input_shape: tuple[int, ...], tx, mesh: Mesh) -> Callable:
+  """``init(key, x) -> TrainState`` jitted, one per (model, shape, optimiser, mesh).
+
+  Compiling it costs about as much as a forward pass (tens of seconds on
+  CPU), so the seeds of one run share it: pass the same ``model`` instance
+  (:func:`network`) and optimiser (:func:`make_optimizer` is cached).
+  """
   def init(k, x):
     params = model.init(k, x)["params"]
     return TrainState.create(apply_fn=model.apply, params=params, tx=tx)
 
-  abstract = jax.eval_shape(init, key, dummy)
+  abstract = jax.eval_shape(init, jax.random.key(0), jax.ShapeDtypeStruct(input_shape, jnp.float32))
   replicated = jax.tree.map(lambda _: NamedSharding(mesh, P()), abstract)
-  return jax.jit(init, out_shardings=replicated)(key, jnp.zeros(dummy.shape, dummy.dtype))
+  return jax.jit(init, out_shardings=replicated)
+
+
+@functools.lru_cache(maxsize=8)
+def network(model_config) -> nn.Module:
+  """The ``STMambaNet`` of ``model_config``, one instance per config.
+
+  A ``TrainState`` holds ``model.apply``, a bound method, and bound methods
+  compare by the identity of their module: one instance per config lets the
+  seeds and resumed runs of one process reuse the compiled init and train
+  step instead of compiling them again.
+  """
+  from nlosjax.models.network import STMambaNet
+  return STMambaNet(model_config)
 
 
 # ------------------------------------------------------------------ step
@@ -439,7 +462,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     ``(model_config, state)``: after ``config["train"]["steps"]`` steps, or at
     the checkpoint chosen on validation.
   """
-  from nlosjax.models.network import STMambaNet, format_summary, model_summary
+  from nlosjax.models.network import format_summary, model_summary
   from tqdm import tqdm
   tr = config["train"]
   steps, batch_size, seed = int(tr["steps"]), int(tr["batch_size"]), int(tr.get("seed", 0))
@@ -448,7 +471,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed)
   mcfg = model_config_for(config, loader.setup, variant)
   log(f"[{variant}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{variant}] "))
-  model = STMambaNet(mcfg)
+  model = network(mcfg)
   optim = OptimConfig(**tr.get("optim", {}))
   weights = losses.LossWeights(**tr.get("loss", {}))
   mesh = make_mesh()
