@@ -3,7 +3,8 @@
     python -m benchmarks.model [--configs cpu paper] [--frames 3] [--batch 1] [--repeats 1]
                                [--time-limit 600] [--out benchmarks/results/model.md]
 
-For every config (``cpu`` = :meth:`ModelConfig.cpu`, ``paper`` =
+For every config (``cpu`` = the model ``python -m experiments.train`` trains,
+the ``cpu`` preset's ``Ours`` on its data's Setup; ``paper`` =
 :meth:`ModelConfig.paper`: 16 x 16 x 512 in, 128 x 128 out), in a fresh
 child process:
 
@@ -51,9 +52,16 @@ GIB = 1024.0 ** 3
 
 
 def _config(name: str, frames: int):
+  import dataclasses
+
   from nlosjax.models import ModelConfig
-  if name == "cpu":
-    return ModelConfig.cpu(frames=frames)
+  if name == "cpu":   # the model the main job trains: the cpu preset's model on its data's Setup
+    from experiments import configs
+    from nlosjax import train
+    from nlosjax.data.dataset import DatasetSpec
+    preset = train.with_defaults(configs.get_config("cpu"))
+    setup = DatasetSpec.from_config(preset["data"]).setup
+    return dataclasses.replace(train.model_config_for(preset, setup, "ours"), frames=frames)
   if name == "paper":
     return ModelConfig.paper(frames=frames)
   raise ValueError(f"unknown config {name!r}; choose cpu or paper")

@@ -4,11 +4,20 @@ PyTorch is NOT a dependency of nlosjax; it comes with the optional ``bench`` ext
 (install a CPU build of torch first if you do not want its CUDA packages):
 
     pip install -e ".[bench]"
-    python -m benchmarks.scan_torch [--shapes 256x512x32x16 ...] [--repeats 5]
+    python -m benchmarks.scan_torch [--shapes 256x512x32x16 ...] [--repeats 5] [--out FILE]
 
-It prints one Markdown table (forward and forward+backward medians, ms) to paste
-next to ``benchmarks/results/scan.md``. Two parallel formulations, both written
-here from their published descriptions, with PyTorch autograd for the backward:
+It writes ``benchmarks/results/scan_torch.md`` whole (``--out``): command, date,
+machine, commit and torch version, then one table of forward and
+forward+backward medians (ms) per shape, the shapes of ``benchmarks.scan``'s
+``scan.md`` so the two files read side by side. Peers:
+
+* ``mambapy``: mambapy's ``pscan`` (the pure-PyTorch Blelloch scan of the
+  ``mambapy`` package, its own hand-written backward), fed the same
+  ``(exp(dt A), dt x B)`` pairs, then ``y = sum_n h C``; skipped with a note
+  when mambapy is not installed (it is in the ``bench`` extra).
+
+and two parallel formulations written here from their published descriptions,
+with PyTorch autograd for the backward:
 
 * ``doubling``: the Hillis-Steele log-depth scan over the materialised pairs
   ``(a, b) = (exp(dt A), dt x B)`` ``[Bt, L, D, N]``: at step ``k = 1, 2, 4, ...``
@@ -26,9 +35,11 @@ on a small case before timing.
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
-import platform
+import pathlib
 import statistics
+import sys
 import time
 
 import numpy as np
@@ -39,7 +50,20 @@ except ImportError:
   raise SystemExit("benchmarks.scan_torch compares against PyTorch, which is not a dependency "
                    "of nlosjax: install the optional extra with  pip install -e \".[bench]\"") from None
 
+try:
+  from mambapy.pscan import pscan as mambapy_pscan
+except ImportError:
+  mambapy_pscan = None
+
 DEFAULT_SHAPES = ("256x512x32x16", "64x128x16x16", "512x256x32x16")
+DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "scan_torch.md"
+
+
+def mambapy_scan(x, dt, A, B, C):
+  """mambapy's ``pscan`` on ``(exp(dt A), dt x B)`` ``[Bt, L, D, N]``, then ``y = sum_n h C``."""
+  a = torch.exp(dt.unsqueeze(-1) * A)
+  b = (dt * x).unsqueeze(-1) * B.unsqueeze(2)
+  return (mambapy_pscan(a, b) * C.unsqueeze(2)).sum(-1)
 
 
 def doubling_scan(x, dt, A, B, C):
@@ -94,35 +118,96 @@ def timed(fn, repeats):
   return statistics.median(ts)
 
 
-def main():
+def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("--shapes", nargs="+", default=list(DEFAULT_SHAPES))
   p.add_argument("--repeats", type=int, default=5)
   p.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
-  args = p.parse_args()
+  p.add_argument("--out", type=pathlib.Path, default=DEFAULT_OUT)
+  args = p.parse_args(argv)
+  from benchmarks import _machine
+  command = "python -m benchmarks.scan_torch " + " ".join(sys.argv[1:] if argv is None else argv)
+  facts = _machine.provenance(command.strip())
+  t_start = time.perf_counter()
   torch.set_num_threads(args.threads)
+  methods = [doubling_scan, heinsen_scan] + ([mambapy_scan] if mambapy_pscan is not None else [])
   small = make_inputs((2, 37, 3, 4))
   ref = sequential_scan(*small[:5])
-  for fn in (doubling_scan, heinsen_scan):
+  for fn in methods:
     err = float((fn(*small[:5]) - ref).abs().max() / ref.abs().max())
     assert err < 1e-4, (fn.__name__, err)
-  print(f"torch {torch.__version__}, {args.threads} threads, Python {platform.python_version()}")
-  print("| shape | method | fwd ms | fwd+bwd ms |")
-  print("|---|---|---|---|")
+  rows = []
+  ctx = multiprocessing.get_context("spawn")
   for s in args.shapes:
-    shape = tuple(int(v) for v in s.split("x"))
-    x, dt, A, B, C, w = make_inputs(shape)
-    for fn in (doubling_scan, heinsen_scan):
-      with torch.no_grad():
-        fwd = timed(lambda: fn(x, dt, A, B, C), args.repeats)
-      leaves = [v.clone().requires_grad_(True) for v in (x, dt, A, B, C)]
+    for fn in methods:
+      name = fn.__name__.removesuffix("_scan")
+      # Each case in a child process, so one killed for memory (heinsen keeps
+      # complex64 [Bt, L, D, N] tensors for autograd) is reported, not fatal.
+      queue = ctx.Queue()
+      child = ctx.Process(target=_measure, args=(s, name, args.repeats, args.threads, queue))
+      child.start()
+      child.join()
+      try:
+        result = queue.get(timeout=5)
+      except Exception:                # queue.Empty: the child died before reporting
+        result = None
+      if result is None:
+        fwd, both = f"did not finish (child exit code {child.exitcode}; most likely out of memory)", ""
+      elif "error" in result:
+        fwd, both = f"failed: {result['error']}", ""
+      else:
+        fwd, both = f"{result['fwd'] * 1e3:.1f}", f"{result['both'] * 1e3:.1f}"
+      rows.append(f"| {s} | {name} | {fwd} | {both} |")
+      print(rows[-1], flush=True)
+  mamba_note = ("mambapy " + _dist_version("mambapy") if mambapy_pscan is not None else
+                "mambapy not installed (`pip install -e \".[bench]\"`): its row is missing")
+  lines = ["# Pure-PyTorch parallel selective scans (peers, not dependencies)", "", *facts,
+           f"- torch {torch.__version__} on the CPU, {args.threads} threads; {mamba_note}",
+           f"- Wall time: {(time.perf_counter() - t_start) / 60:.1f} min", "",
+           "Same scan as `benchmarks.scan` (`h_t = exp(dt_t A) h_{t-1} + dt_t x_t B_t`, "
+           "`y_t = C_t h_t`, no D skip) on inputs with the same distributions (not the same "
+           "numbers). Each method is first checked against a sequential loop on a "
+           "(2, 37, 3, 4) case (max error < 1e-4 of the peak). Shape = (batch, length, "
+           "channels, state). Medians of "
+           f"{args.repeats} calls after one warm-up, ms; read beside `scan.md`'s rows of the "
+           "same shape, measured by its own command.", "",
+           "- `doubling`: Hillis-Steele log-depth scan over the materialised "
+           "`(exp(dt A), dt x B)` pairs, autograd backward.",
+           "- `heinsen`: Heinsen's log-space scan (arXiv:2311.06281), complex log for the "
+           "signed inputs, autograd backward.",
+           "- `mambapy`: the `mambapy` package's `pscan` (Blelloch up/down sweeps in place, "
+           "its own backward).", "",
+           "| shape | method | fwd ms | fwd+bwd ms |", "|---|---|---|---|", *rows, ""]
+  args.out.parent.mkdir(parents=True, exist_ok=True)
+  args.out.write_text("\n".join(lines))
+  print(f"wrote {args.out}")
 
-      def fwd_bwd():
-        for v in leaves:
-          v.grad = None
-        (fn(*leaves) * w).sum().backward()
-      both = timed(fwd_bwd, args.repeats)
-      print(f"| {s} | torch {fn.__name__} | {fwd * 1e3:.2f} | {both * 1e3:.2f} |", flush=True)
+
+def _measure(shape_text: str, name: str, repeats: int, threads: int, queue) -> None:
+  """Child process: time one method at one shape; puts ``{"fwd", "both"}`` (s) or ``{"error"}``."""
+  torch.set_num_threads(threads)
+  fn = globals()[f"{name}_scan"]
+  x, dt, A, B, C, w = make_inputs(tuple(int(v) for v in shape_text.split("x")))
+  try:
+    with torch.no_grad():
+      fwd = timed(lambda: fn(x, dt, A, B, C), repeats)
+    leaves = [v.clone().requires_grad_(True) for v in (x, dt, A, B, C)]
+
+    def fwd_bwd():
+      for v in leaves:
+        v.grad = None
+      (fn(*leaves) * w).sum().backward()
+    queue.put({"fwd": fwd, "both": timed(fwd_bwd, repeats)})
+  except RuntimeError as e:
+    queue.put({"error": str(e).splitlines()[0][:80]})
+
+
+def _dist_version(name: str) -> str:
+  import importlib.metadata
+  try:
+    return importlib.metadata.version(name)
+  except importlib.metadata.PackageNotFoundError:
+    return "unknown"
 
 
 if __name__ == "__main__":
