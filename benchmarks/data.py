@@ -138,8 +138,8 @@ def render(results, args) -> str:
                                        f" --repeats {args.repeats}")
   lines = ["# Dynamic NLOS dataset: generation and loading throughput", "",
            f"Produced by `{cmd}`.", "", f"- Date: {now}"] + _machine() + [
-      "- The CPU is shared with other jobs running at the same time: timings are noisy"
-      " (repeat runs have differed by up to 2x).", "",
+      f"- Load average (1, 5, 15 min) when written: {_machine_facts.load_average(', ')}"
+      " (above the 2 cores' count, the CPU was shared and timings are upper bounds)", "",
       "Generation: cold = first sequence in the process (includes jit compilation); warm ="
       " simulation + compressed HDF5 write per sequence once compiled. Paper-scale rows are"
       " extrapolated from a short sequence (see 'measured'). Whole preset = cold + warm x"
@@ -165,17 +165,22 @@ def render(results, args) -> str:
     lines.append(f"| {r['preset']} | {h}x{h} (every {r['stride']}) | {target} {s.grid[0]}x{s.grid[1]} |"
                  f" {r['disk'][1]} | {r['disk'][0]:.0f} | {3 * r['disk'][0]:.0f} | {r['memory'][0]:.0f} |"
                  f" {r['memory'][2]:.2f} |")
-  lines += ["", "Notes:", "",
-            "- Paper-scale loading is bound by decompressing the 16 MiB full-resolution target"
-            " frame (gzip, ~50-70 ms per frame here; uncompressed it reads in ~4 ms but takes ~10x"
-            " the disk, ~540 MiB per 32-frame sequence). h5py serialises reads, so prefetch threads"
-            " overlap loading with training but do not add read throughput.",
-            "- The under-scanned input costs little: its rows are whole chunks, so a stride-s read"
-            " decompresses 1/s of each input frame.",
-            "- Paper-scale generation on this CPU is dominated by the 128x128x512 render (~2-6 s"
-            " per frame warm, the LCT-form FFTs; rasterising ~0.05 s, the SPAD rate with jitter"
-            " ~0.4 s, NumPy Poisson sampling ~0.2-0.4 s per frame); a GPU backend runs the same"
-            " JAX code unchanged."]
+  lines += ["", "Notes (numbers from the tables above):", ""]
+  for r in results:
+    if r["preset"] != "paper":
+      continue
+    s = r["setup"]
+    frame_mib = s.grid[0] * s.grid[1] * s.num_bins * 4 / 2 ** 20
+    lines += [f"- Paper-scale loading reads a {frame_mib:.0f} MiB full-resolution target frame per"
+              f" triplet, gzip-compressed in the file: {1e3 / r['disk'][0]:.0f} ms per triplet from"
+              f" disk against {1e3 / r['memory'][0]:.1f} ms in memory, so decompression and HDF5"
+              " reads bound it. h5py serialises reads: prefetch threads overlap loading with"
+              " training but do not add read throughput.",
+              f"- Paper-scale generation: {r['warm_s'] / PAPER_FRAMES:.1f} s per frame once compiled"
+              " (128x128x512 render, SPAD model and compressed write, on this CPU); a GPU backend"
+              " runs the same JAX code unchanged."]
+  lines += ["- The under-scanned input costs little: its rows are whole chunks, so a stride-s read"
+            " decompresses 1/s of each input frame."]
   return "\n".join(lines) + "\n"
 
 
