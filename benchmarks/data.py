@@ -139,7 +139,8 @@ def render(results, args) -> str:
   lines = ["# Dynamic NLOS dataset: generation and loading throughput", "",
            f"Produced by `{cmd}`.", "", f"- Date: {now}"] + _machine() + [
       f"- Load average (1, 5, 15 min) when written: {_machine_facts.load_average(', ')}"
-      " (above the 2 cores' count, the CPU was shared and timings are upper bounds)", "",
+      f" (above {_machine_facts.usable_cores()}, the cores were shared and timings are upper"
+      " bounds)", "",
       "Generation: cold = first sequence in the process (includes jit compilation); warm ="
       " simulation + compressed HDF5 write per sequence once compiled. Paper-scale rows are"
       " extrapolated from a short sequence (see 'measured'). Whole preset = cold + warm x"
