@@ -309,6 +309,9 @@ def machine_info(jax_status: str) -> list[str]:
       f" memory {_machine_facts.memory_text()}",
       f"- Versions: {', '.join(versions)}",
       f"- JAX side: {jax_status}",
+      f"- Load average (1, 5, 15 min) when written: {_machine_facts.load_average(', ')}; above"
+      f" {cores} the cores were shared with other jobs and the times are upper bounds (the"
+      " speed-ups compare the two sides measured in turn, case by case)",
   ]
 
 
