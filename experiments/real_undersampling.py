@@ -620,11 +620,19 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
 
 
 def training_data(checkpoint) -> str:
-  """The dataset a trained run read (``data.path`` of its ``config.json``), else the cpu preset's."""
+  """The dataset a trained run read (``data.path`` of its ``config.json``), else the cpu preset's.
+
+  ``checkpoint`` is a workdir, a variant's folder or its ``checkpoints``
+  folder; the run's ``config.json`` is in the workdir.
+  """
   from experiments.configs import get_config
   default = get_config("cpu")["data"]["path"]
-  config = pathlib.Path(checkpoint) / "config.json" if checkpoint else None
-  if config is None or not config.is_file():
+  if not checkpoint:
+    return default
+  here = pathlib.Path(checkpoint).absolute()
+  config = next((d / "config.json" for d in (here, *list(here.parents)[:2])
+                 if (d / "config.json").is_file()), None)
+  if config is None:
     return default
   return str(json.loads(config.read_text()).get("data", {}).get("path", default))
 

@@ -5,6 +5,7 @@ code (MATLAB resampling matrix, one-voxel cone PSF on wall/N spacing, full
 complex FFTs). Maximum-intensity projections must correlate >= 0.9.
 """
 
+import json
 import numpy as np
 import pytest
 
@@ -139,3 +140,12 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
   assert two["scores"][("phasor", 4)]["psnr"] != pytest.approx(same["scores"][("phasor", 4)]["psnr"])
   table = "\n".join(R._binned_lines(results, two))
   assert f"{entry['scores'][('phasor', 4)]['psnr']:.2f}" in table and f"{expected['psnr']:.2f}" in table
+
+
+def test_training_data_is_found_from_a_workdir_a_variant_folder_or_its_checkpoints(tmp_path):
+  from experiments.real_undersampling import training_data
+  (tmp_path / "config.json").write_text(json.dumps({"data": {"path": "runs/data/mine.h5"}}))
+  (tmp_path / "ours_s" / "checkpoints").mkdir(parents=True)
+  for where in (tmp_path, tmp_path / "ours_s", tmp_path / "ours_s" / "checkpoints"):
+    assert training_data(where) == "runs/data/mine.h5", where
+  assert training_data(None).endswith("cpu.h5")
