@@ -6,6 +6,7 @@ complex FFTs). Maximum-intensity projections must correlate >= 0.9.
 """
 
 import json
+
 import numpy as np
 import pytest
 
