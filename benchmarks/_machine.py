@@ -59,7 +59,9 @@ def load_average(sep: str = " ") -> str:
 
 
 def git_commit(repo=None) -> str:
-  """The checked-out commit (short hash), with ``+changes`` when tracked files differ from it.
+  """The checked-out commit (short hash), with ``+changes`` when tracked code differs from it.
+
+  Changes under ``benchmarks/results/`` (what benchmarks write) do not count.
 
   ``"unknown"`` outside a git checkout. A results file names this so a reader
   can check out the code that wrote it.
@@ -70,7 +72,9 @@ def git_commit(repo=None) -> str:
   try:
     head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=where, check=True,
                           capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=where,
+    # Results files written by this or another benchmark are not code: they do not count.
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                            ":(exclude)benchmarks/results"], cwd=where,
                            check=True, capture_output=True, text=True).stdout.strip()
   except (OSError, subprocess.CalledProcessError):
     return "unknown"
