@@ -186,11 +186,11 @@ def render(results, info, cmd, repeats, chunk_size, load_start, load_end) -> str
       g = (f"- {name}: best forward {best_f} {rf:.2f}x floor ({met(rf <= GOAL_FWD)}, "
            f"goal <= {GOAL_FWD}x); best fwd+bwd {best_b} {rb:.2f}x ({met(rb <= GOAL_FWDBWD)}, "
            f"goal <= {GOAL_FWDBWD}x)")
-      if auto_as in concrete:
-        # "auto" traces to exactly the program of the method it resolves to, so the
-        # rule is judged on that method's time; the measured "auto" row shows the noise.
-        af = rows[(auto_as, "fwd")]["run_s"] / rows[(best_f, "fwd")]["run_s"]
-        ab = rows[(auto_as, "fwd+bwd")]["run_s"] / rows[(best_b, "fwd+bwd")]["run_s"]
+      if "auto" in methods:
+        # Judged on the measured "auto" row, the time a user gets: the resolved
+        # method's own row would make the rule unable to fail.
+        af = rows[("auto", "fwd")]["run_s"] / rows[(best_f, "fwd")]["run_s"]
+        ab = rows[("auto", "fwd+bwd")]["run_s"] / rows[(best_b, "fwd+bwd")]["run_s"]
         ok = af <= GOAL_AUTO and ab <= GOAL_AUTO
         g += (f"; auto -> {auto_as}: {af:.2f}x the best forward, {ab:.2f}x the best fwd+bwd "
               f"({met(ok)}, goal <= {GOAL_AUTO})")
