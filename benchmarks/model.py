@@ -187,16 +187,15 @@ def _fmt(v, spec=".2f"):
 NOTES = """
 ## What is measured, and how the model departs from the paper
 
-- Shapes: `paper` = 3 frames of 16 x 16 scan points x 512 bins of 33 ps (stride 8 from a
-  128 x 128 scan of a 2 m wall) -> transient 128 x 128 x 512, volume 512 x 128 x 128,
-  intensity and depth 128 x 128. `cpu` = 8 x 8 x 128 (64 ps, 1 m wall, stride 4) -> 32 x 32.
-- Widths are ours (the paper gives none): see `ModelConfig.paper` / `ModelConfig.cpu`.
+- Shapes: `paper` = `ModelConfig.paper` (16 x 16 scan points x 512 bins of 33 ps, stride 8
+  from a 128 x 128 scan of a 2 m wall); `cpu` = the model `python -m experiments.train`
+  trains (the cpu preset's Ours on its data Setup); inputs and outputs are in the table.
+- Widths are ours (the paper gives none): see `ModelConfig.paper` and the cpu preset.
 - 3-D convolutions run as 2-D convolutions of time-folded channels (`Conv3D`): the same
-  sums; XLA:CPU's 3-D convolution was 2.5-6x slower here, forward and backward.
+  sums, chosen because XLA:CPU's 3-D convolutions were slower, forward and backward.
 - The stride-2 3-D transposed convolutions of the transient spreading are sub-pixel
   convolutions (`Upsample3D`: conv to 8x the channels, then depth-to-space), a family that
-  contains them; with XLA:CPU's transposed 3-D convolutions the spreading stage took 4.1 s
-  instead of 0.03 s (forward, batch 2, `cpu` shapes, shared machine).
+  contains them, chosen because XLA:CPU's transposed 3-D convolutions were much slower.
 - "Interleaved extraction" is read as a lossless polyphase time downsampling (r consecutive
   bins -> channels) then interlaced blocks; "interlaced" residual blocks are parallel 3x3x3
   convolutions with temporal dilations 1, 2, 4, channels interlaced and fused by a 1x1x1 conv.
