@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from nlosjax import physics
 from nlosjax.evaluation import baselines, protocol, report, scores
+from tests.small_capture import three_patch_capture
 
 
 def test_by_sequence_groups_frames_and_pads_short_sequences():
@@ -37,13 +37,7 @@ def test_frame_scores_match_the_metrics_by_hand():
 
 @pytest.fixture(scope="module")
 def small_capture():
-  setup = physics.Setup(wall_size=1.0, grid=(12, 12), bin_width=64e-12, num_bins=32)
-  rng = np.random.default_rng(0)
-  albedo = np.zeros((3, 32, 12, 12), np.float32)
-  for i in range(3):
-    albedo[i, 12 + 3 * i, 3:9, 3 + 2 * i:5 + 2 * i] = 1.0
-  clean = np.asarray(physics.render(albedo, setup)) * 200
-  full = rng.poisson(clean + 0.05).astype(np.float32)
+  setup, full, albedo = three_patch_capture()
   gt_i = albedo.max(axis=1)
   gt_d = np.where(gt_i > 0, np.asarray(setup.depths)[albedo.argmax(axis=1)], 0.0).astype(np.float32)
   return setup, full[..., 1::3, 1::3], gt_i, gt_d

@@ -182,15 +182,9 @@ def test_lct_stages_compose_to_lct():
 
 def test_end_to_end_classic_configuration(tmp_path):
   """One classic configuration through evaluate -> timing -> scores -> Markdown and plot."""
-  from nlosjax import physics
   from nlosjax.evaluation.baselines import classic_images
-  setup = Setup(wall_size=1.0, grid=(12, 12), bin_width=64e-12, num_bins=32)
-  rng = np.random.default_rng(0)
-  albedo = np.zeros((3, 32, 12, 12), np.float32)
-  for i in range(3):
-    albedo[i, 12 + 3 * i, 3:9, 3 + 2 * i:5 + 2 * i] = 1.0
-  clean = np.asarray(physics.render(albedo, setup)) * 200
-  full = rng.poisson(clean + 0.05).astype(np.float32)
+  from tests.small_capture import three_patch_capture
+  setup, full, albedo = three_patch_capture()
   x = full[..., 1::3, 1::3]                                          # stride 3: 4 x 4 input
   cache = {}
   m = tradeoff.evaluate(tradeoff.classic_pipeline("lct", setup, 3), x, batch=2, cache=cache,
