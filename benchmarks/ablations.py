@@ -15,7 +15,11 @@ the full model):
   (``st``, the paper), temporal twice (``tt``), temporal only (``t``), spatial
   twice (``ss``), spatial only (``s``);
 * optimiser: AdamW weight decay 0.95 (printed in the paper) against 1e-4
-  (its predecessor USM's, our default).
+  (its predecessor USM's, our default);
+* controls: ``no_ssm`` (every SSM replaced by the identity, all else equal:
+  what the Mamba machinery adds over a gated MLP in the same place) and
+  ``bidirectional`` (the temporal SSM runs both ways: the causality row of
+  the paper's Table 3).
 
 Each run lives in ``WORKDIR/<row>/`` (resumable: a rerun reuses finished
 rows). Writes the Markdown table to ``--out`` and the numbers to the same
@@ -42,8 +46,10 @@ ROWS = {
     "ss": ("S", "S", True, True, {"variant": "ss"}, {}, {}),
     "s": ("S", "-", True, True, {"variant": "s"}, {}, {}),
     "wd_0.95": ("S", "T", True, True, {}, {}, {"weight_decay": 0.95}),
+    "no_ssm": ("-", "-", True, True, {"variant": "none"}, {}, {}),
+    "bidirectional": ("S", "T<->", True, True, {"temporal_causal": False}, {}, {}),
 }
-MAMBA_NAMES = {"S": "S-Mamba", "T": "T-Mamba", "-": "-"}
+MAMBA_NAMES = {"S": "S-Mamba", "T": "T-Mamba", "T<->": "T-Mamba (bidirectional)", "-": "-"}
 
 
 def row_config(base: dict, row: str, steps: int) -> dict:

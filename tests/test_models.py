@@ -154,6 +154,25 @@ def test_st_block_temporal_path_is_causal(variant):
     assert float(jnp.max(jnp.abs(apply_nc(p_nc, x2)[:, :t0] - apply_nc(p_nc, x)[:, :t0]))) > 1e-4
 
 
+def test_no_ssm_control_is_the_gated_mlp_written_out():
+  """variant "none": every SSM is the identity, so the block is ``x + W_out((W_x LN(x)) * SiLU(W_z
+  LN(x)))``, written here with plain jnp from the parameters; and no SSM parameter exists."""
+  block = STMambaBlock(8, d_state=4, mixers=VARIANTS["none"])
+  x = _block_input(jax.random.key(11))
+  params = block.init(jax.random.key(12), x)["params"]
+  assert set(params) == {"norm", "in_proj", "out_proj"}
+  mu = x.mean(-1, keepdims=True)
+  ln = (x - mu) / jnp.sqrt(((x - mu) ** 2).mean(-1, keepdims=True) + 1e-6)
+  ln = ln * params["norm"]["scale"] + params["norm"]["bias"]
+  xs, z = jnp.split(ln @ params["in_proj"]["kernel"], 2, axis=-1)
+  expected = x + (xs * z * jax.nn.sigmoid(z)) @ params["out_proj"]["kernel"]
+  np.testing.assert_allclose(block.apply({"params": params}, x), expected, atol=2e-5, rtol=1e-5)
+  cross = CrossSTMambaBlock(8, d_state=4, mixers=VARIANTS["none"])
+  nb = _block_input(jax.random.key(13))
+  cp = cross.init(jax.random.key(14), x, nb)["params"]
+  assert not any(k.startswith("ssm") for k in cp)
+
+
 def test_cross_block_is_causal_in_both_inputs():
   block = CrossSTMambaBlock(8, d_state=4)
   ref, nb = _block_input(jax.random.key(4)), _block_input(jax.random.key(5))

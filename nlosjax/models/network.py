@@ -72,7 +72,9 @@ class ModelConfig:
     frames: ``F`` input frames, odd; the middle one is reconstructed
       (3 = "Ours", 1 = "Ours-S": no cross ST-Mamba).
     variant: SSMs of every block: "st" (temporal then spatial, the paper),
-      "s", "t", "tt", "ss" (the ablations of the paper's Table 2).
+      "s", "t", "tt", "ss" (the ablations of the paper's Table 2), "none" (the
+      no-SSM control: every SSM replaced by the identity; each block keeps its
+      LayerNorm, projections and SiLU gate).
     temporal_causal: the temporal SSM is causal (False: bidirectional, the
       "causality" ablation of the paper's Table 3).
     width: feature channels ``C`` of stage 1 (ST-Mamba ``d_model``).

@@ -45,13 +45,14 @@ import jax.numpy as jnp
 from nlosjax.ssm import mamba_dt_bias_init, s4d_real_a_log_init, selective_scan
 from nlosjax.ssm.mamba import depthwise_conv, resolve_dt_rank, torch_default_init
 
-MIXERS = ("temporal", "spatial")
+MIXERS = ("temporal", "spatial", "identity")
 VARIANTS = {
     "st": ("temporal", "spatial"),   # the paper: T-Mamba then S-Mamba
     "s": ("spatial",),               # Table 2 "S-Mamba -"
     "t": ("temporal",),              # Table 2 "- T-Mamba"
     "tt": ("temporal", "temporal"),  # Table 2 "T-Mamba T-Mamba"
     "ss": ("spatial", "spatial"),    # Table 2 "S-Mamba S-Mamba"
+    "none": ("identity",),           # control: every SSM replaced by the identity
 }
 REVERSE_SUFFIX = "_b"
 
@@ -165,6 +166,8 @@ class _SSMChain(nn.Module):
     for i, kind in enumerate(self.mixers):
       if kind not in MIXERS:
         raise ValueError(f"mixers must be drawn from {MIXERS}, got {self.mixers!r}")
+      if kind == "identity":  # the no-SSM control: the block keeps its norm, projections and gate
+        continue
       direction = self.temporal_direction if kind == "temporal" else "bidirectional"
       ssm = SelectiveSSM(self.d_inner, self.d_state, self.d_conv, self.dt_rank, direction,
                          self.scan_method, self.chunk_size, dtype=self.dtype,
