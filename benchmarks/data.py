@@ -3,7 +3,9 @@
     python -m benchmarks.data [--sequences 8] [--paper-frames 4] [--repeats 3]
                               [--out benchmarks/results/data.md] [--quick]
 
-Generation (``nlosjax.data.dataset``): sequences per minute.
+Generation (``nlosjax.data.dataset``): sequences per minute, with the LCT
+renderer and (CPU preset, ``min(--sequences, 3)`` sequences) the transport
+renderer (``renderer="transport"``, :mod:`nlosjax.data.surfaces`).
 
 * CPU preset (``experiments/configs/cpu.py``): one sequence is simulated
   first (its time includes jit compilation of the renderer and noise model
@@ -80,26 +82,27 @@ def _load_rate(path, stride, in_memory, repeats, ends="valid", target="clean"):
   return statistics.median(rates), n, statistics.median(opens)
 
 
-def bench_cpu(n_seq, repeats, workdir):
+def bench_cpu(n_seq, repeats, workdir, renderer="lct"):
   data = configs.get_config("cpu")["data"]
-  spec = D.DatasetSpec.from_config(data, num_train=n_seq, num_test=0, num_val=0)
+  spec = D.DatasetSpec.from_config(data, num_train=n_seq, num_test=0, num_val=0, renderer=renderer)
   t0 = time.perf_counter()
   D.simulate_sequence(spec, "test", 0)
   cold = time.perf_counter() - t0
-  path = pathlib.Path(workdir) / "cpu.h5"
+  path = pathlib.Path(workdir) / f"cpu-{renderer}.h5"
   t0 = time.perf_counter()
   D.write_dataset(path, spec, progress=False)
   warm = (time.perf_counter() - t0) / n_seq
   full = D.DatasetSpec.from_config(data)
   total = full.num_sequences
-  rows = {"preset": "cpu", "setup": spec.setup, "frames": spec.frames, "clean": spec.store_clean,
+  rows = {"preset": "cpu" if renderer == "lct" else f"cpu, {renderer} renderer", "setup": spec.setup, "frames": spec.frames, "clean": spec.store_clean,
           "cold_s": cold, "warm_s": warm, "seq_per_min": 60 / warm,
           "preset_minutes": (cold + warm * (total - 1)) / 60, "preset_sequences": total,
           "measured": f"{n_seq} sequences", "mib_per_seq": path.stat().st_size / 2 ** 20 / n_seq}
   stride = data["input_stride"]
-  rows["disk"] = _load_rate(path, stride, False, repeats)
-  rows["memory"] = _load_rate(path, stride, True, repeats)
   rows["stride"] = stride
+  if renderer == "lct":  # the file layout does not depend on the renderer: load once
+    rows["disk"] = _load_rate(path, stride, False, repeats)
+    rows["memory"] = _load_rate(path, stride, True, repeats)
   return rows
 
 
@@ -160,6 +163,8 @@ def render(results, args) -> str:
             "| preset | input grid | target | triplets per pass | disk: triplets/s | disk: input frames/s |"
             " in memory: triplets/s | in memory: load time s |", "|---|---|---|---|---|---|---|---|"]
   for r in results:
+    if "disk" not in r:
+      continue
     s = r["setup"]
     h = len(range(0, s.grid[0], r["stride"]))
     target = "clean" if r["clean"] else "measurement"
@@ -167,6 +172,16 @@ def render(results, args) -> str:
                  f" {r['disk'][1]} | {r['disk'][0]:.0f} | {3 * r['disk'][0]:.0f} | {r['memory'][0]:.0f} |"
                  f" {r['memory'][2]:.2f} |")
   lines += ["", "Notes (numbers from the tables above):", ""]
+  by = {r["preset"]: r for r in results}
+  if "cpu" in by and "cpu, transport renderer" in by:
+    a, b = by["cpu"], by["cpu, transport renderer"]
+    lines.append(
+        f"- The transport renderer (`renderer=\"transport\"`: whole surfaces, exact paths, cosines,"
+        f" per-scan-point visibility) costs {b['warm_s'] / a['warm_s']:.0f}x the LCT renderer per"
+        f" sequence at the CPU preset ({b['warm_s'] / b['frames']:.2f} s against"
+        f" {a['warm_s'] / a['frames']:.3f} s per frame, warm, one process): the whole preset in"
+        f" {b['preset_minutes']:.1f} min against {a['preset_minutes']:.1f} min; `write_dataset`'s"
+        " `workers` run sequences in parallel processes.")
   for r in results:
     if r["preset"] != "paper":
       continue
@@ -202,6 +217,9 @@ def main(argv=None):
   with tempfile.TemporaryDirectory(prefix="nlosjax-bench-data-") as tmp:
     print(f"CPU preset: {args.sequences} sequences ...", flush=True)
     results.append(bench_cpu(args.sequences, args.repeats, tmp))
+    n = min(args.sequences, 3)
+    print(f"CPU preset, transport renderer: {n} sequences ...", flush=True)
+    results.append(bench_cpu(n, args.repeats, tmp, renderer="transport"))
     if not args.skip_paper:
       print(f"paper scale: 2 x {args.paper_frames} frames ...", flush=True)
       results.append(bench_paper(args.paper_frames, args.repeats, tmp))

@@ -106,6 +106,33 @@ def test_retroreflective_falloff_renders_r2_returns_of_the_same_scene():
     tiny_spec(falloff="lambertian")
 
 
+def test_transport_renderer_same_scene_photon_budget_and_round_trip():
+  """``renderer="transport"``: the same scene and maps as the LCT renderer, another transient
+  (cosines, visibility), the photon budget kept; the spec round-trips and refuses mixed options."""
+  kw = dict(frames=2, num_train=1, num_test=0, store_albedo=False)
+  spec = tiny_spec(renderer="transport", retroreflective=0.5, **kw)
+  seq = D.simulate_sequence(spec, "train", 0)
+  lct = D.simulate_sequence(tiny_spec(**kw), "train", 0)
+  for key in ("intensity", "depth", "trajectory"):
+    np.testing.assert_array_equal(seq["arrays"][key], lct["arrays"][key])
+  a, b = seq["arrays"]["clean"].astype(np.float64), lct["arrays"]["clean"].astype(np.float64)
+  assert a.sum(1).mean() == pytest.approx(seq["attrs"]["photons"], rel=1e-3)
+  assert not np.allclose(a, b, rtol=0.05)
+  # Returns from the same surfaces: per-scan-point energy maps agree in shape.
+  assert np.corrcoef(a.sum(1).ravel(), b.sum(1).ravel())[0, 1] > 0.8
+  d = spec.to_dict()
+  assert d["renderer"] == "transport" and "renderer" not in tiny_spec().to_dict()
+  assert D.DatasetSpec.from_config(d) == spec
+  with pytest.raises(ValueError, match="renderer must be"):
+    tiny_spec(renderer="raytrace")
+  with pytest.raises(ValueError, match="falloff='retroreflective'"):
+    tiny_spec(retroreflective=0.5)
+  with pytest.raises(ValueError, match="retroreflective=1.0"):
+    tiny_spec(renderer="transport", falloff="retroreflective")
+  with pytest.raises(ValueError, match="probability"):
+    tiny_spec(renderer="transport", retroreflective=2.0)
+
+
 def test_albedo_volume_is_the_depth_binned_intensity(tiny):
   path, spec = tiny
   dz = spec.setup.depth_bin_length

@@ -89,7 +89,7 @@ def test_torus_has_a_hole_and_its_ring_is_nearest_at_the_major_radius():
 def test_glyphs_follow_the_even_odd_rule():
   o, i = scenes.glyph_polygons("O"), scenes.glyph_polygons("I")
   assert len(o) == 2 and len(i) == 1
-  inside = scenes._inside_polygons
+  inside = scenes.inside_polygons
   assert not inside(np.zeros(1), np.zeros(1), o)[0]   # the hole of the O
   assert inside(np.zeros(1), np.zeros(1), i)[0]
   pts = np.concatenate(o)

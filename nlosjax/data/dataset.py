@@ -4,7 +4,9 @@ Generation (:func:`simulate_sequence`, :func:`write_dataset`): each sequence
 is drawn from its own seed, ``sequence_seed(base_seed, split, index)``; its
 scene (:mod:`nlosjax.data.scenes`) is rasterised per frame into an albedo
 volume, intensity and depth maps; :func:`nlosjax.physics.render` gives the
-noise-free transient (gated to the scene's depth range, :func:`render_setup`);
+noise-free transient (gated to the scene's depth range, :func:`render_setup`),
+or, with ``renderer="transport"``, :func:`nlosjax.data.surfaces.render_scene`
+renders the objects' whole surfaces by light transport;
 the SPAD counts follow :func:`nlosjax.physics.expected_counts` with
 per-sequence efficiency ``eta ~ U(efficiency)``, photon budget ``S`` and
 ambient light log-uniform in their ranges, dark counts and timing jitter,
@@ -88,6 +90,7 @@ __all__ = [
     "DATASETS",
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "RENDERERS",
     "SPLITS",
     "DatasetSpec",
     "DynamicDataset",
@@ -111,6 +114,8 @@ __all__ = [
 FORMAT_NAME = "nlosjax-dynamic-nlos"
 #: Layout version; readers refuse newer files.
 FORMAT_VERSION = 1
+#: Renderers of the noise-free transient (:attr:`DatasetSpec.renderer`).
+RENDERERS = ("lct", "transport")
 #: Split names (group-name prefixes and the ``split`` attribute). ``val`` is
 #: the validation split every choice is made on (classic-method settings,
 #: checkpoints, hyperparameters); ``test`` only writes final tables. The order
@@ -158,6 +163,15 @@ class DatasetSpec:
     falloff: radiometric falloff of the rendered returns, ``"diffuse"``
       (``r^-4``, the default) or ``"retroreflective"`` (``r^-2``, the measured
       scans of O'Toole et al. 2018); see :func:`nlosjax.physics.render`.
+      ``renderer="lct"`` only (the transport renderer draws materials per object).
+    renderer: ``"lct"`` (default: :func:`nlosjax.physics.render`, the
+      light-cone operator that LCT and the network's physics layer invert, on
+      the orthographic albedo volume) or ``"transport"``
+      (:func:`nlosjax.data.surfaces.render_scene`: whole object surfaces,
+      exact path lengths, Lambertian cosines, per-scan-point visibility; ~20x
+      slower, see ``benchmarks/results/data.md``). Ground-truth maps are the same.
+    retroreflective: probability that an object is retroreflective (``r^-2``)
+      rather than diffuse, ``renderer="transport"`` only.
     store_clean: store the noise-free ``clean`` transients.
     store_albedo: store the albedo volumes.
     compression: ``"gzip"``, ``"lzf"`` or ``None``.
@@ -190,6 +204,8 @@ class DatasetSpec:
   render_batch: int = 8
   noise_sampler: str = "numpy"
   scene: scenes.SceneParams = scenes.SceneParams()
+  renderer: str = "lct"
+  retroreflective: float = 0.0
 
   def __post_init__(self):
     if not isinstance(self.setup, Setup):
@@ -223,6 +239,18 @@ class DatasetSpec:
       jitter_kernel(self.setup, self.jitter)  # validates
     from nlosjax.physics.operators import check_falloff
     check_falloff(self.falloff)
+    if self.renderer not in RENDERERS:
+      raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
+    r = self.retroreflective
+    if isinstance(r, bool) or not isinstance(r, (int, float, np.number)) or not 0 <= r <= 1:
+      raise ValueError(f"retroreflective must be a probability in [0, 1], got {r!r}")
+    object.__setattr__(self, "retroreflective", float(r))
+    if self.renderer == "lct" and self.retroreflective:
+      raise ValueError("retroreflective is drawn per object by renderer='transport';"
+                       " with renderer='lct' use falloff='retroreflective'")
+    if self.renderer == "transport" and self.falloff != "diffuse":
+      raise ValueError("renderer='transport' draws each object's material: set"
+                       " retroreflective=1.0 instead of falloff='retroreflective'")
     if self.noise_sampler not in ("numpy", "jax"):
       raise ValueError(f'noise_sampler must be "numpy" or "jax", got {self.noise_sampler!r}')
     if self.compression not in ("gzip", "lzf", None):
@@ -290,7 +318,9 @@ class DatasetSpec:
             "render_batch": self.render_batch, "noise_sampler": self.noise_sampler,
             "scene": self.scene.to_dict(),
             # Only when set: files written before the field existed keep their key.
-            **({} if self.falloff == "diffuse" else {"falloff": self.falloff})}
+            **({} if self.falloff == "diffuse" else {"falloff": self.falloff}),
+            **({} if self.renderer == "lct" else {"renderer": self.renderer,
+                                                  "retroreflective": self.retroreflective})}
 
   def generation_key(self) -> dict:
     """What decides the content of a sequence: everything but the sequence counts."""
@@ -428,7 +458,11 @@ def simulate_sequence(spec: DatasetSpec, split: str, index: int) -> dict:
     vol = maps.volume(setup, slice(start, stop))
     if albedo is not None:
       albedo[start:stop] = vol
-    if np.any(vol[:, :k0]) or np.any(vol[:, k1:]):  # cannot happen for valid scenes
+    if spec.renderer == "transport":
+      from nlosjax.data import surfaces
+      clean[start:stop] = surfaces.render_scene(scene, setup, frames=np.arange(start, stop),
+                                                retroreflective=spec.retroreflective)
+    elif np.any(vol[:, :k0]) or np.any(vol[:, k1:]):  # cannot happen for valid scenes
       clean[start:stop] = np.asarray(render(vol, setup, falloff=spec.falloff))
     else:
       clean[start:stop] = np.asarray(render(vol[:, k0:k1], gated, falloff=spec.falloff))

@@ -374,7 +374,7 @@ def glyph_polygons(char: str) -> tuple[np.ndarray, ...]:
   return out
 
 
-def _inside_polygons(u: np.ndarray, v: np.ndarray, polygons) -> np.ndarray:
+def inside_polygons(u: np.ndarray, v: np.ndarray, polygons) -> np.ndarray:
   """Even-odd point-in-polygon test of points ``(u, v)`` ``[P]`` against outlines."""
   inside = np.zeros(u.shape, bool)
   for poly in polygons:
@@ -595,7 +595,7 @@ def make_scene(seed: int, params: SceneParams | Mapping | None = None, num_frame
 
 
 # ------------------------------------------------------------- ray casting
-def _albedo(tex: dict, q: np.ndarray) -> np.ndarray:
+def texture_albedo(tex: dict, q: np.ndarray) -> np.ndarray:
   """Texture albedo ``[P]`` at local points ``q`` ``[P, 3]``."""
   name, base = tex["name"], tex["albedo"]
   if name == "uniform":
@@ -636,7 +636,7 @@ def _cast(obj: SceneObject, anchor: np.ndarray, ox: np.ndarray, oy: np.ndarray):
       return t_hit, shade
     t = -q0c[:, 2] / d[2]
     q = q0c + t[:, None] * d
-    hit = (t > 0) & _inside_polygons(q[:, 0], q[:, 1], obj.shape["polygons"])
+    hit = (t > 0) & inside_polygons(q[:, 0], q[:, 1], obj.shape["polygons"])
     cos = np.full(t.shape, abs(d[2]))
   elif kind == "sphere":
     r = obj.shape["radius"]
@@ -662,7 +662,7 @@ def _cast(obj: SceneObject, anchor: np.ndarray, ox: np.ndarray, oy: np.ndarray):
     raise ValueError(f"unknown kind {kind!r}")
   idx = cand[hit]
   t_hit[idx] = t[hit]
-  shade[idx] = _albedo(obj.texture, q[hit]) * cos[hit]
+  shade[idx] = texture_albedo(obj.texture, q[hit]) * cos[hit]
   return t_hit, shade
 
 
