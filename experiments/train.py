@@ -8,7 +8,10 @@ Usage::
   python -m experiments.train --seeds 3 --workdir runs/seeds3   # Table 1 over 3 training seeds
 
 Every choice (classic settings, checkpoints) is made on the validation split;
-the test split only writes the tables. Writes ``WORKDIR/results/{table.md,
+the test split only writes the tables. Where the config has an ``independent``
+section (the CPU preset does), the models are also scored on an independent
+test set (:mod:`experiments.independent_set`: other shapes, motion, renderer
+and noise code) into ``results/table1_independent.md``. Writes ``WORKDIR/results/{table.md,
 table.json, comparisons.json, validation.json, comparison.png,
 training_curves.png}`` (see :mod:`nlosjax.main_job`); rerun the same command after an interruption to
 resume from the last checkpoint.
@@ -33,7 +36,14 @@ def main(argv=None):
       parser.error(f"--seeds must be >= 1, got {args.seeds}")
     config.setdefault("train", {})["seeds"] = args.seeds
   from nlosjax.main_job import train_and_evaluate
-  train_and_evaluate(config, args.workdir)
+  extra = {}
+  spec = config.get("independent")
+  if spec:
+    from experiments.independent_set import ensure_independent_set
+    extra["independent"] = ensure_independent_set(
+        spec["path"], config["data"], spec.get("sequences", 8), spec.get("frames", 8),
+        spec.get("seed", 2026))
+  train_and_evaluate(config, args.workdir, **({"extra_test_sets": extra} if extra else {}))
 
 
 if __name__ == "__main__":

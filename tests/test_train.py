@@ -23,7 +23,7 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
   from nlosjax.main_job import train_and_evaluate
   cfg = tiny_config(data_path, steps=2, seeds=2, select_checkpoint="val", keep_checkpoints=2,
                     checkpoint_every=1)
-  table = train_and_evaluate(cfg, tmp_path, log=lambda s: None)
+  table = train_and_evaluate(cfg, tmp_path, extra_test_sets={"again": data_path}, log=lambda s: None)
   saved = json.loads((tmp_path / "results" / "table.json").read_text())
   assert set(saved) == set(report.TABLE_METHODS)
   for method, row in saved.items():
@@ -47,8 +47,12 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
   text = (tmp_path / "results" / "table.md").read_text()
   for needle in ("object recall", "Ours - Ours-S", f"Ours - {report.label(best)}", "validation split"):
     assert needle in text, needle
-  for name in ("comparison.png", "training_curves.png"):
+  for name in ("comparison.png", "training_curves.png", "table1_again_comparison.png"):
     assert (tmp_path / "results" / name).stat().st_size > 0
+  # An extra test set is scored with the same models and settings: the same file, the same table.
+  again_table = json.loads((tmp_path / "results" / "table1_again.json").read_text())
+  assert_nested_close(again_table, saved, rtol=1e-5, atol=1e-6)
+  assert "Nothing is chosen" in (tmp_path / "results" / "table1_again.md").read_text()
   rows = [json.loads(l) for l in (tmp_path / "ours" / "metrics.jsonl").read_text().splitlines()]
   assert [r["step"] for r in rows] == [1, 2]
   assert all(np.isfinite(r["loss"]) for r in rows)
@@ -106,11 +110,15 @@ def test_upsample_scan_interpolates_linearly_between_samples():
 def test_train_cli_seeds_flag_sets_the_config(monkeypatch):
   from experiments import train as cli
   from nlosjax import main_job
+  from experiments import independent_set
   seen = {}
   monkeypatch.setattr(main_job, "train_and_evaluate",
-                      lambda config, workdir: seen.update(config=config, workdir=workdir))
+                      lambda config, workdir, **kw: seen.update(config=config, workdir=workdir, **kw))
+  monkeypatch.setattr(independent_set, "ensure_independent_set", lambda path, *a: path)
   cli.main(["--seeds", "3", "--workdir", "runs/x", "--config.train.steps=5"])
   assert seen["config"]["train"]["seeds"] == 3 and seen["config"]["train"]["steps"] == 5
   assert seen["workdir"] == "runs/x"
+  # The CPU preset scores its models on the independent set too.
+  assert seen["extra_test_sets"] == {"independent": "runs/data/independent-cpu.h5"}
   with pytest.raises(SystemExit):
     cli.main(["--seeds", "0"])

@@ -181,23 +181,27 @@ def tabulate(evaluation: dict, *, best_classic_method: str | None = None, n_boot
 
 
 def write_results(out_dir, table: dict, comparisons: list[dict], images: dict, *, caption: str,
-                  validation: dict | None = None, logs: dict | None = None) -> None:
+                  validation: dict | None = None, logs: dict | None = None,
+                  stem: str = "table") -> None:
   """``table.json``, ``comparisons.json``, ``validation.json``, ``table.md``, figures in ``out_dir``.
 
   ``table.json`` is ``method -> metric -> {"mean", "ci95": [lo, hi], "std",
-  "n_sequences", "n_frames", "n_seeds"}``.
+  "n_sequences", "n_frames", "n_seeds"}``. Another ``stem`` (a second test
+  set) writes ``{stem}.json``, ``{stem}.md``, ``{stem}_comparisons.json`` and
+  ``{stem}_comparison.png`` instead.
   """
   out = pathlib.Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
-  (out / "table.json").write_text(json.dumps(table, indent=2) + "\n")
-  (out / "comparisons.json").write_text(json.dumps(comparisons, indent=2) + "\n")
+  prefix = "" if stem == "table" else f"{stem}_"
+  (out / f"{stem}.json").write_text(json.dumps(table, indent=2) + "\n")
+  (out / f"{prefix}comparisons.json").write_text(json.dumps(comparisons, indent=2) + "\n")
   text = report.format_tables(table, caption)
   if comparisons:
     text += "\n" + report.format_comparisons(comparisons)
   if validation:
     (out / "validation.json").write_text(json.dumps(validation, indent=2, default=str) + "\n")
     text += "\n" + report.format_choices(validation)
-  (out / "table.md").write_text(text)
-  figures.plot_comparison(images, out / "comparison.png")
+  (out / f"{stem}.md").write_text(text)
+  figures.plot_comparison(images, out / f"{prefix}comparison.png")
   if logs:
     figures.plot_training_curves(logs, out / "training_curves.png")
