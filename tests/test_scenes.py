@@ -245,3 +245,61 @@ def test_bad_parameters_name_the_argument():
   with pytest.raises(ValueError, match="frames"):
     scenes.rasterize(scenes.make_scene(0, num_frames=2), SETUP, frames=[2])
   assert SceneParams.from_dict(SceneParams().to_dict()) == SceneParams()
+
+
+# ------------------------------------------------------- later options
+def test_default_scenes_do_not_depend_on_the_later_options_and_to_dict_omits_them():
+  """Adding albedo_range / motions / spin_speed changed no default scene (files stay valid)."""
+  d = SceneParams().to_dict()
+  assert not {"albedo_range", "motions", "spin_speed"} & set(d)
+  assert SceneParams.from_dict(d) == SceneParams()
+  a = scenes.make_scene(7, SceneParams(), 4)
+  b = scenes.make_scene(7, SceneParams(motions=("helix",), albedo_range=(0.5, 1.0)), 4)
+  assert a.describe() == b.describe() and a.motion == "helix"
+  wide = SceneParams(albedo_range=(0.05, 1.0), motions=("helix", "line"), spin_speed=(0.5, 1.0))
+  assert SceneParams.from_dict(wide.to_dict()) == wide
+
+
+def test_line_motion_is_a_straight_constant_velocity_path_inside_the_box():
+  params = SceneParams(motions=("line",))
+  for seed in range(4):
+    scene = scenes.make_scene(seed, params, 9, setup=SETUP)
+    assert scene.motion == "line"
+    traj = scene.trajectory
+    step = np.diff(traj, axis=0)
+    np.testing.assert_allclose(step, np.broadcast_to(step[0], step.shape), atol=1e-12)
+    r = scene.objects[scene.dynamic_index].radius
+    assert np.all(traj[:, 2] - r >= params.depth_range[0] - 1e-12)
+    assert np.all(traj[:, 2] + r <= params.depth_range[1] + 1e-12)
+    assert np.all(np.abs(traj[:, :2]) <= params.lateral_extent + 1e-12)
+  mixed = [scenes.make_scene(s, SceneParams(motions=("helix", "line")), 2).motion for s in range(20)]
+  assert set(mixed) == {"helix", "line"}
+
+
+def test_spin_turns_the_dynamic_object_about_its_anchor():
+  """A spinning plate's footprint changes shape between frames while its anchor's does not
+  move (zero path); statics do not turn; rotation(f) is the axis-angle turn of speed * t."""
+  params = SceneParams(num_static=(1, 1), dynamic_kinds=("plate",), helix_radius=(0.0, 0.0),
+                       helix_pitch=(0.0, 0.0), spin_speed=(1.0, 1.0))
+  scene = scenes.make_scene(3, params, 5, setup=SETUP)
+  i = scene.dynamic_index
+  np.testing.assert_allclose(scene.trajectory, np.broadcast_to(scene.trajectory[0], (5, 3)), atol=1e-12)
+  R0, R4 = scene.rotation(i, 0), scene.rotation(i, 4)
+  angle = math.acos(np.clip((np.trace(R4 @ R0.T) - 1) / 2, -1, 1))
+  assert angle == pytest.approx(4 / scene.frame_rate * abs(scene.spin_speed), abs=1e-9)
+  np.testing.assert_allclose((R4 @ R0.T) @ scene.spin_axis, scene.spin_axis, atol=1e-12)
+  static = 1 - i
+  np.testing.assert_array_equal(scene.rotation(static, 4), scene.objects[static].rotation)
+  cover = np.isfinite(scenes.rasterize(scene, SETUP, objects=[i], supersample=2).ray_depth).mean(1)
+  assert np.abs(cover[0] - cover[4]).sum() > 1.0
+
+
+def test_albedo_range_sets_the_base_albedo():
+  params = SceneParams(albedo_range=(0.05, 0.1), num_static=(3, 3), texture_probability=0.0,
+                       kinds=("sphere",), dynamic_kinds=("sphere",), size_range=(0.2, 0.25))
+  scene = scenes.make_scene(0, params, 1)
+  assert all(0.05 <= o.texture["albedo"] <= 0.1 for o in scene.objects)
+  with pytest.raises(ValueError, match="albedo_range"):
+    SceneParams(albedo_range=(0.0, 1.0))
+  with pytest.raises(ValueError, match="motions"):
+    SceneParams(motions=("zigzag",))

@@ -197,3 +197,16 @@ def test_bad_input():
   empty = SurfaceSamples.concatenate([])
   assert render_surfaces(empty, SETUP).shape == (SETUP.num_bins, 6, 6)
   assert 0 < default_spacing(SETUP) <= SETUP.depth_bin_length / 2
+
+
+def test_moving_sampled_patches_equals_sampling_the_posed_scene():
+  """render_scene samples each object once and moves the patches per frame; sampling the
+  object at its pose of that frame (line motion and spin) gives the same transient."""
+  params = scenes.SceneParams(num_static=(1, 1), motions=("line",), spin_speed=(1.0, 2.0),
+                              depth_range=(0.5, 1.0), size_range=(0.2, 0.3))
+  setup = Setup(wall_size=1.0, grid=(6, 6), bin_width=48e-12, num_bins=160)
+  scene = scenes.make_scene(4, params, 4, setup=setup)
+  got = surfaces.render_scene(scene, setup, frames=[3], spacing=0.015, retroreflective=0.5)[0]
+  want = render_surfaces(surfaces.scene_samples(scene, 3, 0.015, retroreflective=0.5), setup,
+                         spacing=0.015)
+  np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6 * want.max())

@@ -36,7 +36,9 @@ HDF5 layout (:data:`FORMAT_NAME`, version :data:`FORMAT_VERSION`)::
                                      helix_axis [3], helix_ref [3], helix_radius, helix_pitch,
                                      helix_phase, helix_angular_speed (rad/s), dynamic_index,
                                      render_depth_range [2], kinds (JSON list), scene (JSON),
-                                     complete
+                                     complete; with a non-default motion also motion
+                                     ("helix" | "line"; helix_* then describe the unused
+                                     helix, the path is in scene) and spin_speed (rad/s)
       measurement  [F, T, H, W] uint16 (uint32 when a count exceeds 65535) SPAD counts
       clean        [F, T, H, W] float32 expected incident signal photons (optional)
       albedo       [F, T, H, W] float32 shaded albedo volume (optional)
@@ -508,6 +510,9 @@ def simulate_sequence(spec: DatasetSpec, split: str, index: int) -> dict:
       "kinds": json.dumps([o.kind for o in scene.objects]),
       "scene": json.dumps(scene.describe()),
   }
+  if scene.motion != "helix" or scene.spin_speed:  # options added later: absent by default
+    attrs["motion"] = scene.motion
+    attrs["spin_speed"] = scene.spin_speed
   return {"name": sequence_name(split, index), "arrays": arrays, "attrs": attrs}
 
 

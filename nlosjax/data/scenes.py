@@ -41,8 +41,10 @@ foreshortening toward the wall; ``n`` the unit surface normal). Per frame:
   surface" value, and ``intensity_depth``'s default) where no ray hits.
 
 Dynamic-object trajectory: ``Scene.trajectory`` ``[F, 3]`` (metres) is the
-anchor position per frame; the object translates without turning, so its
-orthographic footprint moves rigidly with the anchor's (x, y).
+anchor position per frame, on the helix or, with ``motions`` including
+``"line"``, a straight line; by default the object translates without turning,
+so its orthographic footprint moves rigidly with the anchor's (x, y);
+``spin_speed > 0`` turns it about a random axis as well (``Scene.rotation``).
 """
 
 from __future__ import annotations
@@ -61,8 +63,10 @@ __all__ = [
     "BACKGROUND_DEPTH",
     "GENERATOR_VERSION",
     "KINDS",
+    "MOTIONS",
     "TEXTURES",
     "Helix",
+    "Line",
     "Rasterized",
     "Scene",
     "SceneObject",
@@ -73,14 +77,21 @@ __all__ = [
 ]
 
 #: Version of the scene generator; bump whenever a seed would give another scene.
+#: (Options added later, :data:`_LATER_FIELDS`, draw nothing at their defaults.)
 GENERATOR_VERSION = "1.0"
 
 #: Depth (metres) written at pixels where no ray hits an object.
 BACKGROUND_DEPTH = 0.0
 
+#: SceneParams fields added after files were written, with their defaults.
+_LATER_FIELDS = {"albedo_range": (0.5, 1.0), "motions": ("helix",), "spin_speed": (0.0, 0.0)}
+
 #: Object kinds.
 KINDS = ("letter", "digit", "polygon", "plate", "box", "sphere", "torus", "bar")
 PLANAR_KINDS = ("letter", "digit", "polygon", "plate")
+
+#: Paths of the dynamic object (:attr:`SceneParams.motions`).
+MOTIONS = ("helix", "line")
 
 #: Albedo textures.
 TEXTURES = ("uniform", "checker", "stripes", "noise")
@@ -133,6 +144,18 @@ class SceneParams:
     supersample: rays per pixel along each axis (``s``).
     min_gap: smallest gap between bounding spheres of different objects
       (static vs static, static vs the dynamic one anywhere on its path).
+    albedo_range: ``(min, max)`` of an object's base albedo (uniform); a low
+      minimum gives dim objects beside bright ones.
+    motions: the dynamic object's path, drawn uniformly per scene from
+      ``"helix"`` (:class:`Helix`) and ``"line"`` (:class:`Line`: constant
+      velocity between two points of the scene box).
+    spin_speed: ``(min, max)`` rad/s of the dynamic object's rotation about a
+      random axis through its anchor (direction random); ``(0, 0)``: it
+      translates without turning.
+
+  The last three are drawn from a stream of their own (the seed, spawn key
+  4) and left out of :meth:`to_dict` at their defaults, so a scene drawn with
+  the defaults is the one earlier versions drew.
   """
 
   num_static: tuple[int, int] = (1, 3)
@@ -149,6 +172,9 @@ class SceneParams:
   frame_rate: float = 4.0
   supersample: int = 2
   min_gap: float = 0.02
+  albedo_range: tuple[float, float] = (0.5, 1.0)
+  motions: tuple[str, ...] = ("helix",)
+  spin_speed: tuple[float, float] = (0.0, 0.0)
 
   def __post_init__(self):
     ns = _pair(self.num_static, "num_static", low=0, integer=True)
@@ -164,8 +190,16 @@ class SceneParams:
       raise ValueError(f"size_range {sr} exceeds the depth_range span {dr[1] - dr[0]:.3g} m;"
                        " objects would not fit")
     object.__setattr__(self, "size_range", sr)
-    for name in ("helix_radius", "helix_pitch", "helix_speed"):
+    for name in ("helix_radius", "helix_pitch", "helix_speed", "spin_speed"):
       object.__setattr__(self, name, _pair(getattr(self, name), name, low=0.0))
+    ar = _pair(self.albedo_range, "albedo_range", low=0.0)
+    if ar[0] <= 0 or ar[1] > 1:
+      raise ValueError(f"albedo_range must lie in (0, 1], got {self.albedo_range!r}")
+    object.__setattr__(self, "albedo_range", ar)
+    motions = (self.motions,) if isinstance(self.motions, str) else tuple(self.motions)
+    if not motions or any(m not in MOTIONS for m in motions):
+      raise ValueError(f"motions must be a non-empty subset of {MOTIONS}, got {self.motions!r}")
+    object.__setattr__(self, "motions", motions)
     for name in ("kinds", "dynamic_kinds"):
       value = getattr(self, name)
       if isinstance(value, str):
@@ -208,6 +242,9 @@ class SceneParams:
     """Plain JSON-able dict (``max_tilt`` as ``max_tilt_deg``), inverse of :meth:`from_dict`."""
     d = dataclasses.asdict(self)
     d["max_tilt_deg"] = math.degrees(d.pop("max_tilt"))
+    for name, default in _LATER_FIELDS.items():  # absent at defaults: older files keep their keys
+      if d[name] == default:
+        d.pop(name)
     return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
   def check_setup(self, setup: Setup) -> None:
@@ -298,16 +335,42 @@ class Helix:
             "angular_speed": self.angular_speed}
 
 
+@dataclasses.dataclass(frozen=True)
+class Line:
+  """A straight path at constant velocity: ``p(t) = start + (end - start) t / duration``.
+
+  Attributes:
+    start, end: ``[3]`` positions at ``t = 0`` and ``t = duration``, metres.
+    duration: seconds (0 for a one-frame scene: the path is ``start``).
+  """
+
+  start: np.ndarray
+  end: np.ndarray
+  duration: float
+
+  def positions(self, times) -> np.ndarray:
+    """``[N, 3]`` float64 positions (metres) at ``times`` ``[N]`` (seconds)."""
+    t = np.asarray(times, np.float64).reshape(-1)
+    u = t / self.duration if self.duration > 0 else np.zeros_like(t)
+    return self.start[None] + u[:, None] * (self.end - self.start)[None]
+
+  def describe(self) -> dict:
+    return {"start": self.start.tolist(), "end": self.end.tolist(), "duration": self.duration}
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Scene:
-  """Static objects plus one dynamic object on a helix, over ``num_frames`` frames.
+  """Static objects plus one dynamic object on a path, over ``num_frames`` frames.
 
   Attributes:
     objects: the static objects, then the dynamic one (last).
-    helix: the dynamic object's path.
+    helix: the helix drawn for the dynamic object (its path unless ``line``).
     num_frames: ``F``.
     frame_rate: frames per second (frame ``f`` at ``t = f / frame_rate``).
     seed: the seed it was drawn from.
+    line: the dynamic object's straight path, when its motion is ``"line"``.
+    spin_axis, spin_speed: the dynamic object turns about ``spin_axis``
+      ``[3]`` (unit, through its anchor) at ``spin_speed`` rad/s (0: it does not).
   """
 
   objects: tuple[SceneObject, ...]
@@ -315,6 +378,19 @@ class Scene:
   num_frames: int
   frame_rate: float
   seed: int
+  line: Line | None = None
+  spin_axis: np.ndarray | None = None
+  spin_speed: float = 0.0
+
+  @property
+  def motion(self) -> str:
+    """``"line"`` or ``"helix"``."""
+    return "helix" if self.line is None else "line"
+
+  @property
+  def path(self) -> Helix | Line:
+    """The dynamic object's path."""
+    return self.helix if self.line is None else self.line
 
   @property
   def dynamic_index(self) -> int:
@@ -329,20 +405,40 @@ class Scene:
   @property
   def trajectory(self) -> np.ndarray:
     """``[F, 3]`` float64 anchor position of the dynamic object per frame, metres."""
-    return self.helix.positions(self.times)
+    return self.path.positions(self.times)
 
   def anchor(self, index: int, frame: int) -> np.ndarray:
     """``[3]`` world position of object ``index`` at ``frame``."""
     obj = self.objects[index]
     if obj.dynamic:
-      return self.helix.positions([frame / self.frame_rate])[0]
+      return self.path.positions([frame / self.frame_rate])[0]
     return obj.anchor
 
+  def rotation(self, index: int, frame: int) -> np.ndarray:
+    """``[3, 3]`` local-to-world rotation of object ``index`` at ``frame``."""
+    obj = self.objects[index]
+    if not obj.dynamic or self.spin_speed == 0.0:
+      return obj.rotation
+    return _axis_angle(self.spin_axis, self.spin_speed * frame / self.frame_rate) @ obj.rotation
+
+  def posed(self, index: int, frame: int) -> SceneObject:
+    """Object ``index`` at its anchor and rotation of ``frame``."""
+    obj = self.objects[index]
+    if not obj.dynamic:
+      return obj
+    return dataclasses.replace(obj, anchor=self.anchor(index, frame),
+                               rotation=self.rotation(index, frame))
+
   def describe(self) -> dict:
-    """JSON-able summary of the scene (objects, helix, frames)."""
-    return {"generator_version": GENERATOR_VERSION, "seed": self.seed,
-            "num_frames": self.num_frames, "frame_rate": self.frame_rate,
-            "helix": self.helix.describe(), "objects": [o.describe() for o in self.objects]}
+    """JSON-able summary of the scene (objects, path, frames)."""
+    d = {"generator_version": GENERATOR_VERSION, "seed": self.seed,
+         "num_frames": self.num_frames, "frame_rate": self.frame_rate,
+         "helix": self.helix.describe(), "objects": [o.describe() for o in self.objects]}
+    if self.line is not None:
+      d["line"] = self.line.describe()
+    if self.spin_speed:
+      d["spin"] = {"axis": self.spin_axis.tolist(), "speed": self.spin_speed}
+    return d
 
 
 # ----------------------------------------------------------------- glyphs
@@ -415,8 +511,8 @@ def _facing_rotation(rng, max_tilt) -> np.ndarray:
   return tilt @ spin
 
 
-def _texture(rng, size, force: bool, probability: float) -> dict:
-  base = float(rng.uniform(0.5, 1.0))
+def _texture(rng, size, force: bool, probability: float, albedo_range=(0.5, 1.0)) -> dict:
+  base = float(rng.uniform(*albedo_range))
   if not force and rng.uniform() >= probability:
     return {"name": "uniform", "albedo": base}
   name = str(rng.choice(TEXTURES[1:]))
@@ -501,7 +597,8 @@ def _make_object(rng, params: SceneParams, kinds, dynamic: bool) -> SceneObject:
     rotation = _facing_rotation(rng, params.max_tilt)
   else:
     rotation = _random_rotation(rng)
-  texture = _texture(rng, size, force=kind == "plate", probability=params.texture_probability)
+  texture = _texture(rng, size, force=kind == "plate", probability=params.texture_probability,
+                     albedo_range=params.albedo_range)
   return SceneObject(kind=kind, anchor=np.zeros(3), rotation=rotation, size=size, radius=radius,
                      shape=shape, texture=texture, dynamic=dynamic)
 
@@ -541,6 +638,14 @@ def _make_helix(rng, params: SceneParams, obj_radius: float, duration: float) ->
   return Helix(center, axis, ref, radius, pitch, phase, speed)
 
 
+def _make_line(rng, params: SceneParams, obj_radius: float, duration: float) -> Line:
+  """A straight path between two uniform points of the scene box (the object stays inside)."""
+  L = params.lateral_extent
+  lo = np.array([-L, -L, params.depth_range[0] + obj_radius])
+  hi = np.array([L, L, params.depth_range[1] - obj_radius])
+  return Line(rng.uniform(lo, hi), rng.uniform(lo, hi), float(duration))
+
+
 def make_scene(seed: int, params: SceneParams | Mapping | None = None, num_frames: int = 32,
                setup: Setup | None = None) -> Scene:
   """Draw a dynamic scene.
@@ -572,8 +677,18 @@ def make_scene(seed: int, params: SceneParams | Mapping | None = None, num_frame
 
   dyn = _make_object(rng, params, params.dynamic_kinds, dynamic=True)
   helix = _make_helix(rng, params, dyn.radius, duration)
-  path = helix.positions(np.linspace(0.0, duration, 256) if duration > 0 else np.zeros(1))
-  dyn = dataclasses.replace(dyn, anchor=helix.positions([0.0])[0])
+  # Motion and spin come from a stream of their own: the default scenes stay as they were.
+  motion_rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(4,)))
+  motion = str(motion_rng.choice(list(params.motions))) if len(params.motions) > 1 else params.motions[0]
+  line = _make_line(motion_rng, params, dyn.radius, duration) if motion == "line" else None
+  spin_axis, spin_speed = None, 0.0
+  if params.spin_speed[1] > 0:
+    spin_axis = motion_rng.normal(size=3)
+    spin_axis /= np.linalg.norm(spin_axis)
+    spin_speed = float(motion_rng.uniform(*params.spin_speed)) * float(motion_rng.choice([-1.0, 1.0]))
+  moving = line if line is not None else helix
+  path = moving.positions(np.linspace(0.0, duration, 256) if duration > 0 else np.zeros(1))
+  dyn = dataclasses.replace(dyn, anchor=moving.positions([0.0])[0])
 
   statics = []
   n_static = int(rng.integers(params.num_static[0], params.num_static[1] + 1))
@@ -591,7 +706,8 @@ def make_scene(seed: int, params: SceneParams | Mapping | None = None, num_frame
         break
     statics.append(dataclasses.replace(obj, anchor=anchor))
   return Scene(objects=tuple(statics) + (dyn,), helix=helix, num_frames=int(num_frames),
-               frame_rate=params.frame_rate, seed=int(seed))
+               frame_rate=params.frame_rate, seed=int(seed), line=line, spin_axis=spin_axis,
+               spin_speed=spin_speed)
 
 
 # ------------------------------------------------------------- ray casting
@@ -783,7 +899,7 @@ def rasterize(scene: Scene, setup: Setup, *, frames=None, objects=None,
   ray_albedo = np.zeros((F, ox.size))
   for n, f in enumerate(frames):
     hits = list(static_hits)
-    hits += [_cast(scene.objects[i], scene.anchor(i, int(f)), ox, oy)
+    hits += [_cast(scene.posed(i, int(f)), scene.anchor(i, int(f)), ox, oy)
              for i in objects if scene.objects[i].dynamic]
     for t, a in hits:
       nearer = t < ray_depth[n]

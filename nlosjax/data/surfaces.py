@@ -127,12 +127,12 @@ def object_materials(scene: scenes.Scene, retroreflective: float) -> np.ndarray:
 
 def scene_samples(scene: scenes.Scene, frame: int, spacing: float, *,
                   retroreflective: float = 0.0) -> SurfaceSamples:
-  """Every object's patches at ``frame`` (the dynamic one at its anchor of that frame)."""
+  """Every object's patches at ``frame`` (the dynamic one at its pose of that frame)."""
   materials = object_materials(scene, retroreflective)
   return SurfaceSamples.concatenate(
-      object_samples(o, spacing, anchor=scene.anchor(i, frame), retroreflective=bool(materials[i]),
+      object_samples(scene.posed(i, frame), spacing, retroreflective=bool(materials[i]),
                      object_id=i)
-      for i, o in enumerate(scene.objects))
+      for i in range(len(scene.objects)))
 
 
 def render_scene(scene: scenes.Scene, setup: Setup, *, frames=None, spacing: float | None = None,
@@ -154,14 +154,17 @@ def render_scene(scene: scenes.Scene, setup: Setup, *, frames=None, spacing: flo
   spacing = default_spacing(setup) if spacing is None else float(spacing)
   frames = np.arange(scene.num_frames) if frames is None else np.asarray(frames).reshape(-1)
   materials = object_materials(scene, retroreflective)
-  # Objects translate without turning: sample each once, move it per frame.
+  # Objects move rigidly: sample each once at its own pose, then move the patches per frame.
   base = [object_samples(o, spacing, anchor=o.anchor, retroreflective=bool(materials[i]),
                          object_id=i) for i, o in enumerate(scene.objects)]
   H, W = setup.grid
   out = np.empty((frames.size, setup.num_bins, H, W), np.float32)
   for n, f in enumerate(frames):
-    parts = [b.translated(scene.anchor(i, int(f)) - scene.objects[i].anchor)
-             for i, b in enumerate(base)]
+    parts = []
+    for i, b in enumerate(base):
+      o = scene.objects[i]
+      turn = scene.rotation(i, int(f)) @ o.rotation.T
+      parts.append(b.moved(turn, o.anchor, scene.anchor(i, int(f))))
     out[n] = render_surfaces(SurfaceSamples.concatenate(parts), setup.ungated(),
                              occlusion=occlusion, spacing=spacing)
     if progress is not None:

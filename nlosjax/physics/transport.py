@@ -124,9 +124,11 @@ class SurfaceSamples:
     return cls(*[np.concatenate([getattr(p, f.name) for p in parts])
                  for f in dataclasses.fields(cls)])
 
-  def translated(self, offset) -> "SurfaceSamples":
-    """The same patches moved by ``offset`` ``[3]`` metres (a rigid translation)."""
-    return dataclasses.replace(self, points=self.points + np.asarray(offset, np.float64))
+  def moved(self, rotation, origin, to) -> "SurfaceSamples":
+    """The patches turned by ``rotation`` ``[3, 3]`` about ``origin`` ``[3]``, which moves to ``to``."""
+    R = np.asarray(rotation, np.float64)
+    pts = (self.points - np.asarray(origin, np.float64)) @ R.T + np.asarray(to, np.float64)
+    return dataclasses.replace(self, points=pts, normals=self.normals @ R.T)
 
 
 def default_spacing(setup: Setup) -> float:
