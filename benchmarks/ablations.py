@@ -1,13 +1,14 @@
 """The paper's Table 2 ablations at the CPU preset, with one shared training budget.
 
-    python -m benchmarks.ablations [--config cpu] [--steps 150] [--workdir runs/ablations]
+    python -m benchmarks.ablations [--config cpu] [--steps 150] [--seeds 3] [--workdir runs/ablations]
                                    [--only full no_pf ...] [--out benchmarks/results/table2.md]
 
 Every row trains Ours (three frames, the main job's model and data) for the
-same ``--steps`` from the same seed, changing one thing, then scores the
-validation split (for the weight-decay choice) and the test split (the table:
-mean and 95 % interval over sequences, and each row's paired difference with
-the full model):
+same ``--steps`` from the same ``--seeds`` training seeds (the config's seed,
++1, ...), changing one thing, then scores the validation split (for the
+weight-decay choice) and the test split (the table: mean and 95 % interval
+over sequences and seeds, and each row's paired difference with the full
+model, seed by seed on the same frames):
 
 * loss items (paper Table 2, top): without the phasor-field loss ``L_pf``,
   without the regularisers ``L_ls``/``L_tv`` (``gamma = 0``), without both;
@@ -21,8 +22,8 @@ the full model):
   ``bidirectional`` (the temporal SSM runs both ways: the causality row of
   the paper's Table 3).
 
-Each run lives in ``WORKDIR/<row>/`` (resumable: a rerun reuses finished
-rows). Writes the Markdown table to ``--out`` and the numbers to the same
+Each run lives in ``WORKDIR/<row>/`` (the config's seed) or
+``WORKDIR/<row>-seed<k>/`` (resumable: a rerun reuses finished runs). Writes the Markdown table to ``--out`` and the numbers to the same
 path with ``.json``.
 """
 
@@ -52,8 +53,8 @@ ROWS = {
 MAMBA_NAMES = {"S": "S-Mamba", "T": "T-Mamba", "T<->": "T-Mamba (bidirectional)", "-": "-"}
 
 
-def row_config(base: dict, row: str, steps: int) -> dict:
-  """The run config of one ablation row: ``base`` with the row's changes and ``steps``."""
+def row_config(base: dict, row: str, steps: int, seed: int | None = None) -> dict:
+  """The run config of one ablation row: ``base`` with the row's changes, ``steps`` and ``seed``."""
   from nlosjax.train import with_defaults
   *_, model, loss, optim = ROWS[row]
   cfg = copy.deepcopy(with_defaults(base))
@@ -63,29 +64,33 @@ def row_config(base: dict, row: str, steps: int) -> dict:
   tr["loss"] = {**tr.get("loss", {}), **loss}
   tr["optim"] = {**tr.get("optim", {}), **optim}
   tr["variants"] = ("ours",)
+  if seed is not None:
+    tr["seed"] = int(seed)
   return cfg
 
 
-def run_row(base: dict, row: str, steps: int, workdir: pathlib.Path) -> dict:
-  """Train (or resume) one row; per-frame scores on the val and test splits.
+def run_row(base: dict, row: str, steps: int, workdir: pathlib.Path, seed: int | None = None) -> dict:
+  """Train (or resume) one row with one seed; per-frame scores on the val and test splits.
 
-  Cached in ``workdir/row/score.json`` (reused when its steps match).
+  Cached in ``workdir/<row>[-seed<k>]/score.json`` (reused when its steps match).
   """
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
-  out = workdir / row
+  base_seed = int(base["train"].get("seed", 0))
+  seed = base_seed if seed is None else int(seed)
+  out = workdir / (row if seed == base_seed else f"{row}-seed{seed}")
   cached = out / "score.json"
   if cached.exists():
     saved = json.loads(cached.read_text())
     if saved.get("steps") == steps and "val" in saved:
       return saved
-  cfg = row_config(base, row, steps)
+  cfg = row_config(base, row, steps, seed)
   data_path = pathlib.Path(cfg["data"]["path"])
   T.ensure_dataset(cfg, data_path)
   t0 = time.perf_counter()
   mcfg, state = T.train_model(cfg, data_path, out, "ours", log=lambda s: None)
   train_s = time.perf_counter() - t0
-  result = {"row": row, "steps": steps, "train_s": round(train_s, 1)}
+  result = {"row": row, "seed": seed, "steps": steps, "train_s": round(train_s, 1)}
   for split in ("val", "test"):
     ev = protocol.evaluate(cfg, data_path, {"ours": (mcfg, state.params)}, split=split,
                            methods=(), log=lambda s: None)
@@ -98,14 +103,21 @@ def run_row(base: dict, row: str, steps: int, workdir: pathlib.Path) -> dict:
   return result
 
 
-def _scores(r: dict, split: str) -> tuple[dict, list]:
+def _scores(runs: list[dict], split: str) -> tuple[dict, list]:
+  """``metric -> [K, N]`` over a row's K seeds (the same frames), and the frames' sequences."""
   import numpy as np
-  d = r[split]
-  return {k: np.asarray(v, float) for k, v in d["scores"].items()}, d["sequence"]
+  seq = runs[0][split]["sequence"]
+  if any(r[split]["sequence"] != seq for r in runs):
+    raise ValueError("the seeds of a row were scored on different frames")
+  keys = runs[0][split]["scores"]
+  return {k: np.stack([np.asarray(r[split]["scores"][k], float) for r in runs]) for k in keys}, seq
 
 
 def summarise(results: dict) -> dict:
-  """Test-split summaries per row, paired differences row - ``full``, and the validation choices."""
+  """Test-split summaries per row, paired differences row - ``full``, and the validation choices.
+
+  ``results``: row -> list of per-seed results (:func:`run_row`), the same seeds in every row.
+  """
   from nlosjax.evaluation import scores
   out = {"test": {}, "vs_full": {}, "val": {}}
   ref = results.get("full")
@@ -139,10 +151,10 @@ def to_markdown(results: dict, summary: dict, cmd: str, steps: int, base: dict) 
       f"Budget of every row: Ours (3 frames), {steps} steps of batch {tr['batch_size']}, seed"
       f" {tr.get('seed', 0)}, AdamW lr {tr['optim'].get('learning_rate')} (cosine, warm-up"
       f" {tr['optim'].get('warmup_steps')}), the CPU preset's data (`{base['data']['path']}`) and"
-      f" model, the last checkpoint. Scored on the test split ({n['n_sequences']} sequences,"
-      f" {n['n_frames']} frames): mean [95 % bootstrap interval over sequences]; one training"
-      " seed per row, so the intervals cover the test scenes, not the training run. Differences"
-      " are paired with the full model on the same frames.",
+      f" model, the last checkpoint, {n['n_seeds']} training seed(s) per row. Scored on the test"
+      f" split ({n['n_sequences']} sequences, {n['n_frames'] // max(n['n_seeds'], 1)} frames):"
+      " mean [95 % bootstrap interval over sequences and seeds]. Differences are paired with"
+      " the full model seed by seed on the same frames. Train s: mean per seed.",
       "",
       "| row | Spatial | Temporal | L_pf | L_ls/tv | weight decay | PSNR (dB) ↑ | SSIM ↑ |"
       " object depth RMSE (m) ↓ | object recall ↑ | PSNR - full (dB) | recall - full | train s |",
@@ -156,10 +168,11 @@ def to_markdown(results: dict, summary: dict, cmd: str, steps: int, base: dict) 
     d = summary["vs_full"].get(row)
     dp = _cell(d["psnr"], 2, True) if d else "—"
     dr = _cell(d["recall"], 3, True) if d else "—"
+    train_s = sum(x["train_s"] for x in r) / len(r)
     lines.append(
         f"| {row} | {MAMBA_NAMES[first]} | {MAMBA_NAMES[second]} | {tick[pf]} | {tick[reg]} | {wd:g} |"
         f" {_cell(m['psnr'], 2)} | {_cell(m['ssim'], 3)} | {_cell(m['rmse_object'], 3)} |"
-        f" {_cell(m['recall'], 3)} | {dp} | {dr} | {r['train_s']:.0f} |")
+        f" {_cell(m['recall'], 3)} | {dp} | {dr} | {train_s:.0f} |")
     if d and stats.excludes_zero(d["psnr"]):
       called.append(f"{row} ({d['psnr']['mean']:+.2f} dB)")
   lines += ["", "Rows whose test PSNR differs from the full model's (interval excludes 0): "
@@ -177,6 +190,7 @@ def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--config", default="cpu")
   parser.add_argument("--steps", type=int, default=150)
+  parser.add_argument("--seeds", type=int, default=3, help="training seeds per row")
   parser.add_argument("--workdir", default="runs/ablations")
   parser.add_argument("--only", nargs="*", default=None, choices=list(ROWS))
   parser.add_argument("--out", default="benchmarks/results/table2.md")
@@ -187,12 +201,17 @@ def main(argv=None):
   base = with_defaults(load_config(args.config))
   rows = args.only or list(ROWS)
   workdir = pathlib.Path(args.workdir)
-  results = {}
-  for row in tqdm(rows, desc="ablations", unit="row"):
-    results[row] = run_row(base, row, args.steps, workdir)
-    import numpy as np
-    tqdm.write(f"{row}: test PSNR {np.mean(results[row]['test']['scores']['psnr']):.2f} dB "
-               f"({results[row]['train_s']:.0f} s)")
+  if args.seeds < 1:
+    parser.error(f"--seeds must be >= 1, got {args.seeds}")
+  import numpy as np
+  base_seed = int(base["train"].get("seed", 0))
+  jobs = [(row, base_seed + k) for k in range(args.seeds) for row in rows]  # seed by seed
+  results = {row: [] for row in rows}
+  for row, seed in tqdm(jobs, desc="ablations", unit="run"):
+    r = run_row(base, row, args.steps, workdir, seed)
+    results[row].append(r)
+    tqdm.write(f"{row} seed {seed}: test PSNR {np.mean(r['test']['scores']['psnr']):.2f} dB "
+               f"({r['train_s']:.0f} s)")
   cmd = "python -m benchmarks.ablations " + " ".join(sys.argv[1:] if argv is None else argv)
   summary = summarise(results)
   text = to_markdown(results, summary, cmd.strip(), args.steps, base)
