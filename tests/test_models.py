@@ -276,6 +276,33 @@ def test_volume_stage_physics_channel_is_the_physics_of_the_pooled_transient():
   np.testing.assert_allclose(got, ref, atol=1e-5 * ref.max(), rtol=1e-4)
 
 
+def test_softplus_volume_activation_keeps_gradients_where_relu_is_dead():
+  """Lower the output conv's bias until most columns are negative: under the ReLU clamp the
+  pixels they project to are 0 and pass the image loss no gradient (the dead columns seen in
+  training); under softplus the same pixels still do."""
+  setup = TINY.with_depth_range(0.08, 0.25)
+  x, dead, grads = None, None, {}
+  for act in ("relu", "softplus"):
+    stage = VolumeReconstruction(setup, time_stride=2, features=1, refine_width=2, activation=act)
+    a, b = stage.window()
+    if x is None:
+      x = jnp.asarray(point_scene(setup)[None, a:b])
+    params = stage.init(jax.random.key(3), x)
+    params["params"]["refine"]["to_volume"]["bias"] = jnp.full((1,), -0.9)
+    if dead is None:
+      dead = stage.apply(params, x)["intensity"] == 0
+      assert 0.3 < float(dead.mean()) < 1.0
+
+    def loss(p):
+      return jnp.sum(jnp.where(dead, stage.apply(p, x)["intensity"], 0.0))
+
+    g = jax.grad(loss)(params)
+    grads[act] = max(float(jnp.max(jnp.abs(v))) for v in jax.tree_util.tree_leaves(g))
+  assert grads["relu"] == 0.0 and grads["softplus"] > 1e-6, grads
+  with pytest.raises(ValueError, match="volume_activation"):
+    tiny_config(volume_activation="gelu")
+
+
 def test_soft_projection_matches_the_hard_projection_when_peaked():
   setup = Setup(0.5, (8, 8), 64e-12, 32)
   rng = np.random.default_rng(0)

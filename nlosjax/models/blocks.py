@@ -648,6 +648,10 @@ class Refinement(nn.Module):
     return _conv(1, (1, 1, 1), name="to_volume", **kw)(y)[..., 0].astype(jnp.float32)
 
 
+#: ``softplus(k x) / k`` of the "softplus" volume activation: ``log(2) / k = 0.035`` at 0.
+SOFTPLUS_SHARPNESS = 20.0
+
+
 class VolumeReconstruction(nn.Module):
   """Recovered transient -> hidden volume, intensity image and depth map (paper Sec. 4.3).
 
@@ -661,7 +665,9 @@ class VolumeReconstruction(nn.Module):
   3. Refinement (:class:`Refinement`): three times (3x3x3 conv to
      ``refine_width`` + LeakyReLU, one :class:`InterlacedResBlock` with
      dilations along depth), a 1x1x1 conv to one channel; plus the normalised
-     physics channel 0, clamped at 0.
+     physics channel 0, made non-negative by ``activation``: ``"relu"`` (clamp
+     at 0: a column pushed below 0 gets no gradient again) or ``"softplus"``
+     (``softplus(20 x) / 20``: within 0.035 of the clamp, gradients everywhere).
   With ``remat``, the extraction and the refinement are each recomputed as a
   whole in the backward pass (only their inputs are kept).
   4. The volume is interpolated linearly from the coarse depth grid to
@@ -701,6 +707,7 @@ class VolumeReconstruction(nn.Module):
   depth_softness: float = 0.02
   background_depth: float = 0.0
   remat: bool = False
+  activation: str = "relu"
   dtype: Any = jnp.float32
   param_dtype: Any = jnp.float32
 
@@ -741,7 +748,13 @@ class VolumeReconstruction(nn.Module):
     vol = vol / jnp.maximum(jnp.max(vol, axis=(1, 2, 3), keepdims=True), _TINY)
     refine = maybe_remat(Refinement, self.remat)
     y = refine(self.refine_width, self.dilations, name="refine", **kw)(vol)
-    coarse = jnp.maximum(y + vol[..., 0], 0.0)                   # [B, Zc, H, W]
+    coarse = y + vol[..., 0]                                     # [B, Zc, H, W]
+    if self.activation == "relu":
+      coarse = jnp.maximum(coarse, 0.0)
+    elif self.activation == "softplus":
+      coarse = jax.nn.softplus(SOFTPLUS_SHARPNESS * coarse) / SOFTPLUS_SHARPNESS
+    else:
+      raise ValueError(f"activation must be 'relu' or 'softplus', got {self.activation!r}")
     volume = resample_depth(coarse, self.coarse_setup, self.capture)
     intensity, depth = soft_projection(
         volume, self.capture.depths, temperature=self.depth_temperature,

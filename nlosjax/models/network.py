@@ -103,6 +103,9 @@ class ModelConfig:
     depth_temperature, depth_threshold, depth_softness, background_depth:
       the soft depth projection (:func:`~nlosjax.models.blocks.soft_projection`).
     remat: recompute block activations in the backward pass (less memory).
+    volume_activation: how the refined volume is made non-negative, "relu"
+      (the clamp) or "softplus" (smooth; no dead columns), see
+      :class:`~nlosjax.models.blocks.VolumeReconstruction`.
     dtype: activation dtype of the learned layers, "float32" or "bfloat16"
       (parameters, scan state, physics layer and outputs stay float32).
   """
@@ -141,6 +144,7 @@ class ModelConfig:
   background_depth: float = 0.0
   remat: bool = False
   dtype: str = "float32"
+  volume_activation: str = "relu"
 
   def __post_init__(self):
     if not isinstance(self.setup, Setup):
@@ -166,6 +170,9 @@ class ModelConfig:
     object.__setattr__(self, "dilations", tuple(self.dilations))
     if self.physics not in blocks.PHYSICS_METHODS:
       raise ValueError(f"ModelConfig.physics must be one of {blocks.PHYSICS_METHODS}, got {self.physics!r}")
+    if self.volume_activation not in ("relu", "softplus"):
+      raise ValueError("ModelConfig.volume_activation must be 'relu' or 'softplus',"
+                       f" got {self.volume_activation!r}")
     if self.input_norm not in INPUT_NORMS:
       raise ValueError(f"ModelConfig.input_norm must be one of {INPUT_NORMS}, got {self.input_norm!r}")
     dtype = self.dtype if isinstance(self.dtype, str) else jnp.dtype(self.dtype).name
@@ -274,7 +281,8 @@ class ModelConfig:
                 oversample=self.physics_oversample, chunk=self.physics_chunk,
                 depth_temperature=self.depth_temperature, depth_threshold=self.depth_threshold,
                 depth_softness=self.depth_softness, background_depth=self.background_depth,
-                remat=self.remat, dtype=self.activation_dtype)
+                remat=self.remat, activation=self.volume_activation,
+                dtype=self.activation_dtype)
 
   def check_frames(self, frames, name: str = "frames") -> None:
     """Raise ``ValueError`` naming the mismatch unless ``frames`` is ``[B, F, T, h, w]`` for this config."""
