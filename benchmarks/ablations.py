@@ -191,6 +191,12 @@ def to_markdown(results: dict, summary: dict, cmd: str, steps: int, base: dict) 
               f" difference {_cell(d, 2, True)} dB -> `{chosen}`"
               + (" (the interval excludes 0)." if chosen == "wd_0.95" else
                  " (the default 1e-4 stays: the interval includes 0).")]
+    preset_wd = tr["optim"].get("weight_decay")
+    chosen_wd = ROWS[chosen][6].get("weight_decay", preset_wd)
+    if chosen_wd != preset_wd:
+      lines += ["", f"The preset this table ran on still trains with weight decay {preset_wd:g}"
+                f" (`train.optim.weight_decay`); its Table 1 and main job do not yet use the"
+                f" validation choice {chosen_wd:g}."]
   lines.append("")
   return "\n".join(lines)
 
