@@ -132,7 +132,6 @@ def _shoelace(poly):
 
 
 def test_sampled_areas_match_closed_forms():
-  rng = np.random.default_rng(1)
   ident = np.eye(3)
   tex = {"name": "uniform", "albedo": 0.5}
 
@@ -157,7 +156,6 @@ def test_sampled_areas_match_closed_forms():
     got = surfaces.object_samples(obj("letter", {"char": char, "polygons": polys}), 0.004)
     assert got.area.sum() == pytest.approx(want, rel=0.03), char
     assert np.all(got.two_sided) and np.all(got.normals[:, 2] < 0)
-  del rng
 
 
 def test_materials_are_drawn_apart_from_the_scene():

@@ -455,16 +455,20 @@ def simulate_sequence(spec: DatasetSpec, split: str, index: int) -> dict:
   F = spec.frames
   clean = np.empty((F, T) + setup.grid, np.float32)
   albedo = np.empty((F, T) + setup.grid, np.float32) if spec.store_albedo else None
+  transport = spec.renderer == "transport"
+  if transport:  # every frame in one call: the objects are sampled once per sequence
+    from nlosjax.data import surfaces
+    clean[:] = surfaces.render_scene(scene, setup, retroreflective=spec.retroreflective)
   for start in range(0, F, spec.render_batch):
     stop = min(F, start + spec.render_batch)
+    if transport and albedo is None:
+      continue
     vol = maps.volume(setup, slice(start, stop))
     if albedo is not None:
       albedo[start:stop] = vol
-    if spec.renderer == "transport":
-      from nlosjax.data import surfaces
-      clean[start:stop] = surfaces.render_scene(scene, setup, frames=np.arange(start, stop),
-                                                retroreflective=spec.retroreflective)
-    elif np.any(vol[:, :k0]) or np.any(vol[:, k1:]):  # cannot happen for valid scenes
+    if transport:
+      continue
+    if np.any(vol[:, :k0]) or np.any(vol[:, k1:]):  # cannot happen for valid scenes
       clean[start:stop] = np.asarray(render(vol, setup, falloff=spec.falloff))
     else:
       clean[start:stop] = np.asarray(render(vol[:, k0:k1], gated, falloff=spec.falloff))

@@ -899,8 +899,8 @@ def rasterize(scene: Scene, setup: Setup, *, frames=None, objects=None,
   ray_albedo = np.zeros((F, ox.size))
   for n, f in enumerate(frames):
     hits = list(static_hits)
-    hits += [_cast(scene.posed(i, int(f)), scene.anchor(i, int(f)), ox, oy)
-             for i in objects if scene.objects[i].dynamic]
+    posed = [scene.posed(i, int(f)) for i in objects if scene.objects[i].dynamic]
+    hits += [_cast(o, o.anchor, ox, oy) for o in posed]
     for t, a in hits:
       nearer = t < ray_depth[n]
       ray_depth[n] = np.where(nearer, t, ray_depth[n])
