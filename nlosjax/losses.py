@@ -3,7 +3,8 @@
 ``L = L_m + beta L_v + gamma L_r`` with
 
 * ``L_m = L_pf + alpha1 L_t`` (measurement recovery),
-* ``L_v = L_int + alpha2 L_dep`` (volume reconstruction),
+* ``L_v = L_int + alpha2 L_dep`` (volume reconstruction; optionally ``+ w_obj L_obj``,
+  the intensity error over the true surface pixels, which the paper does not have),
 * ``L_r = L_ls + alpha3 L_tv`` (regularisation, as USM).
 
 Every term is computed per sample and averaged over the batch, so its weight
@@ -80,6 +81,34 @@ def intensity_loss(pred: jax.Array, target: jax.Array) -> jax.Array:
   return rmse_loss(pred, target)
 
 
+def object_intensity_loss(pred: jax.Array, target: jax.Array, target_depth: jax.Array,
+                          background_depth: float = 0.0) -> jax.Array:
+  """``L_obj = ||I - I_gt||_2`` over the true surface pixels only; not in the paper.
+
+  The whole-image ``L_int`` is dominated by background pixels, so a model
+  that leaves a dim or far object dark pays little for it. This term is the
+  per-sample RMSE over the pixels whose target depth is not
+  ``background_depth`` (a sample with none contributes 0), averaged over the
+  batch.
+
+  Args:
+    pred, target: ``[B, H, W]`` intensities.
+    target_depth: ``[B, H, W]`` metres; ``background_depth`` where empty.
+    background_depth: the target's empty-pixel depth (the dataset's, 0 m).
+  Returns:
+    scalar float32.
+  """
+  if not pred.shape == target.shape == target_depth.shape:
+    raise ValueError(f"pred {pred.shape}, target {target.shape} and target_depth "
+                     f"{target_depth.shape} differ in shape")
+  mask = (target_depth != background_depth).astype(jnp.float32)
+  d = (pred - target).astype(jnp.float32)
+  b = pred.shape[0]
+  num = jnp.sum((mask * d * d).reshape(b, -1), axis=1)
+  count = jnp.sum(mask.reshape(b, -1), axis=1)
+  return jnp.mean(jnp.sqrt(num / jnp.maximum(count, 1.0) + SQRT_EPS))
+
+
 def depth_loss(pred: jax.Array, target: jax.Array) -> jax.Array:
   """``L_dep = ||D - D_gt||_2`` in metres; ``[B, H, W]`` each."""
   return rmse_loss(pred, target)
@@ -153,6 +182,7 @@ class LossWeights:
   gamma: float = 1e-5      # regularisers
   intensity: float = 1.0   # scales L_int inside L_v (1 in the paper)
   local_similarity: float = 1.0   # scales L_ls inside L_r (1 in the paper)
+  object_intensity: float = 0.0   # L_int over true surface pixels, inside L_v (not in the paper)
 
   def __post_init__(self):
     for f in dataclasses.fields(self):
@@ -174,7 +204,7 @@ def total_loss(outputs: dict, targets: dict, weights: LossWeights,
       ``weights.phasor_field == 0``).
   Returns:
     ``(loss, terms)``: scalar float32 and a dict of the unweighted terms
-    that were computed (``pf, t, int, dep, ls, tv``) plus ``m, v, r``.
+    that were computed (``pf, t, int, obj, dep, ls, tv``) plus ``m, v, r``.
   """
   w = weights
   terms = {}
@@ -187,6 +217,9 @@ def total_loss(outputs: dict, targets: dict, weights: LossWeights,
     terms["t"] = transient_loss(outputs["transient"], targets["transient"])
   if w.beta and w.intensity:
     terms["int"] = intensity_loss(outputs["intensity"], targets["intensity"])
+  if w.beta and w.object_intensity:
+    terms["obj"] = object_intensity_loss(outputs["intensity"], targets["intensity"],
+                                         targets["depth"])
   if w.beta and w.alpha2:
     terms["dep"] = depth_loss(outputs["depth"], targets["depth"])
   if w.gamma and w.local_similarity:
@@ -195,7 +228,8 @@ def total_loss(outputs: dict, targets: dict, weights: LossWeights,
     terms["tv"] = tv_loss(outputs["volume"])
   g = terms.get
   terms["m"] = w.phasor_field * g("pf", zero) + w.alpha1 * g("t", zero)
-  terms["v"] = w.intensity * g("int", zero) + w.alpha2 * g("dep", zero)
+  terms["v"] = (w.intensity * g("int", zero) + w.alpha2 * g("dep", zero)
+                + w.object_intensity * g("obj", zero))
   terms["r"] = w.local_similarity * g("ls", zero) + w.alpha3 * g("tv", zero)
   loss = terms["m"] + w.beta * terms["v"] + w.gamma * terms["r"]
   return loss, terms

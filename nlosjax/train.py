@@ -436,9 +436,14 @@ def run_signature(mcfg, params, optim: OptimConfig, weights: losses.LossWeights,
 
   The model config, the parameter tree (:func:`param_fingerprint`), the
   optimiser, the loss weights, the batch size and the seed, as sorted JSON.
+  A loss weight added after the first release is left out at its default of
+  0, so checkpoints trained before it existed still resume.
   """
+  loss = dataclasses.asdict(weights)
+  if loss.get("object_intensity") == 0.0:
+    del loss["object_intensity"]
   return json.dumps({"model": repr(mcfg), "params": param_fingerprint(params),
-                     "optim": dataclasses.asdict(optim), "loss": dataclasses.asdict(weights),
+                     "optim": dataclasses.asdict(optim), "loss": loss,
                      "batch_size": int(batch_size), "seed": int(seed)}, sort_keys=True)
 
 

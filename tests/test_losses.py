@@ -58,6 +58,30 @@ def test_tv_is_the_per_sample_sum_of_absolute_differences():
   assert got == pytest.approx(ref, rel=1e-4)
 
 
+def test_object_intensity_is_the_rmse_over_true_surface_pixels_by_a_loop():
+  pred, tgt = RNG.uniform(size=(3, 5, 4)), RNG.uniform(size=(3, 5, 4))
+  depth = np.where(RNG.uniform(size=(3, 5, 4)) < 0.4, 0.0, 0.8)
+  depth[2] = 0.0                                   # a sample with no object contributes 0
+  per_sample = []
+  for b in range(3):
+    errs = [(pred[b, i, j] - tgt[b, i, j]) ** 2 for i in range(5) for j in range(4)
+            if depth[b, i, j] != 0.0]
+    per_sample.append(np.sqrt(np.mean(errs)) if errs else 0.0)
+  got = losses.object_intensity_loss(jnp.asarray(pred), jnp.asarray(tgt), jnp.asarray(depth))
+  assert float(got) == pytest.approx(np.mean(per_sample), rel=1e-5, abs=1e-5)
+  # Background errors do not count; inside total_loss the term enters L_v with its weight.
+  far = pred.copy()
+  far[depth == 0.0] += 5.0
+  assert float(losses.object_intensity_loss(jnp.asarray(far), jnp.asarray(tgt),
+                                            jnp.asarray(depth))) == pytest.approx(float(got), rel=1e-5)
+  out, t = _batch(), _batch()
+  w = losses.LossWeights(phasor_field=0.0, alpha1=0.0, gamma=0.0, object_intensity=2.0)
+  loss, terms = losses.total_loss(out, t, w, None)
+  assert float(loss) == pytest.approx(float(terms["int"] + terms["dep"] + 2.0 * terms["obj"]), rel=1e-6)
+  g = jax.grad(lambda i: losses.object_intensity_loss(i, i, jnp.zeros((2, 3))))(jnp.ones((2, 3)))
+  assert np.all(np.isfinite(np.asarray(g)))
+
+
 def test_total_loss_does_not_depend_on_batch_size_and_composes_as_the_paper():
   wl = illumination_wavelet(SETUP)
   out, tgt = _batch(1), _batch(1)
