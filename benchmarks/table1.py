@@ -24,6 +24,18 @@ import sys
 import time
 
 
+def _main_job_line() -> str:
+  """Where the README's main job stands against its budget (``benchmarks/results/main_job.json``)."""
+  from benchmarks.main_job import read_time
+  t = read_time()
+  if t is None:
+    return "- The main job from a fresh clone: not measured (`python -m benchmarks.main_job`)"
+  return (f"- The main job (README command 1, 1 seed) from a fresh clone: {t['main_job_s']:.0f} s "
+          f"= {t['main_job_s'] / 60:.1f} min of its {t['budget_s'] // 60}-minute budget, at commit "
+          f"{t['commit']} on {t['date'][:10]}, load {t['load_before']} before "
+          "(`python -m benchmarks.main_job`, `benchmarks/results/main_job.md`)")
+
+
 def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--config", default="cpu")
@@ -49,7 +61,8 @@ def main(argv=None):
   head = [f"# Table 1 at the `{args.config}` preset, {args.seeds} training seed(s)", ""]
   head += facts
   head += [f"- Wall time of this command: {(time.perf_counter() - t0) / 60:.1f} min "
-           "(a rerun reuses finished models)", ""]
+           "(a rerun reuses finished models)"]
+  head += [_main_job_line(), ""]
   out.write_text("\n".join(head) + "\n" + (results / "table.md").read_text())
   bundle = {name: json.loads((results / f"{name}.json").read_text())
             for name in ("table", "comparisons", "validation")}
