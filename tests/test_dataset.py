@@ -22,12 +22,19 @@ from nlosjax.physics import Setup, render_points
 from nlosjax.physics.noise import jitter_kernel
 
 # Tiny capture: 16 x 16 on a 2 m wall, 64 bins of 264 ps (2.53 m of depth, as the presets).
+# The light-cone renderer: these tests check the fast path against brute-force loops of its
+# own model (tests/test_transport.py covers the transport renderer the cpu preset uses).
 TINY = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, num_train=3, num_test=1, num_val=0,
-            store_albedo=True, render_batch=4)
+            store_albedo=True, render_batch=4, renderer="lct", retroreflective=0.0,
+            photons=(1e3, 1e4))
+# Helix motion, no spin, the default albedo range: what the trajectory tests check.
+SCENE = {**configs.get_config("cpu")["data"]["scene"], "albedo_range": (0.5, 1.0),
+         "motions": ("helix",), "spin_speed": (0.0, 0.0)}
 
 
 def tiny_spec(**overrides):
-  return D.DatasetSpec.from_config(configs.get_config("cpu")["data"], **{**TINY, **overrides})
+  return D.DatasetSpec.from_config({**configs.get_config("cpu")["data"], "scene": SCENE},
+                                   **{**TINY, **overrides})
 
 
 @pytest.fixture(scope="module")
@@ -159,7 +166,7 @@ def test_noise_mean_of_many_draws_is_efficiency_budget_clean_plus_background():
   spec = tiny_spec(frames=48, num_train=1, num_test=0, efficiency=(0.2, 0.2),
                    photons=(3000.0, 3000.0), ambient=(64.0, 64.0), dark_counts=3.2, jitter=fwhm,
                    store_albedo=False, render_batch=16,
-                   scene={**configs.get_config("cpu")["data"]["scene"], "helix_speed": (0.0, 0.0)})
+                   scene={**SCENE, "helix_speed": (0.0, 0.0)})
   seq = D.simulate_sequence(spec, "train", 0)
   a, attrs = seq["arrays"], seq["attrs"]
   clean = a["clean"].astype(np.float64)

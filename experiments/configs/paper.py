@@ -23,6 +23,11 @@ def get_config() -> dict:
       "frames": 32,
       "num_sequences": {"train": 232, "val": 16, "test": 17},
       "store_clean": False,
+      # The light-cone renderer: the transport renderer the cpu preset trains on costs about
+      # 8x as much per frame at 32 x 32 and grows with scan points x surface samples, i.e.
+      # days for 265 x 32 frames at 128 x 128 on a CPU (benchmarks/results/data.md).
+      "renderer": "lct",
+      "retroreflective": 0.0,
       "render_batch": 4,
       "loader": {"ends": "valid", "target": "measurement", "in_memory": False, "prefetch": 4},
       "path": "runs/data/paper.h5",
