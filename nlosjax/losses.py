@@ -184,6 +184,18 @@ class LossWeights:
   local_similarity: float = 1.0   # scales L_ls inside L_r (1 in the paper)
   object_intensity: float = 0.0   # L_int over true surface pixels, inside L_v (not in the paper)
 
+  #: Weights added after checkpoints were first written, with their defaults.
+  _LATER_FIELDS = {"object_intensity": 0.0}
+
+  def to_dict(self) -> dict:
+    """The weights as a dict; a weight added later is absent at its default, so a
+    checkpoint's recorded settings from before it existed still match."""
+    d = dataclasses.asdict(self)
+    for name, default in self._LATER_FIELDS.items():
+      if d[name] == default:
+        d.pop(name)
+    return d
+
   def __post_init__(self):
     for f in dataclasses.fields(self):
       v = getattr(self, f.name)

@@ -435,15 +435,12 @@ def run_signature(mcfg, params, optim: OptimConfig, weights: losses.LossWeights,
   """What a checkpoint must have been trained with to be resumed or restored.
 
   The model config, the parameter tree (:func:`param_fingerprint`), the
-  optimiser, the loss weights, the batch size and the seed, as sorted JSON.
-  A loss weight added after the first release is left out at its default of
-  0, so checkpoints trained before it existed still resume.
+  optimiser, the loss weights (:meth:`~nlosjax.losses.LossWeights.to_dict`:
+  a weight added later is absent at its default, so older checkpoints still
+  resume), the batch size and the seed, as sorted JSON.
   """
-  loss = dataclasses.asdict(weights)
-  if loss.get("object_intensity") == 0.0:
-    del loss["object_intensity"]
   return json.dumps({"model": repr(mcfg), "params": param_fingerprint(params),
-                     "optim": dataclasses.asdict(optim), "loss": loss,
+                     "optim": dataclasses.asdict(optim), "loss": weights.to_dict(),
                      "batch_size": int(batch_size), "seed": int(seed)}, sort_keys=True)
 
 
