@@ -20,16 +20,15 @@ from nlosjax.data import dataset as D
 from nlosjax.data import scenes
 from nlosjax.physics import Setup, render_points
 from nlosjax.physics.noise import jitter_kernel
+from tests.tiny_run import LCT_DATA, LCT_SCENE
 
 # Tiny capture: 16 x 16 on a 2 m wall, 64 bins of 264 ps (2.53 m of depth, as the presets).
-# The light-cone renderer: these tests check the fast path against brute-force loops of its
-# own model (tests/test_transport.py covers the transport renderer the cpu preset uses).
+# The light-cone renderer and helix scenes: these tests check the fast path against
+# brute-force loops of its own model and the stored helix trajectory
+# (tests/test_transport.py covers the transport renderer the cpu preset uses).
 TINY = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, num_train=3, num_test=1, num_val=0,
-            store_albedo=True, render_batch=4, renderer="lct", retroreflective=0.0,
-            photons=(1e3, 1e4))
-# Helix motion, no spin, the default albedo range: what the trajectory tests check.
-SCENE = {**configs.get_config("cpu")["data"]["scene"], "albedo_range": (0.5, 1.0),
-         "motions": ("helix",), "spin_speed": (0.0, 0.0)}
+            store_albedo=True, render_batch=4, **LCT_DATA)
+SCENE = {**configs.get_config("cpu")["data"]["scene"], **LCT_SCENE}
 
 
 def tiny_spec(**overrides):
