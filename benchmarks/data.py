@@ -99,7 +99,8 @@ def bench_cpu(n_seq, repeats, workdir, renderer="lct"):
   full = D.DatasetSpec.from_config(data, renderer=renderer, **materials)
   total = full.num_sequences
   preset = data.get("renderer", "lct") == renderer
-  rows = {"preset": f"cpu, {renderer} renderer" + (" (the preset's)" if preset else ""), "setup": spec.setup, "frames": spec.frames, "clean": spec.store_clean,
+  rows = {"preset": f"cpu, {renderer} renderer" + (" (the preset's)" if preset else ""),
+          "renderer": renderer, "setup": spec.setup, "frames": spec.frames, "clean": spec.store_clean,
           "cold_s": cold, "warm_s": warm, "seq_per_min": 60 / warm,
           "preset_minutes": (cold + warm * (total - 1)) / 60, "preset_sequences": total,
           "measured": f"{n_seq} sequences", "mib_per_seq": path.stat().st_size / 2 ** 20 / n_seq}
@@ -177,9 +178,9 @@ def render(results, args) -> str:
                  f" {r['disk'][1]} | {r['disk'][0]:.0f} | {3 * r['disk'][0]:.0f} | {r['memory'][0]:.0f} |"
                  f" {r['memory'][2]:.2f} |")
   lines += ["", "Notes (numbers from the tables above):", ""]
-  by = {r["preset"].split(" (")[0]: r for r in results}
-  if "cpu, lct renderer" in by and "cpu, transport renderer" in by:
-    a, b = by["cpu, lct renderer"], by["cpu, transport renderer"]
+  by = {r["renderer"]: r for r in results if "renderer" in r}
+  if "lct" in by and "transport" in by:
+    a, b = by["lct"], by["transport"]
     lines.append(
         f"- The transport renderer (`renderer=\"transport\"`: whole surfaces, exact paths, cosines,"
         f" per-scan-point visibility) costs {b['warm_s'] / a['warm_s']:.0f}x the LCT renderer per"

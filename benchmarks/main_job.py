@@ -20,6 +20,7 @@ them.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
 import pathlib
@@ -60,6 +61,7 @@ def main(argv=None):
   if "+changes" in commit:
     raise SystemExit("uncommitted edits to tracked code: commit them first (the clone would not have them)")
   cmd = "python -m benchmarks.main_job " + " ".join(sys.argv[1:] if argv is None else argv)
+  date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
   facts = provenance(cmd.strip())
   load_before = load_average(", ")
   tmp = None
@@ -94,7 +96,7 @@ def main(argv=None):
   out.parent.mkdir(parents=True, exist_ok=True)
   out.write_text("\n".join(lines))
   out.with_suffix(".json").write_text(json.dumps(
-      {"commit": commit, "date": facts[2].split(": ", 1)[1], "install_s": round(install_s, 1),
+      {"commit": commit, "date": date, "install_s": round(install_s, 1),
        "main_job_s": round(job_s, 1), "budget_s": BUDGET_S, "load_before": load_before,
        "load_after": load_after}, indent=2) + "\n")
   if tmp is not None:
