@@ -420,3 +420,43 @@ def test_model_summary_counts_params_without_allocating():
   assert s["output_shapes"]["transient"] == (1, 32, 8, 8)
   s1 = model_summary(cfg.replace(frames=1))
   assert s1["params"] < s["params"] and s1["flops"] < s["flops"]
+
+
+def test_weighted_skip_is_the_softmax_mix_of_the_frames():
+  """With the learned path of the spreading stage switched off, the recovered transient (in
+  counts) is ``gain * interp(skip)``; so a "weighted" model fed frames ``x_f`` must give what
+  a "middle" model with the same weights gives when fed three copies of ``sum_f w_f x_f``,
+  ``w = softmax(logits)``. A wrong axis, a missing softmax or a skip that ignores the
+  neighbours breaks the equality; the gradient must reach the logits."""
+  cfg = tiny_config(skip_frames="weighted")
+  x = counts(jax.random.key(0), cfg.input_shape(2), rate=2.0)
+  model = STMambaNet(cfg)
+  params = jax.jit(model.init)(jax.random.key(1), x)["params"]
+  assert params["skip_frame_logits"].shape == (3,)
+  params["skip_frame_logits"] = jnp.log(jnp.array([1.0, 2.0, 1.0]))   # w = (1/4, 1/2, 1/4)
+  params["spread"]["to_transient"] = jax.tree_util.tree_map(jnp.zeros_like,
+                                                            params["spread"]["to_transient"])
+  out = model.apply({"params": params}, x)
+  mixed = 0.25 * x[:, 0] + 0.5 * x[:, 1] + 0.25 * x[:, 2]
+  middle = STMambaNet(cfg.replace(skip_frames="middle"))
+  p_mid = {k: v for k, v in params.items() if k != "skip_frame_logits"}
+  ref = middle.apply({"params": p_mid}, jnp.stack([mixed] * 3, axis=1))
+  got = out["transient"] * out["scale"][:, None, None, None]
+  want = ref["transient"] * ref["scale"][:, None, None, None]
+  np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * float(jnp.max(want)))
+
+  def loss(logits):
+    o = model.apply({"params": {**params, "skip_frame_logits": logits}}, x)
+    return jnp.sum(o["transient"] ** 2)
+
+  assert float(jnp.max(jnp.abs(jax.grad(loss)(params["skip_frame_logits"])))) > 0.0
+
+
+def test_weighted_skip_of_one_frame_is_the_middle_frame():
+  single = tiny_config(frames=1, skip_frames="weighted")
+  x = counts(jax.random.key(2), single.input_shape(1))
+  p_w = STMambaNet(single).init(jax.random.key(3), x)["params"]
+  p_m = STMambaNet(single.replace(skip_frames="middle")).init(jax.random.key(3), x)["params"]
+  assert jax.tree_util.tree_structure(p_w) == jax.tree_util.tree_structure(p_m)
+  with pytest.raises(ValueError, match="skip_frames"):
+    tiny_config(skip_frames="mean")

@@ -14,7 +14,10 @@ Pipeline for a batch of ``F`` adjacent under-scanned frames ``[B, F, T, h, w]``
    target (own weights per neighbour offset); enhanced = target + mean of the
    aligned features;
 3. :class:`~nlosjax.models.blocks.TransientSpreading` -> recovered transient on
-   the full grid (zero outside the time window);
+   the full grid (zero outside the time window); its skip is the measured
+   middle frame (``skip_frames="middle"``) or a learned convex combination of
+   all ``F`` frames (``"weighted"``: softmax weights, uniform at init, so the
+   neighbours' photons reach the output directly);
 4. :class:`~nlosjax.models.blocks.VolumeReconstruction` (feature extraction,
    physics layer on the model's Setup, refinement) -> volume, intensity, depth.
 
@@ -43,6 +46,7 @@ from nlosjax.physics.setup import Setup
 from nlosjax.ssm import resolve_method
 
 INPUT_NORMS = ("rms", "mean", "max")
+SKIP_FRAMES = ("middle", "weighted")
 DTYPES = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}
 
 
@@ -108,6 +112,11 @@ class ModelConfig:
       :class:`~nlosjax.models.blocks.VolumeReconstruction`.
     dtype: activation dtype of the learned layers, "float32" or "bfloat16"
       (parameters, scan state, physics layer and outputs stay float32).
+    skip_frames: the measured transient skipped into the spreading stage:
+      "middle" (the target frame's counts) or "weighted" (``sum_f w_f x_f``
+      over the ``F`` normalised frames, ``w = softmax(skip_frame_logits)``,
+      a learned ``[F]`` parameter initialised to zeros, i.e. the frames'
+      mean; with ``F = 1`` both are the middle frame and add no parameter).
   """
 
   setup: Setup
@@ -145,6 +154,7 @@ class ModelConfig:
   remat: bool = False
   dtype: str = "float32"
   volume_activation: str = "relu"
+  skip_frames: str = "middle"
 
   def __post_init__(self):
     if not isinstance(self.setup, Setup):
@@ -173,6 +183,8 @@ class ModelConfig:
     if self.volume_activation not in ("relu", "softplus"):
       raise ValueError("ModelConfig.volume_activation must be 'relu' or 'softplus',"
                        f" got {self.volume_activation!r}")
+    if self.skip_frames not in SKIP_FRAMES:
+      raise ValueError(f"ModelConfig.skip_frames must be one of {SKIP_FRAMES}, got {self.skip_frames!r}")
     if self.input_norm not in INPUT_NORMS:
       raise ValueError(f"ModelConfig.input_norm must be one of {INPUT_NORMS}, got {self.input_norm!r}")
     dtype = self.dtype if isinstance(self.dtype, str) else jnp.dtype(self.dtype).name
@@ -414,11 +426,20 @@ class STMambaNet(nn.Module):
     spread = blocks.TransientSpreading(cfg.setup.grid, cfg.stride, cfg.extract_time_stride,
                                        cfg.spread_min_width, remat=cfg.remat, dtype=dtype,
                                        name="spread")
-    transient_w = spread(target, x[:, mid])                       # [B, Tw, H, W]
+    transient_w = spread(target, self._skip(x))                    # [B, Tw, H, W]
     out = blocks.VolumeReconstruction(**cfg.volume_kwargs(), name="volume")(transient_w)
     transient = jnp.pad(transient_w, ((0, 0), (a, T - b), (0, 0), (0, 0)))
     return {"transient": transient, "volume": out["volume"], "intensity": out["intensity"],
             "depth": out["depth"], "scale": scale}
+
+
+  def _skip(self, x):
+    """The measured transient of the spreading stage's skip: ``[B, F, Tw, h, w] -> [B, Tw, h, w]``."""
+    F = x.shape[1]
+    if self.config.skip_frames == "middle" or F == 1:
+      return x[:, F // 2]
+    logits = self.param("skip_frame_logits", nn.initializers.zeros, (F,), jnp.float32)
+    return jnp.einsum("f,bfthw->bthw", jax.nn.softmax(logits), x)
 
 
 # ------------------------------------------------------------------ summary
