@@ -1,12 +1,13 @@
 """Evaluate a trained run on test sequences made by an independent generator.
 
     python -m benchmarks.independent_test [--checkpoint runs/default] [--sequences 8]
-        [--frames 8] [--seed 2026] [--data runs/data/independent-cpu.h5]
+        [--frames 8] [--seed 2026] [--data PATH]
         [--out benchmarks/results/table1_independent.md]
 
 The test file comes from :mod:`experiments.independent_set` (other shapes and
 motions, a per-point renderer with exact distances, its own noise code; no
-code shared with the training generator), written if absent. The main job
+code shared with the training generator), written if absent; ``--data``
+defaults to the run config's ``independent.path``. The main job
 scores its own models on the same set (``results/table1_independent.md`` in
 its workdir); this script scores any run's checkpoints and every classic
 method (:func:`nlosjax.evaluation.protocol.evaluate`; classic settings as the
@@ -30,7 +31,8 @@ def main(argv=None):
   parser.add_argument("--sequences", type=int, default=8)
   parser.add_argument("--frames", type=int, default=8)
   parser.add_argument("--seed", type=int, default=2026)
-  parser.add_argument("--data", default="runs/data/independent-cpu.h5")
+  parser.add_argument("--data", default=None,
+                      help="independent set (default: the run config's independent.path)")
   parser.add_argument("--out", default="benchmarks/results/table1_independent.md")
   args = parser.parse_args(argv)
   from nlosjax import checkpoints_io
@@ -41,11 +43,14 @@ def main(argv=None):
   config, trained = checkpoints_io.load_run(args.checkpoint)
   config = T.with_defaults(config)
   from experiments.independent_set import ensure_independent_set
-  data = ensure_independent_set(args.data, config["data"], args.sequences, args.frames, args.seed)
+  path = args.data or (config.get("independent") or {}).get("path", "runs/data/independent-cpu.h5")
+  data = ensure_independent_set(path, config["data"], args.sequences, args.frames, args.seed)
   chosen = pathlib.Path(args.checkpoint) / "results" / "validation.json"
   choices = json.loads(chosen.read_text()) if chosen.exists() else {}
   settings, best = choices.get("classic", {}), choices.get("best_classic")
-  evaluation = protocol.evaluate(config, data, trained, classic_settings=settings)
+  thresholds = {v: c["threshold"] for v, c in choices.get("learned", {}).items()}
+  evaluation = protocol.evaluate(config, data, trained, classic_settings=settings,
+                                 model_thresholds=thresholds)
   table, comparisons = protocol.tabulate(evaluation, best_classic_method=best)
   cmd = "python -m benchmarks.independent_test " + " ".join(sys.argv[1:] if argv is None else argv)
   where = (f"the settings the run chose on its validation split (`{chosen}`)" if settings

@@ -13,7 +13,8 @@ moved to the file's Setup (same parameters, physics layer rebuilt) and the
 classic methods get the under-scanned input interpolated to the full grid,
 as in the paper, with the settings the run chose on its validation split
 (``WORKDIR/results/validation.json``; defaults when the run has none, or
-``--retune`` to choose them on this file's ``val`` split). Prints the table
+``--retune`` to choose them on this file's ``val`` split); the learned
+models' surface thresholds come from the same place. Prints the table
 and writes ``OUT/table.md``, ``OUT/table.json`` (method -> metric ->
 ``{"mean", "ci95", "std", "n_sequences", "n_frames", "n_seeds"}``; intervals
 over sequences), ``OUT/comparisons.json`` and ``OUT/comparison.png``.
@@ -64,21 +65,25 @@ def main(argv=None) -> dict:
     workdir, _, _ = checkpoints_io.find_checkpoints(args.checkpoint)
     chosen = workdir / "results" / "validation.json"
     settings, best, source = {}, None, "defaults (the run chose none)"
+    thresholds = {}
     if args.retune:
       batch = int(config["train"]["eval_batch_size"])
       val = protocol.load_split(config, data, "val", batch_size=batch)
       val["loader"].close()
       settings = baselines.tune(val["measurement"], val["intensity"], val["depth"], val["setup"],
                                 val["stride"], methods=classic, batch_size=batch)
+      thresholds = {v: c["threshold"] for v, c in
+                    protocol.tune_model_thresholds(config, data, trained).items()}
       source = f"chosen on the val split of `{data}`"
     elif chosen.exists():
       run_choices = json.loads(chosen.read_text())
       settings, best = run_choices.get("classic", {}), run_choices.get("best_classic")
+      thresholds = {v: c["threshold"] for v, c in run_choices.get("learned", {}).items()}
       source = f"chosen on the run's validation split (`{chosen}`)"
     if settings and best is None:
       best = max(settings, key=lambda m: settings[m]["psnr"])
     evaluation = protocol.evaluate(config, data, trained, split=args.split, methods=classic,
-                                   classic_settings=settings)
+                                   classic_settings=settings, model_thresholds=thresholds)
     table, comparisons = protocol.tabulate(
         evaluation, best_classic_method=best if best in classic else None)
   except ValueError as e:

@@ -7,8 +7,10 @@
    :func:`nlosjax.train.train_model`), choosing the checkpoint on validation
    where ``train.select_checkpoint == "val"``.
 3. On the **validation** split: tune every classic method
-   (:func:`nlosjax.evaluation.baselines.tune`) and pick the best classic
-   method (validation intensity PSNR).
+   (:func:`nlosjax.evaluation.baselines.tune`), pick the best classic
+   method (validation intensity PSNR), and choose each learned variant's
+   surface threshold by the same F1 rule as the classic methods'
+   (:func:`nlosjax.evaluation.protocol.tune_model_thresholds`).
 4. On the **test** split, once: every method, per frame; the table (mean,
    95 % interval over sequences and seeds) and the paired comparisons Ours -
    Ours-S and learned - best classic.
@@ -85,10 +87,12 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
   log("validation: tuning the classic methods ...")
   settings = _tune_classic(config, data_path, log)
   best = max(settings, key=lambda m: settings[m]["psnr"])
+  learned = protocol.tune_model_thresholds(config, data_path, trained, log=log)
+  thresholds = {v: c["threshold"] for v, c in learned.items()}
   validation = {"split": "val", "classic": settings, "best_classic": best,
-                "checkpoints": checkpoints}
+                "learned": learned, "checkpoints": checkpoints}
   evaluation = protocol.evaluate(config, data_path, trained, split="test",
-                                 classic_settings=settings, log=log)
+                                 classic_settings=settings, model_thresholds=thresholds, log=log)
   table, comparisons = protocol.tabulate(evaluation, best_classic_method=best)
   n_frames = evaluation["n_frames"]
   n_seq = len(set(evaluation["sequence"].tolist()))
@@ -101,7 +105,8 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
                          caption=caption, validation=validation, logs=logs)
   for name, path in (extra_test_sets or {}).items():
     log(f"extra test set {name}: {path} ...")
-    ev = protocol.evaluate(config, path, trained, split="test", classic_settings=settings, log=log)
+    ev = protocol.evaluate(config, path, trained, split="test", classic_settings=settings,
+                           model_thresholds=thresholds, log=log)
     t, c = protocol.tabulate(ev, best_classic_method=best)
     n_seq = len(set(ev["sequence"].tolist()))
     protocol.write_results(

@@ -19,7 +19,7 @@ def data_path(tmp_path_factory):
 
 
 def test_main_job_writes_table_and_figures(data_path, tmp_path):
-  from nlosjax.evaluation import report, scores
+  from nlosjax.evaluation import protocol, report, scores
   from nlosjax.main_job import train_and_evaluate
   cfg = tiny_config(data_path, steps=2, seeds=2, select_checkpoint="val", keep_checkpoints=2,
                     checkpoint_every=1)
@@ -42,6 +42,10 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
   assert [(c["a"], c["b"]) for c in comparisons] == [("ours", "ours_s"), ("ours", best), ("ours_s", best)]
   assert set(validation["classic"]) == {"fbp", "lct", "fk", "phasor", "rsd"}
   assert set(validation["checkpoints"]) == {"ours_s", "ours_s-seed1", "ours", "ours-seed1"}
+  for c in validation["learned"].values():          # surface threshold chosen by validation F1
+    assert c["threshold"] in protocol.MODEL_THRESHOLDS
+    assert c["f1"] == max(c["f1_by_threshold"].values())
+  assert set(validation["learned"]) == {"ours_s", "ours"}
   for c in validation["checkpoints"].values():      # both kept steps scored on validation
     assert sorted(int(k) for k in c["val_psnr"]) == [1, 2] and c["step"] in (1, 2)
   text = (tmp_path / "results" / "table.md").read_text()
@@ -119,6 +123,6 @@ def test_train_cli_seeds_flag_sets_the_config(monkeypatch):
   assert seen["config"]["train"]["seeds"] == 3 and seen["config"]["train"]["steps"] == 5
   assert seen["workdir"] == "runs/x"
   # The CPU preset scores its models on the independent set too.
-  assert seen["extra_test_sets"] == {"independent": "runs/data/independent-cpu.h5"}
+  assert seen["extra_test_sets"] == {"independent": "runs/data/independent-cpu-v3.h5"}
   with pytest.raises(SystemExit):
     cli.main(["--seeds", "0"])

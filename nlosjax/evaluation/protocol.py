@@ -27,8 +27,14 @@ import numpy as np
 
 from nlosjax.evaluation import baselines, figures, report, scores
 
-__all__ = ["load_split", "model_images", "validation_psnr", "evaluate", "tabulate",
-           "best_classic", "write_results"]
+__all__ = ["load_split", "model_images", "validation_psnr", "surface_cut", "choose_surface_threshold",
+           "tune_model_thresholds",
+           "evaluate", "tabulate", "best_classic", "write_results"]
+
+#: Surface thresholds tried for a learned model on validation: 0 keeps the model's own depth
+#: map (its soft projection already sets pixels below its ``depth_threshold`` to background),
+#: the rest are the classic methods' candidates.
+MODEL_THRESHOLDS = (0.0,) + tuple(baselines.THRESHOLDS)
 
 
 def load_split(config: dict, data_path, split: str, *, batch_size: int) -> dict:
@@ -93,9 +99,75 @@ def validation_psnr(config: dict, data_path, *, split: str = "val") -> Callable:
   return score
 
 
+def surface_cut(intensity, depth, threshold: float) -> np.ndarray:
+  """``depth`` with every pixel whose ``intensity`` is below ``threshold`` set to background (0 m).
+
+  The rule :func:`nlosjax.physics.intensity_depth` applies to the classic
+  methods (intensity normalised to a peak of 1), applied to a learned
+  model's output. ``intensity``, ``depth``: ``[..., H, W]``; threshold 0
+  returns ``depth`` unchanged.
+  """
+  depth = np.asarray(depth)
+  if threshold <= 0:
+    return depth
+  return np.where(np.asarray(intensity) >= threshold, depth, 0.0).astype(depth.dtype)
+
+
+def _as_seeds(models) -> list:
+  return [models] if isinstance(models, tuple) else list(models)
+
+
+def tune_model_thresholds(config: dict, data_path, trained: dict, *, split: str = "val",
+                          thresholds=MODEL_THRESHOLDS, log: Callable[[str], None] = print) -> dict:
+  """Each learned variant's surface threshold, chosen on ``split`` as for the classic methods.
+
+  The threshold (:func:`surface_cut` of the model's intensity and depth) with
+  the highest mean surface F1 over the split's frames and the variant's
+  seeds wins; ties keep the earlier candidate (0 first: the model as it is).
+
+  Args:
+    config, data_path, trained: as :func:`evaluate`.
+    thresholds: candidates (fractions of the peak intensity).
+  Returns:
+    ``variant -> {"threshold": float, "f1": float, "f1_by_threshold": {str(th): float}}``.
+  """
+  batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
+  data = load_split(config, data_path, split, batch_size=batch_size)
+  out = {}
+  try:
+    for variant, models in trained.items():
+      ims = [model_images(mcfg, params, data["loader"]) for mcfg, params in _as_seeds(models)]
+      out[variant] = choose_surface_threshold(ims, data["depth"], thresholds)
+      log(f"[tune] {variant}: surface threshold {out[variant]['threshold']} "
+          f"(validation surface F1 {out[variant]['f1']:.3f})")
+  finally:
+    data["loader"].close()
+  return out
+
+
+def choose_surface_threshold(images: list[dict], gt_depth, thresholds=MODEL_THRESHOLDS) -> dict:
+  """The threshold with the best mean surface F1 over frames and seeds (ties: the earlier one).
+
+  Args:
+    images: one ``{"intensity", "depth"}`` (``[N, H, W]`` each) per seed.
+    gt_depth: ``[N, H, W]`` true depth, metres (0 = background).
+    thresholds: candidates for :func:`surface_cut`.
+  Returns:
+    ``{"threshold": float, "f1": float, "f1_by_threshold": {str(th): float}}``.
+  """
+  from nlosjax import metrics
+  f1 = {}
+  for th in thresholds:
+    f1[str(float(th))] = float(np.nanmean([
+        np.asarray(metrics.surface_scores(surface_cut(im["intensity"], im["depth"], th),
+                                          gt_depth)["f1"]) for im in images]))
+  best = max(f1, key=lambda t: (f1[t], -list(f1).index(t)))
+  return {"threshold": float(best), "f1": f1[best], "f1_by_threshold": f1}
+
+
 def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
              methods: tuple[str, ...] = baselines.CLASSIC_METHODS,
-             classic_settings: dict | None = None,
+             classic_settings: dict | None = None, model_thresholds: dict | None = None,
              log: Callable[[str], None] = print) -> dict:
   """Every method on ``split`` of ``data_path``, scored per frame.
 
@@ -109,6 +181,9 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
     classic_settings: ``method -> {"options", "threshold"}`` (from
       :func:`~nlosjax.evaluation.baselines.tune`); a method without an entry
       runs with its defaults.
+    model_thresholds: ``variant -> surface threshold`` (from
+      :func:`tune_model_thresholds`), applied to that variant's depth maps by
+      :func:`surface_cut`; a variant without one is scored as the model outputs.
   Returns:
     ``{"scores": method -> metric -> [N] (classic) or [K, N] (K seeds),
     "sequence": [N], "images": method -> {"intensity", "depth"} (first seed;
@@ -117,6 +192,7 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
   from tqdm import tqdm
   batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
   classic_settings = classic_settings or {}
+  model_thresholds = model_thresholds or {}
   data = load_split(config, data_path, split, batch_size=batch_size)
   gt = {"intensity": data["intensity"], "depth": data["depth"]}
   images, per_frame = {"gt": gt}, {}
@@ -134,10 +210,10 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
       per_frame[method] = scores.frame_scores(images[method]["intensity"], images[method]["depth"],
                                               gt["intensity"], gt["depth"])
     for variant, models in trained.items():
-      models = [models] if isinstance(models, tuple) else list(models)
       seeds = []
-      for mcfg, params in models:
+      for mcfg, params in _as_seeds(models):
         im = model_images(mcfg, params, data["loader"])
+        im["depth"] = surface_cut(im["intensity"], im["depth"], model_thresholds.get(variant, 0.0))
         images.setdefault(variant, im)
         seeds.append(scores.frame_scores(im["intensity"], im["depth"], gt["intensity"],
                                          gt["depth"]))

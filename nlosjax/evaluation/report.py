@@ -113,7 +113,7 @@ def format_comparisons(comparisons: list[dict], metrics=("psnr", "ssim", "rmse_o
 
 
 def format_choices(validation: dict) -> str:
-  """Markdown of the choices made on the validation split (classic settings, checkpoints)."""
+  """Markdown of the choices made on the validation split (classic settings, surface thresholds, checkpoints)."""
   lines = ["**Chosen on the validation split** (the test split only writes the tables above):", ""]
   classic = validation.get("classic", {})
   if classic:
@@ -126,6 +126,16 @@ def format_choices(validation: dict) -> str:
     if validation.get("best_classic"):
       lines += ["", f"Best classic method on validation (intensity PSNR): "
                 f"{label(validation['best_classic'])}."]
+  learned = validation.get("learned", {})
+  if learned:
+    ths = list(next(iter(learned.values()))["f1_by_threshold"])
+    lines += ["", "Learned models' surface threshold (0: the model's own depth map), chosen by "
+              "the same rule (mean validation surface F1 over seeds):", "",
+              "| model | surface threshold | " + " | ".join(f"F1 at {t}" for t in ths) + " |",
+              "|---|---|" + "---|" * len(ths)]
+    for v, c in learned.items():
+      lines.append(f"| {label(v)} | {c['threshold']} | "
+                   + " | ".join(f"{c['f1_by_threshold'][t]:.3f}" for t in ths) + " |")
   checkpoints = validation.get("checkpoints", {})
   if checkpoints:
     lines += ["", "| model | seed | checkpoint step | val. intensity PSNR (dB) at each kept step |",
