@@ -33,6 +33,7 @@ version is refused rather than silently reused.
 
 from __future__ import annotations
 
+import json
 import math
 import pathlib
 
@@ -167,6 +168,14 @@ def _jitter_taps(setup, jitter) -> tuple[np.ndarray, int]:
   return taps / taps.sum(), centre
 
 
+DETECTOR_KEYS = ("efficiency", "photons", "ambient", "dark_counts", "jitter")
+
+
+def _detector(data: dict) -> str:
+  """The config's detector ranges as the JSON string stored in the file (``detector`` attr)."""
+  return json.dumps({k: data.get(k) for k in DETECTOR_KEYS}, sort_keys=True, default=list)
+
+
 def write_independent_set(path, data: dict, sequences: int = 8, frames: int = 8,
                           seed: int = 2026, *, progress: bool = True) -> pathlib.Path:
   """Write ``sequences`` test sequences for the config ``data`` section to ``path`` (HDF5)."""
@@ -188,7 +197,7 @@ def write_independent_set(path, data: dict, sequences: int = 8, frames: int = 8,
               "generator_version": GENERATOR_VERSION, "wall_size": setup.wall_size,
               "grid": np.asarray(setup.grid), "bin_width": setup.bin_width, "num_bins": T,
               "seed": seed, "num_train": 0, "num_test": sequences, "background_depth": 0.0,
-              "complete": False})
+              "detector": _detector(data), "complete": False})
     group = f.create_group("sequences")
     for i in it:
       scene = make_sequence(rng, setup, frames)
@@ -228,10 +237,14 @@ def ensure_independent_set(path, data: dict, sequences: int = 8, frames: int = 8
       version = f.attrs.get("generator_version")
       grid = tuple(int(g) for g in f.attrs.get("grid", ()))
       complete = bool(f.attrs.get("complete", False))
+      detector = f.attrs.get("detector")
     if version != GENERATOR_VERSION or grid != setup.grid or not complete:
       raise ValueError(f"{path} holds another independent set (generator {version!r}, grid {grid},"
                        f" complete {complete}); this run needs {GENERATOR_VERSION!r} on"
                        f" {setup.grid}: delete the file or set independent.path elsewhere")
+    if detector != _detector(data):
+      raise ValueError(f"{path} was made for other detector ranges ({detector}); this run's are"
+                       f" {_detector(data)}: delete the file or set independent.path elsewhere")
     return path
   log(f"writing the independent test set {path} ({sequences} x {frames} frames) ...")
   return write_independent_set(path, data, sequences, frames, seed)

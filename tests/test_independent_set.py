@@ -57,6 +57,9 @@ def test_written_set_is_in_the_documented_layout_with_its_photon_budget(tmp_path
       assert inten.max() == pytest.approx(1.0) and np.all((depth == 0) == (inten == 0))
   # The same call again returns the file; another version is refused, not reused.
   assert I.ensure_independent_set(path, DATA) == path
+  # Other detector ranges (a preset's photon budget changed) are refused too.
+  with pytest.raises(ValueError, match="other detector ranges"):
+    I.ensure_independent_set(path, {**DATA, "photons": (1.0, 2.0)})
   with h5py.File(path, "a") as f:
     f.attrs["generator_version"] = "benchmarks.independent_test"
   with pytest.raises(ValueError, match="delete the file"):
