@@ -97,13 +97,13 @@ def main(argv=None):
   if mcfg.frames != 3:
     raise SystemExit(f"{run / 'ours'} is a {mcfg.frames}-frame model; the probe needs 3 frames")
   apply, apply_zeroed = _intensity_fns(STMambaNet(mcfg))
-  learned = {"Ours": ([], [])}
+  zeroed = {"Ours": []}
   single = None
   if (run / "ours_s").is_dir():
     scfg, sparams, _ = checkpoints_io.load_trained(run / "ours_s", step=_chosen_step(run / "ours_s"))
     sapply, sapply_zeroed = _intensity_fns(STMambaNet(scfg))
     single = {v: [] for v in SINGLE_VARIANTS}
-    learned["Ours-S"] = ([], [])
+    zeroed["Ours-S"] = []
   loader = T.make_loader(config, config["data"]["path"], args.split, batch_size=8, shuffle=False, seed=0)
   outs = {v: [] for v in VARIANTS}
   gt = []
@@ -114,19 +114,21 @@ def main(argv=None):
       gt.append(batch["intensity"])
       for v in VARIANTS:
         outs[v].append(np.asarray(apply(params, jnp.asarray(_replace(x, v)))))
-      learned["Ours"][0].append(outs["real neighbours"][-1])
-      learned["Ours"][1].append(np.asarray(apply_zeroed(params, jnp.asarray(x))))
+      zeroed["Ours"].append(np.asarray(apply_zeroed(params, jnp.asarray(x))))
       if single is not None:
         for v, xs in zip(SINGLE_VARIANTS, (x[:, 1:2], x.mean(axis=1, keepdims=True))):
           single[v].append(np.asarray(sapply(sparams, jnp.asarray(xs))))
-        learned["Ours-S"][0].append(single["middle frame"][-1])
-        learned["Ours-S"][1].append(np.asarray(sapply_zeroed(sparams, jnp.asarray(x[:, 1:2]))))
+        zeroed["Ours-S"].append(np.asarray(sapply_zeroed(sparams, jnp.asarray(x[:, 1:2]))))
   finally:
     loader.close()
   gt = np.concatenate(gt)
   outs = {v: np.concatenate(o) for v, o in outs.items()}
-  learned = {k: (np.concatenate(a), np.concatenate(b)) for k, (a, b) in learned.items()}
   real = outs["real neighbours"]
+  # Each model as trained (outputs already computed above) beside its stage-1 knock-out.
+  learned = {"Ours": (real, np.concatenate(zeroed["Ours"]))}
+  if single is not None:
+    single = {v: np.concatenate(o) for v, o in single.items()}
+    learned["Ours-S"] = (single["middle frame"], np.concatenate(zeroed["Ours-S"]))
   cmd = "python -m benchmarks.temporal_probe " + " ".join(sys.argv[1:] if argv is None else argv)
   lines = ["# Does Ours read its neighbour frames?", ""] + provenance(cmd.strip()) + [
       "", f"Seed 0's Ours from `{run}`, {len(gt)} triplets of the `{args.split}` split of "
@@ -141,7 +143,6 @@ def main(argv=None):
             "from the middle frame alone: its temporal path carries nothing, whatever Table 1's "
             "Ours - Ours-S says."]
   if single is not None:
-    single = {v: np.concatenate(o) for v, o in single.items()}
     ps = {v: float(np.mean(metrics.psnr(o, gt))) for v, o in single.items()}
     lines += ["", f"**What denoising by the neighbours could add.** Seed 0's Ours-S from `{run}` "
               "(trained on single frames) on the same triplets:", "",
@@ -159,8 +160,8 @@ def main(argv=None):
             "Every SSM of every block, the cross blocks included, acts only through these features.", "",
             "| model | as trained (dB) | stage-1 features zeroed (dB) | difference (dB) |",
             "|---|---|---|---|"]
-  for name, (trained, zeroed) in learned.items():
-    a, b = (float(np.mean(metrics.psnr(o, gt))) for o in (trained, zeroed))
+  for name, (trained, knocked_out) in learned.items():
+    a, b = (float(np.mean(metrics.psnr(o, gt))) for o in (trained, knocked_out))
     lines.append(f"| {name} | {a:.3f} | {b:.3f} | {a - b:+.3f} |")
   lines += ["", "A difference near 0 would mean the network reconstructs from the interpolated "
             "measurement through stage 2 alone, so that no SSM (spatial, temporal or cross) could change "
