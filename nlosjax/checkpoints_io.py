@@ -1,4 +1,4 @@
-"""Restore a trained ST-Mamba for inference, and move it to another capture.
+"""Restore a trained network (ST-Mamba or USM) for inference, and move it to another capture.
 
 :func:`load_trained` reads the parameters of the latest checkpoint written by
 ``python -m experiments.train`` (``WORKDIR/<variant>/checkpoints``, orbax) and
@@ -23,17 +23,18 @@ import numpy as np
 
 from nlosjax.physics.setup import Setup
 
-VARIANTS = ("ours", "ours_s")
+VARIANTS = ("ours", "ours_s", "usm")
 
 
 def find_checkpoints(path, variant: str | None = None) -> tuple[pathlib.Path, str, pathlib.Path]:
   """Locate a trained variant: ``(workdir, variant, checkpoints folder)``.
 
   Args:
-    path: a main-job workdir (``config.json`` plus ``ours``/``ours_s``), one
-      variant's folder (``WORKDIR/ours``) or its ``checkpoints`` folder.
-    variant: ``"ours"`` or ``"ours_s"``; required only when ``path`` is a
-      workdir holding both (default there: ``"ours"`` if trained, else ``"ours_s"``).
+    path: a main-job workdir (``config.json`` plus ``ours``/``ours_s``/``usm``),
+      one variant's folder (``WORKDIR/ours``) or its ``checkpoints`` folder.
+    variant: ``"ours"``, ``"ours_s"`` or ``"usm"``; required only when ``path``
+      is a workdir holding several (default there: the first trained of
+      ``"ours"``, ``"ours_s"``, ``"usm"``).
   Raises:
     ValueError: naming ``path`` when it is not a trained run or the variant is missing.
   """
@@ -49,7 +50,7 @@ def find_checkpoints(path, variant: str | None = None) -> tuple[pathlib.Path, st
       raise ValueError(f"{p}: is the {p.name!r} folder but variant {variant!r} was asked for")
     workdir, variants = p.parent, [p.name]
   elif (p / "config.json").is_file():
-    workdir, variants = p, [variant] if variant else ["ours", "ours_s"]
+    workdir, variants = p, [variant] if variant else list(VARIANTS)
   else:
     raise ValueError(f"{p}: not a training run: expected a workdir with config.json (written by"
                      f" python -m experiments.train) or one of its folders {VARIANTS}")
@@ -83,7 +84,6 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None):
   """
   import orbax.checkpoint as ocp
   from nlosjax import train
-  from nlosjax.models.network import STMambaNet
 
   workdir, variant, ckpt = find_checkpoints(path, variant)
   try:
@@ -125,7 +125,7 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None):
                      f" {workdir / 'config.json'} gives:\n  checkpoint: {recorded}\n"
                      f"  config.json: {mcfg!r}")
   params = jax.tree.map(jnp.asarray, item["params"])
-  expected = jax.eval_shape(STMambaNet(mcfg).init, jax.random.key(0),
+  expected = jax.eval_shape(mcfg.module().init, jax.random.key(0),
                             jax.ShapeDtypeStruct(mcfg.input_shape(), jnp.float32))["params"]
   _check_tree(where, params, expected)
   fingerprint = getattr(train, "param_fingerprint", None)
@@ -298,9 +298,8 @@ def run_model(model_config, params, frames, *, batch_size: int = 4):
     ``volume [F, Z, H, W]``, ``transient [F, T, H, W]`` (counts: the network's
     output times its input scale).
   """
-  from nlosjax.models.network import STMambaNet
   x = triplets(np.asarray(frames, np.float32), model_config.frames)
-  model = STMambaNet(model_config)
+  model = model_config.module()
   apply = jax.jit(lambda p, b: model.apply({"params": p}, b))
   out = {k: [] for k in ("intensity", "depth", "volume", "transient")}
   for s in range(0, len(x), batch_size):

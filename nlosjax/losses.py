@@ -132,14 +132,17 @@ def local_similarity_loss(volume: jax.Array) -> jax.Array:
 
   ``G`` is a 3 x 3 Gaussian (sigma 1.5) applied to each depth slice over
   (H, W) with replicate padding: the term penalises voxels unlike their
-  lateral neighbours.
+  lateral neighbours. A feature volume ``[B, Z, H, W, C]`` (USM's ``V``)
+  gets the sum over its channels of each channel's term, as USM.
 
   Args:
-    volume: ``[B, Z, H, W]``.
+    volume: ``[B, Z, H, W]`` or ``[B, Z, H, W, C]``.
   Returns:
     scalar float32.
   """
   volume = volume.astype(jnp.float32)
+  if volume.ndim == 5:
+    return sum(local_similarity_loss(volume[..., c]) for c in range(volume.shape[-1]))
   return jnp.mean(_per_sample_rms(volume - _blur3(volume)))
 
 
@@ -152,16 +155,18 @@ def tv_loss(volume: jax.Array) -> jax.Array:
   ``sqrt(x^2 + eps) - sqrt(eps)`` so its gradient is defined at 0.
 
   Args:
-    volume: ``[B, Z, H, W]``.
+    volume: ``[B, Z, H, W]``, or ``[B, Z, H, W, C]`` (a feature volume: the
+      sum runs over its channels too, never across them).
   Returns:
     scalar float32.
   """
   volume = volume.astype(jnp.float32)
   eps = SQRT_EPS
   total = 0.0
+  axes = tuple(range(1, volume.ndim))
   for axis in (1, 2, 3):
     d = jnp.diff(volume, axis=axis)
-    total = total + jnp.sum(jnp.sqrt(d * d + eps) - np.sqrt(eps), axis=(1, 2, 3))
+    total = total + jnp.sum(jnp.sqrt(d * d + eps) - np.sqrt(eps), axis=axes)
   return jnp.mean(total)
 
 
@@ -209,7 +214,9 @@ def total_loss(outputs: dict, targets: dict, weights: LossWeights,
 
   Args:
     outputs: the model's ``{"transient": [B, T, H, W], "volume": [B, Z, H, W],
-      "intensity": [B, H, W], "depth": [B, H, W]}``.
+      "intensity": [B, H, W], "depth": [B, H, W]}``; where it also holds
+      ``"feature_volume"`` ``[B, Z', H', W', C]`` (USM's refined volume), the
+      regularisers act on that instead of ``"volume"``, as USM's.
     targets: ``{"transient", "intensity", "depth"}`` of the same shapes.
     weights: :class:`LossWeights`.
     wavelet: illumination wavelet for ``L_pf`` (may be None when
@@ -234,10 +241,11 @@ def total_loss(outputs: dict, targets: dict, weights: LossWeights,
                                          targets["depth"])
   if w.beta and w.alpha2:
     terms["dep"] = depth_loss(outputs["depth"], targets["depth"])
+  regularised = outputs.get("feature_volume", outputs["volume"])
   if w.gamma and w.local_similarity:
-    terms["ls"] = local_similarity_loss(outputs["volume"])
+    terms["ls"] = local_similarity_loss(regularised)
   if w.gamma and w.alpha3:
-    terms["tv"] = tv_loss(outputs["volume"])
+    terms["tv"] = tv_loss(regularised)
   g = terms.get
   terms["m"] = w.phasor_field * g("pf", zero) + w.alpha1 * g("t", zero)
   terms["v"] = (w.intensity * g("int", zero) + w.alpha2 * g("dep", zero)

@@ -144,15 +144,14 @@ def _jitted_init(model: nn.Module, input_shape: tuple[int, ...], tx, mesh: Mesh)
 
 @functools.lru_cache(maxsize=8)
 def network(model_config) -> nn.Module:
-  """The ``STMambaNet`` of ``model_config``, one instance per config.
+  """The module of ``model_config`` (``STMambaNet`` or ``USMNet``: ``model_config.module()``), one instance per config.
 
   A ``TrainState`` holds ``model.apply``, a bound method, and bound methods
   compare by the identity of their module: one instance per config lets the
   seeds and resumed runs of one process reuse the compiled init and train
   step instead of compiling them again.
   """
-  from nlosjax.models.network import STMambaNet
-  return STMambaNet(model_config)
+  return model_config.module()
 
 
 # ------------------------------------------------------------------ step
@@ -324,7 +323,11 @@ class Checkpointer:
 
 
 # --------------------------------------------------------------- main job
-VARIANT_FRAMES = {"ours": 3, "ours_s": 1}
+VARIANT_FRAMES = {"ours": 3, "ours_s": 1, "usm": 1}
+#: USM's training recipes (``config["usm"]["recipe"]``): "ours" trains it with the config's
+#: ``train.optim`` and ``train.loss`` (Ours' recipe, the like-for-like default); "published"
+#: with USM's own (:data:`nlosjax.models.usm.PUBLISHED_OPTIM`, ``PUBLISHED_LOSS``).
+USM_RECIPES = ("ours", "published")
 
 #: Defaults of a config's ``train`` section (the presets override some).
 #: ``seeds``: training seeds per variant (``seed``, ``seed + 1``, ...; tables
@@ -346,10 +349,20 @@ def with_defaults(config: dict) -> dict:
 
 
 def model_config_for(config: dict, setup, variant: str):
-  """The :class:`~nlosjax.models.network.ModelConfig` of ``variant`` for a dataset's Setup."""
+  """The model config of ``variant`` for a dataset's Setup.
+
+  ``"ours"`` / ``"ours_s"``: a :class:`~nlosjax.models.network.ModelConfig` from
+  ``config["model"]``; ``"usm"``: a :class:`~nlosjax.models.usm.USMConfig`
+  from ``config["usm"]["model"]`` (USM's published widths where absent).
+  """
   from nlosjax.models.network import ModelConfig
   if variant not in VARIANT_FRAMES:
     raise ValueError(f"variant must be one of {tuple(VARIANT_FRAMES)}, got {variant!r}")
+  if variant == "usm":
+    from nlosjax.models.usm import USMConfig
+    usm = config.get("usm", {})
+    return USMConfig(setup=setup, stride=int(config["data"]["input_stride"]),
+                     **dict(usm.get("model", {})))
   overrides = dict(config.get("model", {}))
   overrides["frames"] = VARIANT_FRAMES[variant]
   return ModelConfig(setup=setup, stride=int(config["data"]["input_stride"]), **overrides)
@@ -447,13 +460,13 @@ def run_signature(mcfg, params, optim: OptimConfig, weights: losses.LossWeights,
 def train_model(config: dict, data_path, workdir, variant: str, *, folder: str | None = None,
                 validate: Callable[[Any, Any], float] | None = None,
                 log: Callable[[str], None] = print) -> tuple[Any, TrainState]:
-  """Train one variant (``"ours"`` or ``"ours_s"``), resuming from ``workdir/<folder>``.
+  """Train one variant (``"ours"``, ``"ours_s"`` or ``"usm"``), resuming from ``workdir/<folder>``.
 
   Args:
     config: the run config (:func:`with_defaults`); the seed is ``config["train"]["seed"]``.
     data_path: the dataset file.
     workdir: the run folder.
-    variant: ``"ours"`` or ``"ours_s"``.
+    variant: ``"ours"``, ``"ours_s"`` or ``"usm"`` (:data:`VARIANT_FRAMES`).
     folder: sub-folder of this model (default ``variant``).
     validate: ``(model_config, params) -> score`` on the validation split
       (higher is better). With ``config["train"]["select_checkpoint"] ==
@@ -474,8 +487,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   mcfg = model_config_for(config, loader.setup, variant)
   log(f"[{variant}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{variant}] "))
   model = network(mcfg)
-  optim = OptimConfig(**tr.get("optim", {}))
-  weights = losses.LossWeights(**tr.get("loss", {}))
+  optim, weights = training_recipe(config, variant)
   mesh = make_mesh()
   key = jax.random.key(seed)
   init_key, loop_key = jax.random.split(key)
@@ -533,6 +545,24 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   ckpt.close()
   (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
   return mcfg, state
+
+
+def training_recipe(config: dict, variant: str) -> tuple[OptimConfig, losses.LossWeights]:
+  """``(optimiser, loss weights)`` a variant trains with.
+
+  The config's ``train.optim`` and ``train.loss``, except for ``"usm"`` with
+  ``config["usm"]["recipe"] == "published"`` (:data:`USM_RECIPES`): USM's
+  published AdamW (lr 1e-4, weight decay 1e-4, no schedule, no clipping) and loss.
+  """
+  tr = config["train"]
+  if variant == "usm":
+    recipe = config.get("usm", {}).get("recipe", "ours")
+    if recipe not in USM_RECIPES:
+      raise ValueError(f'config usm.recipe must be one of {USM_RECIPES}, got {recipe!r}')
+    if recipe == "published":
+      from nlosjax.models.usm import PUBLISHED_LOSS, PUBLISHED_OPTIM
+      return OptimConfig(**PUBLISHED_OPTIM), losses.LossWeights(**PUBLISHED_LOSS)
+  return OptimConfig(**tr.get("optim", {})), losses.LossWeights(**tr.get("loss", {}))
 
 
 def read_selection(folder) -> dict | None:

@@ -62,13 +62,16 @@ def load_split(config: dict, data_path, split: str, *, batch_size: int) -> dict:
 @functools.lru_cache(maxsize=8)
 def _jitted_apply(mcfg):
   """The model's jitted forward, one per model config (checkpoints and seeds share it)."""
-  from nlosjax.models.network import STMambaNet
-  model = STMambaNet(mcfg)
+  model = mcfg.module()
   return jax.jit(lambda p, x: model.apply({"params": p}, x))
 
 
 def model_images(mcfg, params, loader) -> dict:
   """Intensity and depth of a trained model on a loader's examples (in order).
+
+  The intensity is clamped to [0, 1], the range of the ground truth and of
+  every metric (Ours' is already in it; USM's head is not clamped, and USM's
+  own evaluation clamps it the same way).
 
   Returns ``{"intensity": [N, H, W], "depth": [N, H, W]}`` NumPy.
   """
@@ -78,7 +81,7 @@ def model_images(mcfg, params, loader) -> dict:
   for step in range(len(loader)):
     x = select_frames(loader.batch(step)["measurement"], mcfg.frames)
     out = apply(params, jnp.asarray(x))
-    inten.append(np.asarray(out["intensity"]))
+    inten.append(np.clip(np.asarray(out["intensity"]), 0.0, 1.0))
     depth.append(np.asarray(out["depth"]))
   return {"intensity": np.concatenate(inten), "depth": np.concatenate(depth)}
 
@@ -236,8 +239,9 @@ def tabulate(evaluation: dict, *, best_classic_method: str | None = None, n_boot
              ) -> tuple[dict, list[dict]]:
   """The table and the paired comparisons of an :func:`evaluate` result.
 
-  Comparisons, where both sides were evaluated: Ours - Ours-S, and each
-  learned model - ``best_classic_method`` (chosen on validation by the caller).
+  Comparisons, where both sides were evaluated: Ours - Ours-S, Ours - USM,
+  Ours-S - USM, and each learned model - ``best_classic_method`` (chosen on
+  validation by the caller).
 
   Returns:
     ``(table, comparisons)``: ``method -> metric -> {"mean", "ci95", "std",
@@ -247,9 +251,9 @@ def tabulate(evaluation: dict, *, best_classic_method: str | None = None, n_boot
   kw = {} if n_boot is None else {"n_boot": n_boot}
   per_frame, seq = evaluation["scores"], evaluation["sequence"]
   table = {m: scores.summarize_scores(s, seq, **kw) for m, s in per_frame.items()}
-  pairs = [("ours", "ours_s")]
+  pairs = [("ours", "ours_s"), ("ours", "usm"), ("ours_s", "usm")]
   if best_classic_method is not None:
-    pairs += [(v, best_classic_method) for v in ("ours", "ours_s")]
+    pairs += [(v, best_classic_method) for v in ("ours", "ours_s", "usm")]
   comparisons = [{"a": a, "b": b, "label": f"{report.label(a)} - {report.label(b)}",
                   "diff": scores.compare_scores(per_frame[a], per_frame[b], seq, **kw)}
                  for a, b in pairs if a in per_frame and b in per_frame]

@@ -89,6 +89,10 @@ class Conv3D(nn.Module):
   backward, at the price of a ``kt``-fold copy of the input. ``impl="xla"``
   calls ``lax.conv_general_dilated`` in 3-D (the reference the tests use).
   1x1x1 kernels are a matmul.
+
+  ``padding="edge"`` pads by repeating the border values (PyTorch's
+  ``padding_mode="replicate"``, USM's ``ResConv3D``) instead of zeros, with
+  the same amounts as "SAME".
   """
 
   features: int
@@ -97,6 +101,7 @@ class Conv3D(nn.Module):
   time_dilation: int = 1
   use_bias: bool = True
   impl: str = "fold"
+  padding: str = "zero"
   dtype: Any = jnp.float32
   param_dtype: Any = jnp.float32
 
@@ -109,6 +114,8 @@ class Conv3D(nn.Module):
       raise ValueError(f"x must be [N, T, H, W, C], got shape {x.shape}")
     if self.impl not in ("fold", "xla"):
       raise ValueError(f"impl must be 'fold' or 'xla', got {self.impl!r}")
+    if self.padding not in ("zero", "edge"):
+      raise ValueError(f"padding must be 'zero' or 'edge', got {self.padding!r}")
     cin = x.shape[-1]
     kernel = self.param("kernel", nn.initializers.lecun_normal(), (kt, kh, kw, cin, self.features),
                         self.param_dtype)
@@ -116,7 +123,9 @@ class Conv3D(nn.Module):
             if self.use_bias else None)
     x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
     s, d = self.time_stride, self.time_dilation
-    if self.impl == "xla":
+    if self.padding == "edge" and (kt, kh, kw) != (1, 1, 1):
+      y = self._edge_padded(x, kernel)
+    elif self.impl == "xla":
       y = jax.lax.conv_general_dilated(x, kernel, (s, 1, 1), "SAME", rhs_dilation=(d, 1, 1),
                                        dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
     elif (kt, kh, kw) == (1, 1, 1):
@@ -134,6 +143,23 @@ class Conv3D(nn.Module):
     if bias is not None:
       y = y + bias
     return y
+
+  def _edge_padded(self, x, kernel):
+    """The convolution of ``x`` padded by its border values ("SAME" amounts), no bias."""
+    kt, kh, kw = self.kernel_size
+    s, d = self.time_stride, self.time_dilation
+    n, t, h, w, cin = x.shape
+    out, lo, hi = same_padding(t, kt, s, d)
+    xp = jnp.pad(x, ((0, 0), (lo, hi), (kh // 2, kh // 2), (kw // 2, kw // 2), (0, 0)), mode="edge")
+    if self.impl == "xla":
+      return jax.lax.conv_general_dilated(xp, kernel, (s, 1, 1), "VALID", rhs_dilation=(d, 1, 1),
+                                          dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
+    taps = [xp[:, i * d:i * d + (out - 1) * s + 1:s] for i in range(kt)]
+    folded = jnp.concatenate(taps, axis=-1).reshape(n * out, h + kh - 1, w + kw - 1, kt * cin)
+    k2 = jnp.transpose(kernel, (1, 2, 0, 3, 4)).reshape(kh, kw, kt * cin, self.features)
+    y = jax.lax.conv_general_dilated(folded, k2, (1, 1), "VALID",
+                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return y.reshape(n, out, h, w, self.features)
 
 
 def _conv(features: int, kernel=(3, 3, 3), *, time_stride: int = 1, time_dilation: int = 1,

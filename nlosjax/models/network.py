@@ -298,25 +298,44 @@ class ModelConfig:
 
   def check_frames(self, frames, name: str = "frames") -> None:
     """Raise ``ValueError`` naming the mismatch unless ``frames`` is ``[B, F, T, h, w]`` for this config."""
-    shape = tuple(getattr(frames, "shape", ()))
-    expected = self.input_shape()[1:]
-    what = (f"[B, F, T, h, w] = [B, {expected[0]}, {expected[1]}, {expected[2]}, {expected[3]}]"
-            f" ({self.frames} frames, {self.setup.num_bins} bins, the {self.setup.grid} grid"
-            f" under-scanned by stride {self.stride})")
-    if len(shape) != 5:
-      raise ValueError(f"{name} must be {what}, got rank {len(shape)} shape {shape}")
-    if shape[1] != self.frames:
-      raise ValueError(f"{name} has {shape[1]} frames (axis 1) but ModelConfig.frames is"
-                       f" {self.frames}; expected {what}")
-    if shape[2] != self.setup.num_bins:
-      raise ValueError(f"{name} has {shape[2]} time bins (axis 2) but the Setup has num_bins ="
-                       f" {self.setup.num_bins}; expected {what}")
-    if shape[3:] != self.input_grid:
-      raise ValueError(f"{name} scan grid {shape[3:]} (axes 3, 4) does not match the input grid"
-                       f" {self.input_grid}; expected {what}")
-    dtype = getattr(frames, "dtype", None)
-    if dtype is None or not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
-      raise ValueError(f"{name} must be a real array of counts, got dtype {dtype}")
+    check_model_input(self, frames, name)
+
+  def module(self) -> "STMambaNet":
+    """The Flax module of this config."""
+    return STMambaNet(self)
+
+  def analytic_flops(self, batch: int) -> tuple[float, float]:
+    """``(fft, scan)`` FLOPs of one forward pass that XLA's cost analysis misses."""
+    return _analytic_flops(self, batch)
+
+
+def check_model_input(config, frames, name: str = "frames") -> None:
+  """Raise ``ValueError`` naming the mismatch unless ``frames`` is ``config.input_shape()`` but the batch.
+
+  ``config`` is any model config with ``frames``, ``setup``, ``stride``,
+  ``input_grid`` and ``input_shape`` (:class:`ModelConfig`,
+  :class:`~nlosjax.models.usm.USMConfig`).
+  """
+  shape = tuple(getattr(frames, "shape", ()))
+  expected = config.input_shape()[1:]
+  kind = type(config).__name__
+  what = (f"[B, F, T, h, w] = [B, {expected[0]}, {expected[1]}, {expected[2]}, {expected[3]}]"
+          f" ({config.frames} frames, {config.setup.num_bins} bins, the {config.setup.grid} grid"
+          f" under-scanned by stride {config.stride})")
+  if len(shape) != 5:
+    raise ValueError(f"{name} must be {what}, got rank {len(shape)} shape {shape}")
+  if shape[1] != config.frames:
+    raise ValueError(f"{name} has {shape[1]} frames (axis 1) but {kind}.frames is"
+                     f" {config.frames}; expected {what}")
+  if shape[2] != config.setup.num_bins:
+    raise ValueError(f"{name} has {shape[2]} time bins (axis 2) but the Setup has num_bins ="
+                     f" {config.setup.num_bins}; expected {what}")
+  if shape[3:] != config.input_grid:
+    raise ValueError(f"{name} scan grid {shape[3:]} (axes 3, 4) does not match the input grid"
+                     f" {config.input_grid}; expected {what}")
+  dtype = getattr(frames, "dtype", None)
+  if dtype is None or not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+    raise ValueError(f"{name} must be a real array of counts, got dtype {dtype}")
 
 
 def underscan(transient, stride: int) -> jax.Array:
@@ -452,6 +471,9 @@ def model_summary(config: ModelConfig, setup: Setup | None = None, *, batch: int
                   backward: bool = False) -> dict:
   """Parameter count and FLOPs of one forward pass per reconstructed frame, without allocating.
 
+  Any model config with ``module()`` and ``analytic_flops(batch)``
+  (:class:`ModelConfig`, :class:`~nlosjax.models.usm.USMConfig`).
+
   Parameters come from ``jax.eval_shape(model.init, ...)``; FLOPs from XLA's
   cost analysis of the lowered (not compiled, not run) ``apply``, divided by
   ``batch``. XLA counts convolutions, matmuls and elementwise ops; it does
@@ -473,7 +495,7 @@ def model_summary(config: ModelConfig, setup: Setup | None = None, *, batch: int
   """
   if setup is not None:
     config = config.with_setup(setup)
-  model = STMambaNet(config)
+  model = config.module()
   x = jax.ShapeDtypeStruct(config.input_shape(batch), jnp.float32)
   variables = jax.eval_shape(model.init, jax.random.key(0), x)
   outputs = jax.eval_shape(model.apply, variables, x)
@@ -491,7 +513,7 @@ def model_summary(config: ModelConfig, setup: Setup | None = None, *, batch: int
   if isinstance(cost, (list, tuple)):
     cost = cost[0] if cost else {}
   xla = float((cost or {}).get("flops", 0.0))
-  fft, scan = _analytic_flops(config, batch)
+  fft, scan = config.analytic_flops(batch)
   if backward:
     fft, scan = 2 * fft, 3 * scan
   return {
@@ -534,12 +556,14 @@ def _analytic_flops(config: ModelConfig, batch: int) -> tuple[float, float]:
 def format_summary(summary: dict) -> str:
   """One line per figure of :func:`model_summary`, for logs."""
   cfg = summary["config"]
+  variant = f"; variant {cfg.variant}" if hasattr(cfg, "variant") else ""
   return "\n".join([
-      f"STMambaNet: {summary['params']:,} parameters; {summary['flops'] / 1e9:.2f} GFLOP per frame"
+      f"{type(cfg.module()).__name__}: {summary['params']:,} parameters;"
+      f" {summary['flops'] / 1e9:.2f} GFLOP per frame"
       f" (XLA {summary['xla_flops'] / 1e9:.2f}, FFT {summary['fft_flops'] / 1e9:.2f},"
       f" scan {summary['scan_flops'] / 1e9:.2f})",
       f"  input {summary['input_shape']} -> "
       + ", ".join(f"{k} {v}" for k, v in summary["output_shapes"].items()),
-      f"  setup {cfg.setup}; stride {cfg.stride}; frames {cfg.frames}; variant {cfg.variant};"
+      f"  setup {cfg.setup}; stride {cfg.stride}; frames {cfg.frames}{variant};"
       f" time window {summary['time_window']}",
   ])
