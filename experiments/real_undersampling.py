@@ -21,7 +21,7 @@ Protocol (the paper's under-scanning experiment, on measured data):
   linearly interpolated back to 64 x 64 (``nlosjax.evaluation.baselines.upsample_scan``), with
   the options these retroreflective scenes were published with (LCT snr 0.8
   and FBP with the t^2 falloff; f-k, phasor, RSD defaults);
-* the trained networks (Ours-S and Ours of ``--checkpoint``, default
+* the trained networks (Ours-S, Ours and, where trained, USM of ``--checkpoint``, default
   ``runs/real``: ``python -m experiments.train --config real --workdir
   runs/real``, trained on synthetic 64 x 64 scans of a 0.6 m wall at stride 4
   with 64 ps bins; see ``experiments/configs/real.py``) read the sparse scan
@@ -70,9 +70,9 @@ import numpy as np
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
-VARIANTS = ("ours_s", "ours")
+VARIANTS = ("ours_s", "ours", "usm")
 LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "RSD",
-          "ours_s": "Ours-S", "ours": "Ours"}
+          "ours_s": "Ours-S", "ours": "Ours", "usm": "USM"}
 #: Options of the classic methods on these retroreflective scans (O'Toole et al. 2018: snr 0.8, t^2).
 OPTIONS = {"fbp": {"falloff": "retroreflective"}, "lct": {"snr": 0.8, "falloff": "retroreflective"},
            "fk": {}, "phasor": {}, "rsd": {}}

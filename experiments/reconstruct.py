@@ -4,6 +4,7 @@
     python -m experiments.reconstruct FILE --method lct --snr 0.8 --falloff retroreflective --out DIR
     python -m experiments.reconstruct meas_10min.mat --method fk --spatial-factor 4 --out DIR
     python -m experiments.reconstruct FILE --method model --checkpoint runs/default --out DIR
+    python -m experiments.reconstruct FILE --method usm --checkpoint runs/table1 --out DIR
     python -m experiments.reconstruct FILE --method phasor --scan-stride 4 --depth-range 0.3 1.2 --out DIR
 
 FILE is any format ``nlosjax.data.io.load_measurement`` reads, detected from its
@@ -15,7 +16,9 @@ Methods: ``fbp``, ``lct``, ``fk``, ``phasor``, ``rsd`` (``nlosjax.physics``) and
 ``model`` (the trained ST-Mamba of ``python -m experiments.train``, moved to the
 capture: the same parameters, the physics layer rebuilt for the capture's
 wall, grid and bins, time summed to about the trained bin width; a video is
-reconstructed frame by frame, "Ours" reading each frame with its neighbours).
+reconstructed frame by frame, "Ours" reading each frame with its neighbours);
+``usm`` is ``model`` with ``--variant usm``: the USM baseline of the same run
+(trained when the run's ``train.variants`` holds ``"usm"``).
 
 ``--scan-stride K`` under-scans the capture (interval sampling: scan points
 ``K // 2 + K i``, the network's convention): classic methods then run on the
@@ -43,7 +46,8 @@ import time
 
 import numpy as np
 
-METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "model")
+METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "model", "usm")
+LEARNED = ("model", "usm")
 #: Options each classic method takes (the CLI passes only those given).
 METHOD_OPTIONS = {"fbp": ("falloff", "oversample"), "lct": ("snr", "falloff", "oversample"),
                   "fk": (), "phasor": ("cycles", "sampling_coeff", "oversample"),
@@ -93,8 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
   g = p.add_argument_group("model options")
   g.add_argument("--checkpoint", default="runs/default",
                  help="training workdir, variant folder or checkpoints folder (default runs/default)")
-  g.add_argument("--variant", choices=("ours", "ours_s"), default=None,
-                 help="which trained variant (default: ours if trained, else ours_s)")
+  g.add_argument("--variant", choices=("ours", "ours_s", "usm"), default=None,
+                 help="which trained variant (default: the first trained of ours, ours_s, usm;"
+                      " --method usm: usm)")
   g.add_argument("--model-bin-factor", type=int, default=None,
                  help="capture bins per network bin (default: nearest to the trained bin width)")
   p.add_argument("--no-cache", action="store_true",
@@ -323,7 +328,11 @@ def main(argv=None) -> dict:
   try:
     if args.scan_stride is not None and args.scan_stride < 1:
       raise ValueError(f"--scan-stride must be >= 1, got {args.scan_stride}")
-    options = {} if args.method == "model" else classic_options(args)
+    if args.method == "usm":
+      if args.variant not in (None, "usm"):
+        raise ValueError(f"--method usm reconstructs with the usm variant, not --variant {args.variant}")
+      args.variant = "usm"
+    options = {} if args.method in LEARNED else classic_options(args)
     t0 = time.perf_counter()
     transient, setup, single, fmt = load(args)
     t1 = time.perf_counter()
@@ -331,7 +340,7 @@ def main(argv=None) -> dict:
         f" {transient.shape[1:]}, wall {setup.wall_size:.4g} m, bins"
         f" {setup.bin_width * 1e12:.4g} ps, depths {setup.depths[0]:.3f}-{setup.depths[-1]:.3f} m")
     info = {}
-    if args.method == "model":
+    if args.method in LEARNED:
       volume, intensity, depth, vsetup, info = reconstruct_model(transient, setup, args, log)
     else:
       volume, intensity, depth = reconstruct_classic(transient, setup, args.method, options,
@@ -345,7 +354,7 @@ def main(argv=None) -> dict:
   out.mkdir(parents=True, exist_ok=True)
   timings = {"load_s": t1 - t0, "reconstruct_s": t2 - t1}
   attrs = {"method": args.method, "source": str(pathlib.Path(args.file).absolute()),
-           "edge_bins": 0 if args.method == "model" else args.edge_bins,
+           "edge_bins": 0 if args.method in LEARNED else args.edge_bins,
            "source_format": fmt, "options": options, "scan_stride": args.scan_stride or 1,
            "model": info, "command": " ".join(sys.argv if argv is None else ["reconstruct", *argv])}
   io.save_capture(out / "volume.h5", None, vsetup, overwrite=True,
@@ -356,7 +365,7 @@ def main(argv=None) -> dict:
   title = f"{pathlib.Path(args.file).name}: {args.method}" + (
       f", stride {args.scan_stride}" if args.scan_stride and args.scan_stride > 1 else "")
   views = np.sqrt(np.maximum(volume, 0)) if args.method == "fk" else volume   # f-k: albedo^2
-  if args.method != "model":
+  if args.method not in LEARNED:
     views = edge_masked(views, vsetup, args.edge_bins)
   write_figures(out, views, intensity, depth, vsetup, title)
   t3 = time.perf_counter()

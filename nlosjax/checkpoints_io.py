@@ -294,7 +294,7 @@ def run_model(model_config, params, frames, *, batch_size: int = 4):
     frames: ``[F, T, h, w]`` under-scanned counts of consecutive frames.
     batch_size: frames per forward pass.
   Returns:
-    dict of NumPy arrays ``intensity [F, H, W]``, ``depth [F, H, W]``,
+    dict of NumPy arrays ``intensity [F, H, W]`` in [0, 1], ``depth [F, H, W]``,
     ``volume [F, Z, H, W]``, ``transient [F, T, H, W]`` (counts: the network's
     output times its input scale).
   """
@@ -304,7 +304,8 @@ def run_model(model_config, params, frames, *, batch_size: int = 4):
   out = {k: [] for k in ("intensity", "depth", "volume", "transient")}
   for s in range(0, len(x), batch_size):
     o = apply(params, jnp.asarray(x[s:s + batch_size]))
-    for k in ("intensity", "depth", "volume"):
+    out["intensity"].append(np.clip(np.asarray(o["intensity"]), 0.0, 1.0))   # USM's is unclamped
+    for k in ("depth", "volume"):
       out[k].append(np.asarray(o[k]))
     out["transient"].append(np.asarray(o["transient"] * o["scale"][:, None, None, None]))
   return {k: np.concatenate(v) for k, v in out.items()}

@@ -143,32 +143,40 @@ def test_errors_name_the_file_and_the_problem(case, capture, tmp_path, capsys):
 TRAINED = Setup(wall_size=2.0, grid=(16, 16), bin_width=132e-12, num_bins=32)
 TINY = dict(width=4, d_state=2, extract_time_stride=2, extract_blocks=1, st_depth=1, cross_depth=1,
             spread_min_width=1, volume_features=1, refine_width=2, dilations=[1, 2])
+TINY_USM = dict(trn_width=2, trn_kernels=[3, 9], fusion_widths=[], extract_width=1,
+                refine=[[2, 3], [2, 3]], render_widths=[2, 2])
 
 
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory):
-  """A main-job workdir with a tiny "ours" checkpoint (random parameters, the real layout)."""
+  """A main-job workdir with tiny "ours" and "usm" checkpoints (random parameters, the real layout).
+
+  Returns ``(workdir, ours config, ours params, (usm config, usm params))``.
+  """
   from nlosjax import train
-  from nlosjax.models.network import STMambaNet
   workdir = tmp_path_factory.mktemp("run")
   config = {"data": {"wall_size": 2.0, "grid": 16, "bin_width": 132e-12, "num_bins": 32,
-                     "input_stride": 4}, "model": TINY}
+                     "input_stride": 4}, "model": TINY, "usm": {"model": TINY_USM}}
   (workdir / "config.json").write_text(json.dumps(config))
-  mcfg = train.model_config_for(config, TRAINED, "ours")
-  # Random parameters of the right shapes (no init compilation).
-  shapes = jax.eval_shape(STMambaNet(mcfg).init, jax.random.key(0),
-                          jax.ShapeDtypeStruct(mcfg.input_shape(), jnp.float32))["params"]
   rng = np.random.default_rng(3)
-  params = jax.tree.map(lambda a: jnp.asarray(rng.normal(0.0, 0.3, a.shape), a.dtype), shapes)
-  state = train.TrainState.create(apply_fn=None, params=params, tx=optax.sgd(0.1))
-  ckpt = train.Checkpointer(workdir / "ours" / "checkpoints", json.dumps({"model": repr(mcfg)}), every=1)
-  ckpt.save(state, 0, force=True)
-  ckpt.close()
-  return workdir, mcfg, params
+  out = {}
+  for variant in ("ours", "usm"):
+    mcfg = train.model_config_for(config, TRAINED, variant)
+    # Random parameters of the right shapes (no init compilation).
+    shapes = jax.eval_shape(mcfg.module().init, jax.random.key(0),
+                            jax.ShapeDtypeStruct(mcfg.input_shape(), jnp.float32))["params"]
+    params = jax.tree.map(lambda a: jnp.asarray(rng.normal(0.0, 0.3, a.shape), a.dtype), shapes)
+    state = train.TrainState.create(apply_fn=None, params=params, tx=optax.sgd(0.1))
+    ckpt = train.Checkpointer(workdir / variant / "checkpoints", json.dumps({"model": repr(mcfg)}),
+                              every=1)
+    ckpt.save(state, 0, force=True)
+    ckpt.close()
+    out[variant] = (mcfg, params)
+  return (workdir,) + out["ours"] + (out["usm"],)
 
 
 def test_load_trained_restores_the_parameters(trained_run):
-  workdir, mcfg, params = trained_run
+  workdir, mcfg, params, _ = trained_run
   for where in (workdir, workdir / "ours" / "checkpoints"):
     got_cfg, got, info = cio.load_trained(where)
     assert got_cfg == mcfg and info["variant"] == "ours" and info["step"] == 0
@@ -178,7 +186,7 @@ def test_load_trained_restores_the_parameters(trained_run):
 
 
 def test_load_trained_refuses_another_config(trained_run, tmp_path):
-  workdir, _, _ = trained_run
+  workdir, _, _, _ = trained_run
   other = tmp_path / "other"
   other.mkdir()
   (other / "ours").symlink_to(workdir / "ours", target_is_directory=True)
@@ -190,7 +198,7 @@ def test_load_trained_refuses_another_config(trained_run, tmp_path):
 
 
 def test_model_cli_feeds_the_network_a_hand_built_input(trained_run, tmp_path, monkeypatch):
-  workdir, mcfg, params = trained_run
+  workdir, mcfg, params, _ = trained_run
   rng = np.random.default_rng(4)
   capture = Setup(wall_size=1.0, grid=(16, 16), bin_width=16e-12, num_bins=260)
   video = rng.poisson(1.0, (3, 260, 16, 16)).astype(np.float32)
@@ -227,7 +235,7 @@ def test_model_cli_feeds_the_network_a_hand_built_input(trained_run, tmp_path, m
 
 
 def test_model_cli_end_to_end(trained_run, tmp_path):
-  workdir, mcfg, params = trained_run
+  workdir, mcfg, params, _ = trained_run
   rng = np.random.default_rng(5)
   capture = Setup(wall_size=1.0, grid=(16, 16), bin_width=16e-12, num_bins=256)
   video = rng.poisson(1.0, (2, 256, 16, 16)).astype(np.float32)
@@ -242,8 +250,30 @@ def test_model_cli_end_to_end(trained_run, tmp_path):
     assert (tmp_path / "m" / name).read_bytes()[:8] == PNG_MAGIC
 
 
+def test_usm_cli_end_to_end(trained_run, tmp_path):
+  """``--method usm`` restores the run's USM (not Ours) and reconstructs every frame."""
+  workdir, _, _, (ucfg, uparams) = trained_run
+  got_cfg, got, info = cio.load_trained(workdir, "usm")
+  assert got_cfg == ucfg and info["variant"] == "usm"
+  jax.tree.map(np.testing.assert_array_equal, got, uparams)
+  rng = np.random.default_rng(6)
+  capture = Setup(wall_size=1.0, grid=(16, 16), bin_width=16e-12, num_bins=256)
+  video = rng.poisson(1.0, (2, 256, 16, 16)).astype(np.float32)
+  path = io.save_capture(tmp_path / "video.h5", video, capture)
+  res = run_cli([path, "--method", "usm", "--checkpoint", workdir, "--frame", "all",
+                 "--out", tmp_path / "u"])
+  assert res["volume"].shape == (2, 32, 16, 16) and res["intensity"].shape == (2, 16, 16)
+  assert np.isfinite(res["volume"]).all() and np.isfinite(res["depth"]).all()
+  assert 0.0 <= res["intensity"].min() and res["intensity"].max() <= 1.0
+  with h5py.File(tmp_path / "u" / "volume.h5", "r") as f:
+    assert json.loads(f.attrs["model"])["variant"] == "usm"
+  with pytest.raises(SystemExit):
+    run_cli([path, "--method", "usm", "--variant", "ours", "--checkpoint", workdir,
+             "--out", tmp_path / "x"])
+
+
 def test_model_cli_refuses_another_stride(trained_run, capture, tmp_path, capsys):
-  workdir, _, _ = trained_run
+  workdir, _, _, _ = trained_run
   path, _, _ = capture
   with pytest.raises(SystemExit):
     run_cli([path, "--method", "model", "--checkpoint", workdir, "--scan-stride", "2",

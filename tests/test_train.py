@@ -22,7 +22,7 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
   from nlosjax.evaluation import protocol, report, scores
   from nlosjax.main_job import train_and_evaluate
   cfg = tiny_config(data_path, steps=2, seeds=2, select_checkpoint="val", keep_checkpoints=2,
-                    checkpoint_every=1)
+                    checkpoint_every=1, variants=("ours_s", "ours", "usm"))
   table = train_and_evaluate(cfg, tmp_path, extra_test_sets={"again": data_path}, log=lambda s: None)
   saved = json.loads((tmp_path / "results" / "table.json").read_text())
   assert set(saved) == set(report.TABLE_METHODS)
@@ -34,22 +34,26 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
       if metric in ("psnr", "ssim", "rmse", "mad"):      # defined on every frame
         assert np.isfinite([cell["mean"], lo, hi]).all() and lo <= cell["mean"] <= hi, (method, metric)
       assert cell["n_sequences"] == 1 and cell["n_frames"] == 2 * cell["n_seeds"]
-      assert cell["n_seeds"] == (2 if method.startswith("ours") else 1)
+      assert cell["n_seeds"] == (2 if method in T.VARIANT_FRAMES else 1)
     assert_nested_close(row, table[method], path=method)
   comparisons = json.loads((tmp_path / "results" / "comparisons.json").read_text())
   validation = json.loads((tmp_path / "results" / "validation.json").read_text())
   best = validation["best_classic"]
-  assert [(c["a"], c["b"]) for c in comparisons] == [("ours", "ours_s"), ("ours", best), ("ours_s", best)]
+  assert [(c["a"], c["b"]) for c in comparisons] == [
+      ("ours", "ours_s"), ("ours", "usm"), ("ours_s", "usm"), ("ours", best), ("ours_s", best),
+      ("usm", best)]
   assert set(validation["classic"]) == {"fbp", "lct", "fk", "phasor", "rsd"}
-  assert set(validation["checkpoints"]) == {"ours_s", "ours_s-seed1", "ours", "ours-seed1"}
+  assert set(validation["checkpoints"]) == {"ours_s", "ours_s-seed1", "ours", "ours-seed1", "usm",
+                                            "usm-seed1"}
   for c in validation["learned"].values():          # surface threshold chosen by validation F1
     assert c["threshold"] in protocol.MODEL_THRESHOLDS
     assert c["f1"] == max(c["f1_by_threshold"].values())
-  assert set(validation["learned"]) == {"ours_s", "ours"}
+  assert set(validation["learned"]) == {"ours_s", "ours", "usm"}
   for c in validation["checkpoints"].values():      # both kept steps scored on validation
     assert sorted(int(k) for k in c["val_psnr"]) == [1, 2] and c["step"] in (1, 2)
   text = (tmp_path / "results" / "table.md").read_text()
-  for needle in ("object recall", "Ours - Ours-S", f"Ours - {report.label(best)}", "validation split"):
+  for needle in ("object recall", "Ours - Ours-S", "Ours - USM", f"Ours - {report.label(best)}",
+                 "validation split"):
     assert needle in text, needle
   for name in ("comparison.png", "training_curves.png", "table1_again_comparison.png"):
     assert (tmp_path / "results" / name).stat().st_size > 0
@@ -69,7 +73,11 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
   assert set(again) == set(report.TABLE_METHODS)
   for method in ("fbp", "lct", "fk", "phasor", "rsd"):
     assert_nested_close(again[method], saved[method], rtol=1e-5, atol=1e-6, path=method)
-  assert again["ours"]["psnr"]["n_seeds"] == 1
+  assert again["ours"]["psnr"]["n_seeds"] == again["usm"]["psnr"]["n_seeds"] == 1
+  # USM's training followed Ours' recipe (config usm.recipe "ours"): the same loss terms.
+  usm_rows = [json.loads(l) for l in (tmp_path / "usm" / "metrics.jsonl").read_text().splitlines()]
+  assert set(usm_rows[-1]) == set(rows[-1]) and {"pf", "ls", "tv"} <= set(usm_rows[-1])
+  assert np.isfinite(usm_rows[-1]["loss"])
   # One variant's folder selects that variant only.
   from nlosjax import checkpoints_io
   _, only = checkpoints_io.load_run(tmp_path / "ours_s" / "checkpoints", log=lambda s: None)

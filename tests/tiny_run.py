@@ -15,6 +15,9 @@ TINY_DATA = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, input_stride
                  num_sequences={"train": 2, "val": 1, "test": 1}, render_batch=4, **LCT_DATA)
 TINY_MODEL = dict(width=4, d_state=2, extract_time_stride=2, extract_blocks=1, st_depth=1,
                   cross_depth=1, spread_min_width=1, volume_features=1, refine_width=2)
+#: USM (the "usm" variant) at the same scale.
+TINY_USM = dict(trn_width=2, trn_kernels=(3, 9), fusion_widths=(), extract_width=1,
+                refine=((2, 3), (2, 3)), render_widths=(2, 2))
 
 
 def tiny_config(data_path, **train):
@@ -23,6 +26,7 @@ def tiny_config(data_path, **train):
   cfg["data"].update(TINY_DATA, path=str(data_path))
   cfg["data"]["scene"] = {**cfg["data"]["scene"], **LCT_SCENE}
   cfg["model"] = dict(TINY_MODEL)
+  cfg["usm"] = {"recipe": "ours", "model": dict(TINY_USM)}
   cfg["train"] = {"steps": 4, "batch_size": 2, "log_every": 1, "checkpoint_every": 2,
                   "eval_batch_size": 2, **train}
   return T.with_defaults(cfg)
