@@ -26,7 +26,8 @@ scan point, the stored exposure, 3 frames, the CPU preset's model, the
 ``auto`` scan kernel, float32, no depth range):
 
 * method: FBP, LCT, f-k, phasor, RSD (input interpolated bilinearly to the
-  full grid, the paper's protocol), Ours-S, Ours;
+  full grid, the paper's protocol), USM (the learned baseline, the preset's
+  ``usm`` section and recipe), Ours-S, Ours;
 * scan density: every 8th / 4th / 2nd / every scan point (4 x 4 ... 32 x 32)
   of the same scenes, classic methods (the networks are trained for 8 x 8);
 * exposure: the stored noise-free transients re-noised with
@@ -279,14 +280,17 @@ def classic_pipeline(method: str, setup, stride: int, *, volume: bool = False) -
 
 
 def learned_pipeline(mcfg, *, volume: bool = False) -> Callable:
-  """``(params, x [B, F, T, h, w]) -> {"intensity", "depth" (, "volume")}`` of ``STMambaNet(mcfg)``."""
-  from nlosjax.models.network import STMambaNet
-  model = STMambaNet(mcfg)
+  """``(params, x [B, F, T, h, w]) -> {"intensity", "depth" (, "volume")}`` of ``mcfg.module()``.
+
+  The intensity is clamped to [0, 1] as in the main job's evaluation (USM's head is not).
+  """
+  import jax.numpy as jnp
+  model = mcfg.module()
 
   def fn(params, x):
     out = model.apply({"params": params}, x)
     keys = ("intensity", "depth", "volume") if volume else ("intensity", "depth")
-    return {k: out[k] for k in keys}
+    return {k: jnp.clip(out[k], 0.0, 1.0) if k == "intensity" else out[k] for k in keys}
 
   return fn
 
@@ -400,15 +404,19 @@ class Learned:
     label: table label.
     frames: input frames (odd).
     model: ``ModelConfig`` overrides on top of the preset's ``model`` section.
+    variant: the main job's variant it is built as (``"usm"``: the preset's
+      ``usm`` section and recipe, :func:`nlosjax.train.model_config_for`).
   """
 
   name: str
   label: str
   frames: int
   model: tuple = ()
+  variant: str = "ours"
 
 
 LEARNED = (
+    Learned("usm", "USM", 1, variant="usm"),
     Learned("ours_s", "Ours-S", 1),
     Learned("ours", "Ours", 3),
     Learned("ours_f5", "Ours, 5 frames", 5),
@@ -421,8 +429,11 @@ LEARNED = (
 
 
 def learned_config(config: dict, setup, spec: Learned):
-  """The ``ModelConfig`` of ``spec`` on ``setup`` (the preset's model section + overrides)."""
+  """The model config of ``spec`` on ``setup`` (the preset's model section + overrides; USM's own)."""
   from nlosjax.models.network import ModelConfig
+  if spec.variant == "usm":
+    from nlosjax.train import model_config_for
+    return model_config_for(config, setup, "usm")
   kw = {**config.get("model", {}), **dict(spec.model), "frames": spec.frames}
   return ModelConfig(setup=setup, stride=int(config["data"]["input_stride"]), **kw)
 
@@ -479,21 +490,18 @@ def train_learned(spec: Learned, config: dict, setup, root: pathlib.Path, steps:
 
   from jax.sharding import NamedSharding, PartitionSpec as P
 
-  from nlosjax import losses
-  from nlosjax.models.network import STMambaNet
-  from nlosjax.train import (BATCH_KEYS, Checkpointer, OptimConfig, select_frames,
-                             create_train_state, make_mesh, make_optimizer, make_train_step,
-                             shard_batch)
+  from nlosjax.train import (BATCH_KEYS, Checkpointer, select_frames, create_train_state,
+                             make_mesh, make_optimizer, make_train_step, shard_batch,
+                             training_recipe)
   tr = config["train"]
   batch_size, seed = int(tr["batch_size"]), int(tr.get("seed", 0))
   mcfg = learned_config(config, setup, spec)
-  optim = OptimConfig(**tr.get("optim", {}))
-  weights = losses.LossWeights(**tr.get("loss", {}))
+  optim, weights = training_recipe(config, "usm" if spec.variant == "usm" else "ours")
   mesh = make_mesh()
   init_key, loop_key = jax.random.split(jax.random.key(seed))
 
   def init():
-    return create_train_state(STMambaNet(mcfg), (batch_size,) + mcfg.input_shape()[1:],
+    return create_train_state(mcfg.module(), (batch_size,) + mcfg.input_shape()[1:],
                               make_optimizer(optim, steps), init_key, mesh)
 
   signature = json.dumps({"benchmark": "tradeoff", "model": repr(mcfg),
@@ -755,7 +763,7 @@ def run(args) -> dict:
     add("method", method, labels[method], "classic" if method in CLASSIC else "learned", m,
         setting=labels[method])
 
-  for method in CLASSIC + ("ours_s", "ours"):
+  for method in CLASSIC + ("usm", "ours_s", "ours"):
     jobs.append(("method", f"method {method}", lambda method=method: job_method(method)))
 
   def job_density(method, s):
@@ -780,12 +788,12 @@ def run(args) -> dict:
         "classic" if method in CLASSIC else "learned", m, capture=f"x{e:g}", setting=f"x{e:g}")
 
   for e in EXPOSURES:
-    for method in CLASSIC + ("ours_s", "ours"):
+    for method in CLASSIC + ("usm", "ours_s", "ours"):
       jobs.append(("exposure", f"exposure {method} x{e:g}",
                    lambda method=method, e=e: job_exposure(method, e)))
 
   for spec in LEARNED:
-    if spec.name not in ("ours_s", "ours"):
+    if spec.name not in ("usm", "ours_s", "ours"):
       knob = "frames" if spec.model == () else "model"
       jobs.append((knob, f"{knob} {spec.name}", lambda spec=spec, knob=knob: add(
           knob, spec.name, spec.label, "learned", learned(spec.name), setting=spec.label)))
