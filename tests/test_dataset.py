@@ -524,7 +524,7 @@ def test_spec_and_config_errors_name_the_key():
 def test_presets_keep_the_paper_ratios():
   for name in configs.PRESETS:
     cfg = configs.get_config(name)
-    assert {"data", "model", "train"} <= set(cfg) <= {"data", "model", "train", "independent"}
+    assert {"data", "model", "train"} <= set(cfg) <= {"data", "model", "train", "independent", "usm"}
     spec = D.DatasetSpec.from_config(cfg["data"])
     d = cfg["data"]
     h = len(range(d["input_offset"], spec.setup.height, d["input_stride"]))
