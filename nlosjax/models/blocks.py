@@ -123,43 +123,29 @@ class Conv3D(nn.Module):
             if self.use_bias else None)
     x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
     s, d = self.time_stride, self.time_dilation
-    if self.padding == "edge" and (kt, kh, kw) != (1, 1, 1):
-      y = self._edge_padded(x, kernel)
-    elif self.impl == "xla":
-      y = jax.lax.conv_general_dilated(x, kernel, (s, 1, 1), "SAME", rhs_dilation=(d, 1, 1),
+    n, t, h, w, _ = x.shape
+    out, lo, hi = same_padding(t, kt, s, d)          # "SAME" amounts; (kh // 2, kw // 2) in space
+    ph, pw = kh // 2, kw // 2
+    if self.padding == "edge":                       # pad by the border values, then no padding
+      x = jnp.pad(x, ((0, 0), (lo, hi), (ph, ph), (pw, pw), (0, 0)), mode="edge")
+      lo = hi = ph = pw = 0
+    if self.impl == "xla":
+      y = jax.lax.conv_general_dilated(x, kernel, (s, 1, 1), ((lo, hi), (ph, ph), (pw, pw)),
+                                       rhs_dilation=(d, 1, 1),
                                        dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
     elif (kt, kh, kw) == (1, 1, 1):
       y = jnp.einsum("nthwc,cf->nthwf", x[:, ::s], kernel[0, 0, 0])
     else:
-      n, t, h, w, _ = x.shape
-      out, lo, hi = same_padding(t, kt, s, d)
       xp = jnp.pad(x, ((0, 0), (lo, hi), (0, 0), (0, 0), (0, 0)))
       taps = [xp[:, i * d:i * d + (out - 1) * s + 1:s] for i in range(kt)]
-      folded = jnp.concatenate(taps, axis=-1).reshape(n * out, h, w, kt * cin)
+      folded = jnp.concatenate(taps, axis=-1).reshape((n * out,) + xp.shape[2:4] + (kt * cin,))
       k2 = jnp.transpose(kernel, (1, 2, 0, 3, 4)).reshape(kh, kw, kt * cin, self.features)
-      y = jax.lax.conv_general_dilated(folded, k2, (1, 1), "SAME",
+      y = jax.lax.conv_general_dilated(folded, k2, (1, 1), ((ph, ph), (pw, pw)),
                                        dimension_numbers=("NHWC", "HWIO", "NHWC"))
       y = y.reshape(n, out, h, w, self.features)
     if bias is not None:
       y = y + bias
     return y
-
-  def _edge_padded(self, x, kernel):
-    """The convolution of ``x`` padded by its border values ("SAME" amounts), no bias."""
-    kt, kh, kw = self.kernel_size
-    s, d = self.time_stride, self.time_dilation
-    n, t, h, w, cin = x.shape
-    out, lo, hi = same_padding(t, kt, s, d)
-    xp = jnp.pad(x, ((0, 0), (lo, hi), (kh // 2, kh // 2), (kw // 2, kw // 2), (0, 0)), mode="edge")
-    if self.impl == "xla":
-      return jax.lax.conv_general_dilated(xp, kernel, (s, 1, 1), "VALID", rhs_dilation=(d, 1, 1),
-                                          dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
-    taps = [xp[:, i * d:i * d + (out - 1) * s + 1:s] for i in range(kt)]
-    folded = jnp.concatenate(taps, axis=-1).reshape(n * out, h + kh - 1, w + kw - 1, kt * cin)
-    k2 = jnp.transpose(kernel, (1, 2, 0, 3, 4)).reshape(kh, kw, kt * cin, self.features)
-    y = jax.lax.conv_general_dilated(folded, k2, (1, 1), "VALID",
-                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
-    return y.reshape(n, out, h, w, self.features)
 
 
 def _conv(features: int, kernel=(3, 3, 3), *, time_stride: int = 1, time_dilation: int = 1,
