@@ -63,8 +63,63 @@ def _power_of_two(value, name: str) -> int:
   return value
 
 
+class ScanInputConfig:
+  """What every model config derives from its ``setup``, ``stride`` and ``frames`` fields.
+
+  The under-scanned input (``input_grid``, ``input_shape``, ``check_frames``)
+  and the dataclass copies (``with_setup``, ``replace``), shared by
+  :class:`ModelConfig` and :class:`~nlosjax.models.usm.USMConfig` (frozen
+  dataclasses with those three fields).
+  """
+
+  def with_setup(self, setup: Setup):
+    """The same architecture (same parameter tree) for another capture."""
+    return dataclasses.replace(self, setup=setup)
+
+  def replace(self, **changes):
+    return dataclasses.replace(self, **changes)
+
+  @property
+  def scan_offset(self) -> int:
+    """Full-grid index of the first under-scanned point along each axis (``stride // 2``)."""
+    return self.stride // 2
+
+  @property
+  def input_grid(self) -> tuple[int, int]:
+    """``(h, w)`` of the under-scanned input."""
+    H, W = self.setup.grid
+    return (blocks.underscan_indices(H, self.stride).size, blocks.underscan_indices(W, self.stride).size)
+
+  def input_shape(self, batch: int = 1) -> tuple[int, int, int, int, int]:
+    """``(B, F, T, h, w)`` of the network input."""
+    return (batch, self.frames, self.setup.num_bins) + self.input_grid
+
+  def check_frames(self, frames, name: str = "frames") -> None:
+    """Raise ``ValueError`` naming the mismatch unless ``frames`` is ``[B, F, T, h, w]`` for this config."""
+    shape = tuple(getattr(frames, "shape", ()))
+    expected = self.input_shape()[1:]
+    kind = type(self).__name__
+    what = (f"[B, F, T, h, w] = [B, {expected[0]}, {expected[1]}, {expected[2]}, {expected[3]}]"
+            f" ({self.frames} frames, {self.setup.num_bins} bins, the {self.setup.grid} grid"
+            f" under-scanned by stride {self.stride})")
+    if len(shape) != 5:
+      raise ValueError(f"{name} must be {what}, got rank {len(shape)} shape {shape}")
+    if shape[1] != self.frames:
+      raise ValueError(f"{name} has {shape[1]} frames (axis 1) but {kind}.frames is"
+                       f" {self.frames}; expected {what}")
+    if shape[2] != self.setup.num_bins:
+      raise ValueError(f"{name} has {shape[2]} time bins (axis 2) but the Setup has num_bins ="
+                       f" {self.setup.num_bins}; expected {what}")
+    if shape[3:] != self.input_grid:
+      raise ValueError(f"{name} scan grid {shape[3:]} (axes 3, 4) does not match the input grid"
+                       f" {self.input_grid}; expected {what}")
+    dtype = getattr(frames, "dtype", None)
+    if dtype is None or not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+      raise ValueError(f"{name} must be a real array of counts, got dtype {dtype}")
+
+
 @dataclasses.dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(ScanInputConfig):
   """Every hyper-parameter of :class:`STMambaNet` (frozen, hashable: a static module attribute).
 
   Attributes:
@@ -242,29 +297,7 @@ class ModelConfig:
     kw.update(overrides)
     return cls(setup=setup, **kw)
 
-  def with_setup(self, setup: Setup) -> "ModelConfig":
-    """The same architecture (same parameter tree) for another capture."""
-    return dataclasses.replace(self, setup=setup)
-
-  def replace(self, **changes) -> "ModelConfig":
-    return dataclasses.replace(self, **changes)
-
   # --------------------------------------------------------------- shapes
-  @property
-  def scan_offset(self) -> int:
-    """Full-grid index of the first under-scanned point along each axis (``stride // 2``)."""
-    return self.stride // 2
-
-  @property
-  def input_grid(self) -> tuple[int, int]:
-    """``(h, w)`` of the under-scanned input."""
-    H, W = self.setup.grid
-    return (blocks.underscan_indices(H, self.stride).size, blocks.underscan_indices(W, self.stride).size)
-
-  def input_shape(self, batch: int = 1) -> tuple[int, int, int, int, int]:
-    """``(B, F, T, h, w)`` of the network input."""
-    return (batch, self.frames, self.setup.num_bins) + self.input_grid
-
   @property
   def mixers(self) -> tuple[str, ...]:
     return VARIANTS[self.variant]
@@ -296,10 +329,6 @@ class ModelConfig:
                 remat=self.remat, activation=self.volume_activation,
                 dtype=self.activation_dtype)
 
-  def check_frames(self, frames, name: str = "frames") -> None:
-    """Raise ``ValueError`` naming the mismatch unless ``frames`` is ``[B, F, T, h, w]`` for this config."""
-    check_model_input(self, frames, name)
-
   def module(self) -> "STMambaNet":
     """The Flax module of this config."""
     return STMambaNet(self)
@@ -307,35 +336,6 @@ class ModelConfig:
   def analytic_flops(self, batch: int) -> tuple[float, float]:
     """``(fft, scan)`` FLOPs of one forward pass that XLA's cost analysis misses."""
     return _analytic_flops(self, batch)
-
-
-def check_model_input(config, frames, name: str = "frames") -> None:
-  """Raise ``ValueError`` naming the mismatch unless ``frames`` is ``config.input_shape()`` but the batch.
-
-  ``config`` is any model config with ``frames``, ``setup``, ``stride``,
-  ``input_grid`` and ``input_shape`` (:class:`ModelConfig`,
-  :class:`~nlosjax.models.usm.USMConfig`).
-  """
-  shape = tuple(getattr(frames, "shape", ()))
-  expected = config.input_shape()[1:]
-  kind = type(config).__name__
-  what = (f"[B, F, T, h, w] = [B, {expected[0]}, {expected[1]}, {expected[2]}, {expected[3]}]"
-          f" ({config.frames} frames, {config.setup.num_bins} bins, the {config.setup.grid} grid"
-          f" under-scanned by stride {config.stride})")
-  if len(shape) != 5:
-    raise ValueError(f"{name} must be {what}, got rank {len(shape)} shape {shape}")
-  if shape[1] != config.frames:
-    raise ValueError(f"{name} has {shape[1]} frames (axis 1) but {kind}.frames is"
-                     f" {config.frames}; expected {what}")
-  if shape[2] != config.setup.num_bins:
-    raise ValueError(f"{name} has {shape[2]} time bins (axis 2) but the Setup has num_bins ="
-                     f" {config.setup.num_bins}; expected {what}")
-  if shape[3:] != config.input_grid:
-    raise ValueError(f"{name} scan grid {shape[3:]} (axes 3, 4) does not match the input grid"
-                     f" {config.input_grid}; expected {what}")
-  dtype = getattr(frames, "dtype", None)
-  if dtype is None or not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
-    raise ValueError(f"{name} must be a real array of counts, got dtype {dtype}")
 
 
 def underscan(transient, stride: int) -> jax.Array:

@@ -73,7 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from nlosjax.models import blocks
-from nlosjax.models.network import INPUT_NORMS, check_model_input, input_scale
+from nlosjax.models.network import INPUT_NORMS, ScanInputConfig, input_scale
 from nlosjax.physics import _validate
 from nlosjax.physics.operators import check_falloff, lct_domain
 from nlosjax.physics.setup import Setup
@@ -107,7 +107,7 @@ def _positive_ints(value, name: str) -> tuple[int, ...]:
 
 
 @dataclasses.dataclass(frozen=True)
-class USMConfig:
+class USMConfig(ScanInputConfig):
   """Every hyper-parameter of :class:`USMNet` (frozen, hashable).
 
   Attributes:
@@ -191,13 +191,6 @@ class USMConfig:
     setup = setup or Setup(wall_size=2.0, grid=(128, 128), bin_width=33e-12, num_bins=512)
     return cls(setup=setup, **{"stride": 8, **overrides})
 
-  def with_setup(self, setup: Setup) -> "USMConfig":
-    """The same architecture (same parameter tree) for another capture."""
-    return dataclasses.replace(self, setup=setup)
-
-  def replace(self, **changes) -> "USMConfig":
-    return dataclasses.replace(self, **changes)
-
   def module(self) -> "USMNet":
     """The Flax module of this config."""
     return USMNet(self)
@@ -207,19 +200,6 @@ class USMConfig:
   def channels(self) -> int:
     """``C``: feature channels through the LCT layer (the pooled transient + ``extract_width``)."""
     return 1 + int(self.extract_width)
-
-  @property
-  def scan_offset(self) -> int:
-    return self.stride // 2
-
-  @property
-  def input_grid(self) -> tuple[int, int]:
-    H, W = self.setup.grid
-    return (blocks.underscan_indices(H, self.stride).size, blocks.underscan_indices(W, self.stride).size)
-
-  def input_shape(self, batch: int = 1) -> tuple[int, int, int, int, int]:
-    """``(B, 1, T, h, w)`` of the network input."""
-    return (batch, 1, self.setup.num_bins) + self.input_grid
 
   @property
   def time_window(self) -> tuple[int, int]:
@@ -234,10 +214,6 @@ class USMConfig:
   def coarse_setup(self) -> Setup:
     """The Setup of the LCT layer: :func:`half_setup` of ``setup``."""
     return half_setup(self.setup)
-
-  def check_frames(self, frames, name: str = "frames") -> None:
-    """Raise ``ValueError`` naming the mismatch unless ``frames`` is ``[B, 1, T, h, w]``."""
-    check_model_input(self, frames, name)
 
   def analytic_flops(self, batch: int) -> tuple[float, float]:
     """``(fft, 0)``: FLOPs of the LCT layer's FFTs (``2.5 N log2 N`` per real FFT), no scan."""
