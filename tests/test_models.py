@@ -20,6 +20,7 @@ from nlosjax.models import (VARIANTS, CrossSTMambaBlock, FeatureTransform, Model
                             count_params, mirror_spatial_params, model_summary, soft_projection,
                             underscan)
 from nlosjax.physics import Setup
+from tests.xla_options import xla_optimizations
 
 # 8 x 8 scan of a 0.5 m wall, 64 ps bins, 32 bins (depths up to 0.31 m); stride 2 -> 4 x 4 input.
 TINY = Setup(wall_size=0.5, grid=(8, 8), bin_width=64e-12, num_bins=32)
@@ -31,10 +32,8 @@ TINY_KW = dict(stride=2, width=8, d_state=4, extract_time_stride=2, extract_bloc
 @pytest.fixture(scope="module", autouse=True)
 def _fast_compiles():
   """Tiny shapes: XLA's optimisations cost more compile time than they save (as flax's examples)."""
-  prev = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", prev)
+  with xla_optimizations(False):
+    yield
 
 
 def tiny_config(**kw):

@@ -58,6 +58,7 @@ from nlosjax import losses, physics, train
 from nlosjax.data import dataset as D
 from nlosjax.models import ModelConfig, STMambaNet
 from nlosjax.physics import Setup, reconstruct, render_points
+from tests.xla_options import xla_optimizations
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -65,10 +66,8 @@ def _fast_compiles():
   """Small shapes: XLA's optimisations cost more compile time than they save (as test_models;
   measured here: the 12 x 12 reconstructions compile in 60 % of the time, the paper-sized LCT
   runs 25 % slower)."""
-  prev = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", prev)
+  with xla_optimizations(False):
+    yield
 
 
 def rel_dev(a, b) -> float:
@@ -97,10 +96,8 @@ M = 1000
 @pytest.fixture
 def _optimized():
   """XLA's optimisations back on: the Poisson sampler's rejection loop runs 3x slower without."""
-  prev = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", False)
-  yield
-  jax.config.update("jax_disable_most_optimizations", prev)
+  with xla_optimizations(True):
+    yield
 
 
 @pytest.mark.parametrize("efficiency", [1e-3, 1.0])

@@ -20,6 +20,7 @@ from nlosjax.models import blocks, count_params, model_summary
 from nlosjax.models.usm import (PUBLISHED_LOSS, PUBLISHED_OPTIM, Extraction, USMConfig, USMNet,
                                 half_setup, scan_mask, zero_fill)
 from nlosjax.physics import Setup
+from tests.xla_options import xla_optimizations
 
 # 8 x 8 scan of a 0.5 m wall, 64 ps bins, 32 bins; stride 2 -> 4 x 4 input.
 TINY = Setup(wall_size=0.5, grid=(8, 8), bin_width=64e-12, num_bins=32)
@@ -29,10 +30,8 @@ TINY_KW = dict(stride=2, trn_width=2, trn_kernels=(3, 5), fusion_widths=(2,), ex
 
 @pytest.fixture(scope="module", autouse=True)
 def _fast_compiles():
-  prev = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", prev)
+  with xla_optimizations(False):
+    yield
 
 
 def tiny(**kw):
