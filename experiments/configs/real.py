@@ -49,7 +49,6 @@ def get_config() -> dict:
       "input_stride": 4,           # 64 -> 16
       "input_offset": 2,
       "photons": (1e3, 3e4),
-      "falloff": "retroreflective",
       # The transport renderer (exact paths, per-scan-point visibility, cosines), as the cpu
       # preset: with it the falloff is drawn per object, most of them retroreflective like the
       # measured targets (r^-2), the rest diffuse (r^-4). real.h5 (the light-cone renderer,
