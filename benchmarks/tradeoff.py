@@ -259,7 +259,7 @@ def classic_pipeline(method: str, setup, stride: int, *, volume: bool = False) -
   import jax.numpy as jnp
 
   from nlosjax.physics import intensity_depth, reconstruct
-  from nlosjax.evaluation.baselines import upsample_scan
+  from nlosjax.evaluation.baselines import TABLE_VARIANT, upsample_scan
   if method not in CLASSIC:
     raise ValueError(f"method must be one of {CLASSIC}, got {method!r}")
 
@@ -267,7 +267,8 @@ def classic_pipeline(method: str, setup, stride: int, *, volume: bool = False) -
     # The methods cache their operators per Setup; built under this trace they would be
     # cached as tracers and leak into later calls. Concrete values are computed eagerly here.
     with jax.ensure_compile_time_eval():
-      vol = reconstruct(upsample_scan(x, setup.grid, stride), setup, method)
+      vol = reconstruct(upsample_scan(x, setup.grid, stride), setup, method,
+                        **({"variant": TABLE_VARIANT[method]} if method in TABLE_VARIANT else {}))
     if method == "fk":
       vol = jnp.sqrt(vol)
     inten, depth = intensity_depth(vol, setup)

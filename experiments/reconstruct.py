@@ -49,8 +49,9 @@ import numpy as np
 METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "model", "usm")
 LEARNED = ("model", "usm")
 #: Options each classic method takes (the CLI passes only those given).
-METHOD_OPTIONS = {"fbp": ("falloff", "oversample"), "lct": ("snr", "falloff", "oversample"),
-                  "fk": (), "phasor": ("cycles", "sampling_coeff", "oversample"),
+METHOD_OPTIONS = {"fbp": ("falloff", "operators", "oversample"),
+                  "lct": ("snr", "falloff", "operators", "oversample"),
+                  "fk": ("operators",), "phasor": ("cycles", "sampling_coeff", "operators", "oversample"),
                   "rsd": ("cycles", "sampling_coeff", "ratio")}
 
 
@@ -93,7 +94,11 @@ def build_parser() -> argparse.ArgumentParser:
   g.add_argument("--cycles", type=float, default=None, help="phasor, rsd: wavelet cycles")
   g.add_argument("--sampling-coeff", type=float, default=None, help="phasor, rsd: wavelength / (2 spacing)")
   g.add_argument("--ratio", type=float, default=None, help="rsd: spectrum threshold")
-  g.add_argument("--oversample", type=int, default=None, help="lct, fbp, phasor: v-bins per time bin")
+  g.add_argument("--operators", choices=("public", "refined"), default=None,
+                 help="fbp, lct, fk, phasor: the public code's operators (default: its snr gives"
+                      " its image) or our refined ones (see nlosjax.physics.reconstruct)")
+  g.add_argument("--oversample", type=int, default=None,
+                 help="lct, fbp, phasor with --operators refined: v-bins per time bin")
   g = p.add_argument_group("model options")
   g.add_argument("--checkpoint", default="runs/default",
                  help="training workdir, variant folder or checkpoints folder (default runs/default)")
@@ -179,12 +184,14 @@ def load(args):
 def classic_options(args) -> dict:
   allowed = METHOD_OPTIONS[args.method]
   given = {k: getattr(args, k) for k in ("snr", "falloff", "cycles", "sampling_coeff", "ratio",
-                                         "oversample") if getattr(args, k) is not None}
+                                         "operators", "oversample") if getattr(args, k) is not None}
   bad = sorted(set(given) - set(allowed))
   if bad:
     flags = ", ".join("--" + b.replace("_", "-") for b in bad)
     raise ValueError(f"--method {args.method} takes no {flags} (its options: "
                      f"{', '.join('--' + a.replace('_', '-') for a in allowed) or 'none'})")
+  if "operators" in given:                       # the library's name for it
+    given["variant"] = given.pop("operators")
   return given
 
 

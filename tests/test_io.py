@@ -19,6 +19,7 @@ from nlosjax.physics.setup import Setup
 
 REPO = Path(__file__).resolve().parents[1]
 EXIT_SIGN_SHA256 = "e577393a3b134f017ee8cabba99cd06a303b9680bb5caa7e2031de298a282920"
+S_U_SHA256 = "11a94722540e046ba3d86f7c00108948d1781428939302fd0e829d784a7f8f21"
 
 
 # ------------------------------------------------------------------ helpers
@@ -442,6 +443,12 @@ def test_shipped_scan_is_the_published_file():
   assert path == REPO / "experiments" / "data" / "data_exit_sign.mat"
   assert sha256(path) == EXIT_SIGN_SHA256
   assert (REPO / "experiments" / "data" / "README.md").is_file()
+  su = shipped_scan_path("data_s_u.mat")
+  assert su == REPO / "experiments" / "data" / "data_s_u.mat" and sha256(su) == S_U_SHA256
+  transient, setup = load_measurement(su)
+  assert transient.shape == (512, 64, 64) and setup.wall_size == pytest.approx(0.7)
+  with pytest.raises(ValueError, match="shipped scans are"):
+    shipped_scan_path("data_bunny.mat")
 
 
 def test_shipped_exit_sign_loads():
@@ -464,7 +471,7 @@ def test_shipped_exit_sign_loads():
 
 
 def test_shipped_scan_path_missing(tmp_path, monkeypatch):
-  monkeypatch.setattr(dio, "_SHIPPED_SCAN", tmp_path / "absent.mat")
+  monkeypatch.setattr(dio, "_SHIPPED_DIR", tmp_path)
   with pytest.raises(FileNotFoundError, match="not found"):
     shipped_scan_path()
 

@@ -246,7 +246,7 @@ def test_feature_transform_is_the_physics(method, depth_range):
   input is only the time window the layer reads (gating)."""
   setup = Setup(0.5, (8, 8), 64e-12, 48, depth_range=depth_range)
   x = point_scene(setup)
-  ref = np.asarray(physics.reconstruct(x, setup, method, oversample=1))
+  ref = np.asarray(physics.reconstruct(x, setup, method, variant="refined", oversample=1))
   layer = FeatureTransform(setup, method)
   a, b = layer.window()
   full = layer.apply({}, jnp.asarray(x)[None, ..., None])[0, ..., 0]
@@ -271,7 +271,7 @@ def test_volume_stage_physics_channel_is_the_physics_of_the_pooled_transient():
   got = state["intermediates"]["transform"]["__call__"][0][0, ..., 0]
   coarse = coarsen_setup(setup, 2)
   pooled = x.reshape(setup.num_bins // 2, 2, 8, 8).mean(axis=1)
-  ref = np.asarray(physics.phasor(pooled, coarse, oversample=1))
+  ref = np.asarray(physics.phasor(pooled, coarse, variant="refined", oversample=1))
   np.testing.assert_allclose(got, ref, atol=1e-5 * ref.max(), rtol=1e-4)
 
 

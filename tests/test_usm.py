@@ -169,7 +169,8 @@ def test_lct_layer_is_nlosjax_physics_lct():
   feats, out = np.asarray(seen["x"]), np.asarray(seen["out"])
   coarse = half_setup(TINY)
   assert feats.shape[1:4] == (coarse.num_bins,) + coarse.grid
-  ref = physics.lct(jnp.asarray(feats[..., 0]), coarse, snr=cfg.lct_snr, falloff=cfg.falloff)
+  ref = physics.lct(jnp.asarray(feats[..., 0]), coarse, snr=cfg.lct_snr, falloff=cfg.falloff,
+                    variant="refined")
   np.testing.assert_allclose(out[..., 0], np.asarray(ref), rtol=1e-4,
                              atol=1e-5 * float(np.abs(ref).max()))
 

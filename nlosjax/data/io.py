@@ -1223,25 +1223,33 @@ def load_measurement(path, *, format: str | None = None, zero_bins: int | None =
 
 #: The measured scan shipped with the repository (see experiments/data/README.md).
 SHIPPED_SCAN_NAME = "data_exit_sign.mat"
-_SHIPPED_SCAN = Path(__file__).resolve().parents[2] / "experiments" / "data" / SHIPPED_SCAN_NAME
+#: Every measured scan shipped with the repository: the exit sign and the letters S and U.
+SHIPPED_SCAN_NAMES = (SHIPPED_SCAN_NAME, "data_s_u.mat")
+_SHIPPED_DIR = Path(__file__).resolve().parents[2] / "experiments" / "data"
 
 
-def shipped_scan_path() -> Path:
-  """Path of the measured exit-sign scan shipped in ``experiments/data/``.
+def shipped_scan_path(name: str = SHIPPED_SCAN_NAME) -> Path:
+  """Path of a measured scan shipped in ``experiments/data/`` (default: the exit sign).
 
-  The O'Toole et al. 2018 ``data_exit_sign.mat`` (``lct_mat``: 64 x 64 scan
-  points, 0.8 m wall, 2048 bins of 4 ps), unchanged. It lives in the source
-  repository, not in the Python package.
+  The O'Toole et al. 2018 ``data_exit_sign.mat`` or ``data_s_u.mat``
+  (``lct_mat``: 64 x 64 scan points, 0.8 or 0.7 m wall, 2048 bins of 4 ps),
+  unchanged. They live in the source repository, not in the Python package.
 
+  Args:
+    name: one of :data:`SHIPPED_SCAN_NAMES`.
   Raises:
+    ValueError: for another name.
     FileNotFoundError: if the file is absent, e.g. for a pip-installed
       package without the repository checkout.
   """
-  if not _SHIPPED_SCAN.is_file():
+  if name not in SHIPPED_SCAN_NAMES:
+    raise ValueError(f"shipped scans are {SHIPPED_SCAN_NAMES}, got {name!r}")
+  path = _SHIPPED_DIR / name
+  if not path.is_file():
     raise FileNotFoundError(
         errno.ENOENT,
-        f"shipped scan not found at {_SHIPPED_SCAN}: it lives in the nlosjax source"
+        f"shipped scan not found at {path}: it lives in the nlosjax source"
         " repository (experiments/data/), not in an installed package; use a source"
-        " checkout or pass the path of a copy of data_exit_sign.mat to load_measurement",
-        str(_SHIPPED_SCAN))
-  return _SHIPPED_SCAN
+        f" checkout or pass the path of a copy of {name} to load_measurement",
+        str(path))
+  return path

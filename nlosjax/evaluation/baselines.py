@@ -21,6 +21,12 @@ thresholds :data:`THRESHOLDS`:
 
 Ties keep the earlier grid entry. ``tune`` returns every grid row's scores
 too, so a report can show what the choice was made from.
+
+Operator variant: the tables' classic rows use ``variant="refined"`` for
+FBP, LCT, f-k and phasor (:data:`TABLE_VARIANT`; the setting every table was
+tuned and measured with), where the library default is the public algorithm
+(``variant="public"``, see :mod:`nlosjax.physics.reconstruct`). An explicit
+``variant`` in the options wins.
 """
 
 from __future__ import annotations
@@ -40,6 +46,8 @@ CLASSIC_METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
 THRESHOLDS = (0.05, 0.1, 0.2, 0.3, 0.5)
 #: :func:`nlosjax.physics.intensity_depth`'s default, used where nothing was tuned.
 DEFAULT_THRESHOLD = 0.1
+#: Operator variant of the methods that have one, in every table (see the module docstring).
+TABLE_VARIANT = {"fbp": "refined", "lct": "refined", "fk": "refined", "phasor": "refined"}
 
 
 def interpolation_matrix(full: int, stride: int) -> np.ndarray:
@@ -114,6 +122,8 @@ def classic_volume(measurement, setup, stride: int, method: str, options: dict |
   from nlosjax.physics import reconstruct
   _check_method(method)
   opts = default_options(method, setup) if options is None else dict(options)
+  if method in TABLE_VARIANT:
+    opts.setdefault("variant", TABLE_VARIANT[method])
   vol = reconstruct(upsample_scan(measurement, setup.grid, stride), setup, method, **opts)
   return jnp.sqrt(vol) if method == "fk" else vol
 

@@ -352,3 +352,102 @@ def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array | None) -> jax.Ar
 def to_depth(vol_u: jax.Array, ops: LCTOperators) -> jax.Array:
   """``[Nu, H, W]`` u-grid -> ``[Z, H, W]`` depth grid (bin averages)."""
   return jnp.einsum("zu,uhw->zhw", ops.to_z, vol_u, precision="highest")
+
+
+# ------------------------------------------------------- the public algorithm
+# ``variant="public"`` of the LCT-based reconstructions: the operators of the
+# public MATLAB code (O'Toole's ``resamplingOperator`` and ``definePsf``,
+# nlos-fk's reuse of them), so that a Wiener ``snr`` gives the same image as
+# there. Written from the formulas in shared/reference/nlos-physics.md (section 1).
+VARIANTS = ("public", "refined")
+
+
+def check_variant(variant: str) -> str:
+  """Return ``variant`` if it names an LCT operator variant, else raise ValueError."""
+  if variant not in VARIANTS:
+    raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+  return variant
+
+
+def public_resampling_matrix(num_bins: int) -> np.ndarray:
+  """``[T, T]`` float64: the public ``mtx`` (rows v-bins, columns t-bins), any ``T``.
+
+  ``mtx[i, j] = (1/T) sum over integers x in [i T + 1, (i + 1) T] with
+  ceil(sqrt(x)) = j + 1 of 1 / sqrt(x)``: the closed form of the MATLAB
+  construction (an ``T^2 x T`` matrix of ``1/sqrt(x)`` halved ``log2 T``
+  times). The public inverse resampling ``mtxi`` is its transpose.
+  """
+  T = int(num_bins)
+  x = np.arange(1, T * T + 1, dtype=np.int64)
+  # ceil(sqrt(x)) - 1 == isqrt(x - 1) for integers x >= 1; correct the float root exactly.
+  j = np.floor(np.sqrt((x - 1).astype(np.float64))).astype(np.int64)
+  j -= (j * j > x - 1)
+  j += ((j + 1) * (j + 1) <= x - 1)
+  out = np.zeros((T, T))
+  np.add.at(out, ((x - 1) // T, j), 1.0 / (T * np.sqrt(x.astype(np.float64))))
+  return out
+
+
+def public_cone_psf(setup: Setup, dtype=np.float64) -> np.ndarray:
+  """``[2T, 2H, 2W]`` the public one-voxel-per-column light cone, apex at index 0.
+
+  As ``definePsf``: ``y_n = linspace(-1, 1, 2H)``, ``x_n = linspace(-1, 1, 2W)``,
+  ``z_n = linspace(0, 2, 2T)``; each column holds a single one at the ``z_n``
+  nearest to ``(4 slope)^2 (x_n^2 + y_n^2)``, ``slope = (wall_size / 2) /
+  (T bin_length)`` (so the implied scan spacing is ``wall_size / N`` and the
+  apex sits half a spacing off the grid); unit L2 norm; rolled by ``(H, W)``.
+  Columns whose cone lies beyond the last slice by more than half a step stay
+  empty (the public code puts a spurious one in the last slice there, which
+  only happens when ``slope > 1/4``). With ``setup.aperture``, columns laterally
+  farther than it (at the public code's implied positions) stay empty too.
+  """
+  T = setup.num_bins
+  H, W = setup.grid
+  slope = (setup.wall_size / 2.0) / (T * setup.bin_length)
+  y = np.linspace(-1.0, 1.0, 2 * H)
+  x = np.linspace(-1.0, 1.0, 2 * W)
+  dz = 2.0 / (2 * T - 1)
+  cone = (4.0 * slope) ** 2 * (y[:, None] ** 2 + x[None, :] ** 2)
+  k = np.ceil(cone / dz - 0.5).astype(np.int64)       # nearest slice, ties to the lower one
+  keep = k <= 2 * T - 1
+  if setup.aperture is not None:             # x_n spans 2N spacings of wall / N: x_n wall_size metres
+    keep &= setup.wall_size ** 2 * (y[:, None] ** 2 + x[None, :] ** 2) <= setup.aperture ** 2
+  rows, cols = np.nonzero(keep)
+  if rows.size == 0:
+    raise ValueError(f"{setup}: no part of the light cone fits in the {T} time bins")
+  psf = np.zeros((2 * T, 2 * H, 2 * W))
+  psf[k[rows, cols], rows, cols] = 1.0 / math.sqrt(rows.size)
+  return np.roll(psf, (H, W), axis=(1, 2)).astype(dtype)
+
+
+@_validate.cached_operators(maxsize=8)
+def public_lct_operators(setup: Setup, time_power: int, *, z_margin: int = 0,
+                         dtype=jnp.float32) -> LCTOperators:
+  """Operators of the public LCT pipeline, in :class:`LCTOperators` form for :func:`lct_apply`.
+
+  ``vol = mtx^T crop(ifftn(fftn(pad(mtx (t_n^p tau))) filt))`` on the full
+  ``(2T, 2H, 2W)`` circular box with ``t_n = linspace(0, 1, T)``: ``p = 4``
+  diffuse LCT and FBP, ``2`` retroreflective, ``0`` the phasor method's plain
+  ``mtx``. Reads every time bin (the public code does not gate); a
+  ``depth_range`` only crops the output depths (widened by ``z_margin``).
+
+  Args:
+    setup: the capture.
+    time_power: ``p`` above, an integer >= 0.
+    z_margin: extra depth bins on each side of the Setup's (FBP's filter taps).
+    dtype: float dtype of the real operators.
+  """
+  if not (isinstance(time_power, int) and time_power >= 0):
+    raise ValueError(f"time_power must be an integer >= 0, got {time_power!r}")
+  T = setup.num_bins
+  H, W = setup.grid
+  k0, k1 = setup.depth_bins
+  z = (max(0, k0 - z_margin), min(T, k1 + z_margin))
+  dom = LCTDomain((0, T), (0, T), z, (0, T), (2 * T, 2 * H, 2 * W), 1)
+  mtx = public_resampling_matrix(T)
+  t_n = np.linspace(0.0, 1.0, T)
+  cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
+  psf_fft = scipy.fft.rfftn(public_cone_psf(setup), workers=-1)
+  return LCTOperators(dom, jnp.asarray(psf_fft, cdtype),
+                      jnp.asarray(mtx * t_n[None, :] ** time_power, dtype),
+                      jnp.asarray(mtx.T[z[0]:z[1]], dtype))

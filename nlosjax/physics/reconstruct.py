@@ -8,21 +8,33 @@ returns from that range (``setup.time_bins``) and computes only its depth
 bins, so cost falls with the range. All are jit-compiled, batched over the
 leading axes with ``vmap``, and build their operators once per Setup.
 
+``lct``, ``fbp`` and ``phasor`` take ``variant``. ``"public"`` (the default)
+is the public algorithm's operators: O'Toole's resampling matrix and
+one-voxel cone PSF on the full ``(2T, 2H, 2W)`` circular box (every time bin
+read; a depth range only crops), so a Wiener ``snr`` carries over from the
+public code and gives its image. ``"refined"`` is ours: a cone averaged over
+each voxel's footprint on the true scan spacing, linear convolution, gating,
+``oversample`` (see ``operators``); its measured benefit on point scatterers
+and measured scans is in ``benchmarks/results/physics.md``.
+
 Where each differs from the public reference code (nlos-fk, O'Toole's LCT,
 nlos3d, LFE/USM):
 
 * ``fbp``: the public code filters the backprojection with ``+LoG``, which is
   negative on objects, and clamps -- keeping only halos. We use ``-LoG``
-  (5x5x5, sigma = 1 voxel) and do not normalise by the maximum.
-* ``lct``: linear (not circular) FFT convolution, rfft, linearly
-  interpolated cone PSF on the true scan spacing (see ``operators``).
+  (5x5x5, sigma = 1 voxel, replicate padding) and do not normalise by the maximum.
+* ``lct``: none with ``variant="public"``; see above for ``"refined"``.
 * ``fk``: the Stolt interpolation is done on physical frequencies (any grid
   aspect and spacing), from a one-sided (``rfft``) temporal spectrum; the
-  output is ``albedo^2`` like the public code.
-* ``phasor``: the wavelet is odd-length and centred (no +-1-bin shift), and
-  time is resampled to ``v`` by plain bin averaging; the public ``mtx`` also
-  weights by ``1/t``, which tilts the long wavelet envelope (139 bins on a
-  16 x 16, 1 m, 32 ps scan) and pulls peaks 3-6 bins toward the wall at 0.5 m.
+  output is ``albedo^2`` like the public code. ``variant="public"`` (default)
+  uses the public code's implied scan spacing ``wall_size / N``;
+  ``"refined"`` the Setup's ``wall_size / (N - 1)``.
+* ``phasor``: none with ``variant="public"`` (MATLAB ``conv(..., 'same')``
+  with the public wavelet, even length allowed). ``"refined"``: the wavelet is
+  odd-length and centred (no +-1-bin shift), and time is resampled to ``v`` by
+  plain bin averaging; the public ``mtx`` also weights by ``1/t``, which tilts
+  the long wavelet envelope (139 bins on a 16 x 16, 1 m, 32 ps scan) and pulls
+  peaks 3-6 bins toward the wall at 0.5 m.
 * ``rsd``: the confocal adaptation of Liu et al. 2019 (round-trip wavenumber
   ``2 omega / c``, no source-phase term), propagated with the exact
   angular-spectrum transfer function of Rayleigh-Sommerfeld diffraction
@@ -46,10 +58,10 @@ import numpy as np
 import scipy.fft
 
 from nlosjax.physics import _validate
-from nlosjax.physics.operators import (check_falloff, lct_apply, lct_filter, lct_operators,
-                                       to_depth)
+from nlosjax.physics.operators import (check_falloff, check_variant, lct_apply, lct_filter,
+                                       lct_operators, public_lct_operators, to_depth)
 from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
-from nlosjax.physics.wavelet import Wavelet, convolve_time, illumination_wavelet
+from nlosjax.physics.wavelet import Wavelet, convolve_time, illumination_wavelet, public_wavelet
 
 METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
 
@@ -57,14 +69,23 @@ METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
 # ----------------------------------------------------------------------- LCT
 @_validate.cached_operators(maxsize=4)   # a filter is [Lv, 2H, W+1] complex: ~0.3 GB at 128^2
 def _lct_problem(setup: Setup, power: float, snr: float | None, z_margin: int, oversample: int,
-                 dtype) -> tuple:
+                 dtype, variant: str = "refined") -> tuple:
   """``(operators, frequency-domain filter)`` of one LCT problem, built once and cached.
 
-  The filter is ``None`` for a backprojection (``snr=None``): :func:`lct_apply`
-  then conjugates the PSF spectrum inside the reconstruction's own jit.
+  ``power`` is the refined operators' ``v^{power/2}`` resampling (3 diffuse, 1
+  retroreflective, 0 plain); the public ones multiply by ``t_n^{power + 1}``
+  (``t_n^0`` for 0) as the public code. The filter is ``None`` for a
+  backprojection (``snr=None``): :func:`lct_apply` then conjugates the PSF
+  spectrum inside the reconstruction's own jit.
   """
   if oversample not in (1, 2, 3, 4):
     raise ValueError(f"oversample must be 1, 2, 3 or 4, got {oversample!r}")
+  if check_variant(variant) == "public":
+    if oversample != 1:
+      raise ValueError(f"oversample={oversample} needs variant='refined' (the public grid has 1)")
+    ops = public_lct_operators(setup, int(power) + 1 if power else 0, z_margin=z_margin,
+                               dtype=dtype)
+    return ops, (None if snr is None else jax.jit(lct_filter, static_argnums=1)(ops, snr))
   # The depth margin (FBP's -LoG taps) needs the time bins of its returns too.
   # A backprojection convolves with the cone itself: the FFT box need only span its reach.
   ops = lct_operators(setup, power, t_margin=z_margin, z_margin=z_margin, oversample=oversample,
@@ -83,7 +104,7 @@ def _lct_batch(x, ops, filt):
 
 
 def lct(transient, setup: Setup, *, snr: float = 0.1, falloff: str = "diffuse",
-        oversample: int = 1) -> jax.Array:
+        variant: str = "public", oversample: int = 1) -> jax.Array:
   """Light-cone transform with a Wiener filter (O'Toole et al., Nature 2018).
 
   ``vol = max(R_z^-1 F^-1[ F[R_t tau] conj(H) / (|H|^2 + 1/snr) ], 0)`` with
@@ -95,17 +116,20 @@ def lct(transient, setup: Setup, *, snr: float = 0.1, falloff: str = "diffuse",
     snr: Wiener signal-to-noise ratio, > 0 (public defaults: 0.1 nlos-fk, LFE,
       USM; 0.8 O'Toole retroreflective scenes).
     falloff: ``"diffuse"`` (t^4) or ``"retroreflective"`` (t^2).
-    oversample: v-bins per time bin of the LCT grid. 1 is the public
-      algorithm's grid; 2 halves the resampling error near the wall (finer
-      u-grid, sharper off-grid points) at twice the FFT cost. See
-      ``benchmarks/results/physics.md`` for the measured trade.
+    variant: ``"public"`` (the public code's operators: the same ``snr``
+      gives the same image) or ``"refined"`` (footprint-averaged cone on the
+      true spacing, linear convolution, gated time; see the module docstring).
+    oversample: ``variant="refined"`` only: v-bins per time bin of the LCT
+      grid. 1 is the public algorithm's grid; 2 halves the resampling error
+      near the wall (finer u-grid, sharper off-grid points) at twice the FFT
+      cost. See ``benchmarks/results/physics.md`` for the measured trade.
   Returns:
     ``[..., Z, H, W]`` float32 volume, >= 0.
   """
   q = check_falloff(falloff)
   snr = _validate.check_positive(snr, "snr")
   x, batch = _validate.prepare_transient(transient, setup)
-  ops, filt = _lct_problem(setup, float(q), snr, 0, oversample, x.dtype)
+  ops, filt = _lct_problem(setup, float(q), snr, 0, oversample, x.dtype, variant)
   return _validate.unbatch(_lct_batch(x, ops, filt), batch)
 
 
@@ -182,7 +206,8 @@ def _fbp_batch(x, ops, filt, crop):
   return jax.vmap(one)(x)
 
 
-def fbp(transient, setup: Setup, *, falloff: str = "diffuse", oversample: int = 1) -> jax.Array:
+def fbp(transient, setup: Setup, *, falloff: str = "diffuse", variant: str = "public",
+        oversample: int = 1) -> jax.Array:
   """Filtered backprojection: LCT backprojection (``conj(H)``) then a ``-LoG`` filter.
 
   The public code (nlos-fk, LFE, USM) uses ``+LoG``, negative on objects;
@@ -193,14 +218,15 @@ def fbp(transient, setup: Setup, *, falloff: str = "diffuse", oversample: int = 
     setup: the capture.
     falloff: time weighting of the backprojection, ``"diffuse"`` (t^4, as
       the public FBP) or ``"retroreflective"`` (t^2).
-    oversample: v-bins per time bin (see :func:`lct`).
+    variant: backprojection operators, ``"public"`` or ``"refined"`` (see :func:`lct`).
+    oversample: ``variant="refined"`` only: v-bins per time bin (see :func:`lct`).
   Returns:
     ``[..., Z, H, W]`` float32, >= 0.
   """
   q = check_falloff(falloff)
   x, batch = _validate.prepare_transient(transient, setup)
   margin = 2
-  ops, filt = _lct_problem(setup, float(q), None, margin, oversample, x.dtype)
+  ops, filt = _lct_problem(setup, float(q), None, margin, oversample, x.dtype, variant)
   k0, k1 = setup.depth_bins
   lo = k0 - ops.domain.z[0]
   return _validate.unbatch(_fbp_batch(x, ops, filt, (lo, lo + k1 - k0)), batch)
@@ -208,20 +234,31 @@ def fbp(transient, setup: Setup, *, falloff: str = "diffuse", oversample: int = 
 
 # ------------------------------------------------------------------------ FK
 @_validate.cached_operators(maxsize=16)
-def _fk_grid(setup: Setup, dtype):
-  """Static sizes and small arrays of the Stolt migration for ``setup``."""
+def _fk_grid(setup: Setup, dtype, variant: str = "refined"):
+  """Static sizes and small arrays of the Stolt migration for ``setup``.
+
+  ``variant="public"``: the public code's lateral frequencies (its
+  ``a = N range / (4 M width)`` implies a scan spacing of ``wall_size / N``)
+  and time weight ``t_n^2``, ``t_n = linspace(0, 1, T)``; ``"refined"``: the
+  Setup's spacing ``wall_size / (N - 1)`` and the bin-centre weight ``((t + 1/2) / T)^2``.
+  """
   T = setup.num_bins
   t0, t1 = setup.time_bins
   n_t = t1                                   # f-k needs the time axis from t = 0
   l_t = scipy.fft.next_fast_len(2 * n_t, real=True)
   l_t += l_t % 2
   H, W = setup.grid
-  dy, dx = setup.spacing
+  if check_variant(variant) == "public":
+    dy, dx = setup.wall_size / H, setup.wall_size / W
+    t = np.arange(n_t)
+    weight = np.where(t >= t0, (t / max(T - 1, 1)) ** 2, 0.0)
+  else:
+    dy, dx = setup.spacing
+    t = np.arange(n_t)
+    weight = np.where(t >= t0, ((t + 0.5) / T) ** 2, 0.0)   # gating: bins before t0 dropped
   ky = np.fft.fftfreq(2 * H, d=dy)           # cycles / m
   kx = np.fft.fftfreq(2 * W, d=dx)
   kperp = (l_t * setup.depth_bin_length) ** 2 * (ky[:, None] ** 2 + kx[None, :] ** 2)
-  t = np.arange(n_t)
-  weight = np.where(t >= t0, ((t + 0.5) / T) ** 2, 0.0)   # gating: bins before t0 dropped
   return l_t, jnp.asarray(kperp, dtype), jnp.asarray(weight, dtype)
 
 
@@ -253,7 +290,7 @@ def _fk_batch(x, kperp, weight, n_t, l_t, crop):
   return jax.vmap(one)(x)
 
 
-def fk(transient, setup: Setup) -> jax.Array:
+def fk(transient, setup: Setup, *, variant: str = "public") -> jax.Array:
   """f-k (Stolt) migration (Lindell, Wetzstein, O'Toole, SIGGRAPH 2019).
 
   ``psi = sqrt(tau t^2)``; ``Phi(kx, ky, kz) = kz / f * Psi(kx, ky, f)`` with
@@ -263,12 +300,15 @@ def fk(transient, setup: Setup) -> jax.Array:
   Args:
     transient: ``[..., T, H, W]`` counts >= 0.
     setup: the capture.
+    variant: ``"public"``: the public code's lateral frequencies (scan spacing
+      ``wall_size / N``) and ``t_n^2`` weight, so its image; ``"refined"``: the
+      Setup's spacing ``wall_size / (N - 1)`` (see ``_fk_grid``).
   Returns:
     ``[..., Z, H, W]`` float32 volume, >= 0, proportional to albedo squared
     (as the public code; take ``sqrt`` to compare linearly).
   """
   x, batch = _validate.prepare_transient(transient, setup)
-  l_t, kperp, weight = _fk_grid(setup, x.dtype)
+  l_t, kperp, weight = _fk_grid(setup, x.dtype, variant)
   return _validate.unbatch(
       _fk_batch(x, kperp, weight, n_t=setup.time_bins[1], l_t=l_t, crop=setup.depth_bins), batch)
 
@@ -289,25 +329,29 @@ def _phasor_batch(x, ops, filt, wavelet, window):
 
 
 def phasor(transient, setup: Setup, *, cycles: float = 5.0, sampling_coeff: float = 2.0,
-           oversample: int = 1) -> jax.Array:
+           variant: str = "public", oversample: int = 1) -> jax.Array:
   """Phasor-field virtual wave via fast LCT backprojection (nlos-fk, Lindell 2019, alg. 3).
 
-  Convolve each histogram with the complex wavelet ``P(t)``
-  (:func:`~nlosjax.physics.wavelet.illumination_wavelet`), backproject the
-  real and imaginary parts with the light-cone PSF (no ``t^4``, no ``1/t``, no filter),
+  Convolve each histogram with the complex wavelet ``P(t)``, backproject the
+  real and imaginary parts with the light-cone PSF (no ``t^4``, no filter),
   take the modulus, resample to depth.
 
   Args:
     transient: ``[..., T, H, W]`` counts >= 0.
     setup: the capture.
     cycles, sampling_coeff: wavelet parameters (see ``illumination_wavelet``).
-    oversample: v-bins per time bin (see :func:`lct`).
+    variant: ``"public"``: nlos-fk's wavelet (:func:`~nlosjax.physics.wavelet.public_wavelet`)
+      and operators (its ``mtx`` weights by ``1/t``). ``"refined"``: the odd,
+      centred :func:`~nlosjax.physics.wavelet.illumination_wavelet` and our
+      operators with plain bin averaging (see the module docstring).
+    oversample: ``variant="refined"`` only: v-bins per time bin (see :func:`lct`).
   Returns:
     ``[..., Z, H, W]`` float32, >= 0.
   """
   x, batch = _validate.prepare_transient(transient, setup)
-  wl = illumination_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
-  ops, filt = _lct_problem(setup, 0.0, None, 0, oversample, x.dtype)
+  make = public_wavelet if check_variant(variant) == "public" else illumination_wavelet
+  wl = make(setup, cycles=cycles, sampling_coeff=sampling_coeff)
+  ops, filt = _lct_problem(setup, 0.0, None, 0, oversample, x.dtype, variant)
   t0, t1 = ops.domain.t
   half = wl.num_samples // 2
   window = (max(0, t0 - half), min(setup.num_bins, t1 + half))

@@ -10,8 +10,10 @@ aliasing), ``cycles`` periods under the envelope, a Gaussian envelope with
 ``sigma = 0.15 (L - 1)`` samples (MATLAB ``gausswin(L, 1/0.3)``). ``lambda_v``
 lives on the round-trip path axis, so in depth its wavelength is ``lambda_v / 2``.
 
-Difference from the public code: ``L`` is made odd and the samples are centred
-on ``t = 0`` so a ``"same"`` convolution has no +-1-bin delay.
+Difference from the public code (:func:`illumination_wavelet`): ``L`` is made
+odd and the samples are centred on ``t = 0`` so a ``"same"`` convolution has
+no +-1-bin delay. :func:`public_wavelet` keeps the public length and envelope
+(even ``L`` allowed, MATLAB rounding), for ``phasor(..., variant="public")``.
 """
 
 from __future__ import annotations
@@ -37,7 +39,9 @@ class Wavelet:
     omega: carrier angular frequency ``Omega = 2 pi c / lambda_v``, rad/s.
     sigma: envelope standard deviation, seconds.
     bin_width: sample spacing, seconds.
-    num_samples: ``L`` (odd); sample ``k`` sits at ``t = (k - L // 2) * bin_width``.
+    num_samples: ``L``; sample ``k`` sits at ``t = (k - L // 2) * bin_width``.
+    envelope_centre: time of the envelope's peak, seconds (0, or ``-bin_width / 2``
+      for the public code's even ``L``, whose ``gausswin`` peaks between samples).
   """
 
   wavelength: float
@@ -45,6 +49,7 @@ class Wavelet:
   sigma: float
   bin_width: float
   num_samples: int
+  envelope_centre: float = 0.0
 
   @property
   def times(self) -> np.ndarray:
@@ -55,7 +60,7 @@ class Wavelet:
   def samples(self) -> np.ndarray:
     """``[L]`` complex128 values ``P(t_k)`` (peak modulus 1)."""
     t = self.times
-    return np.exp(1j * self.omega * t) * np.exp(-0.5 * (t / self.sigma) ** 2)
+    return np.exp(1j * self.omega * t) * np.exp(-0.5 * ((t - self.envelope_centre) / self.sigma) ** 2)
 
   def spectrum(self, omega) -> np.ndarray:
     """``|P_hat(omega)|`` of the continuous wavelet, normalised to peak 1.
@@ -102,6 +107,28 @@ def illumination_wavelet(setup: Setup, *, cycles: float = 5.0, sampling_coeff: f
         f"the wavelet's carrier ({wavelength:.4g} m) is not resolved by bins of"
         f" {setup.bin_length:.4g} m; raise sampling_coeff or use finer bins")
   return Wavelet(wavelength, omega, sigma, setup.bin_width, length)
+
+
+@functools.lru_cache(maxsize=64)
+def public_wavelet(setup: Setup, *, cycles: float = 5.0, sampling_coeff: float = 2.0) -> Wavelet:
+  """The wavelet of nlos-fk ``waveconv.m``: ``L = round(cycles lambda_v / bin_length)`` samples.
+
+  MATLAB rounding (halves away from zero), ``L`` even or odd, carrier
+  ``exp(2 pi i ncyc k / L)`` (``ncyc = L bin_length / lambda_v``: the same
+  ``Omega`` as :func:`illumination_wavelet`, up to a constant phase, which no
+  modulus sees) under ``gausswin(L, 1/0.3)`` (``sigma = 0.15 (L - 1)`` samples,
+  peak at sample ``(L - 1) / 2``). With :func:`convolve_time` (output from
+  sample ``L // 2`` of the full convolution) it reproduces MATLAB's
+  ``conv(..., 'same')``. Same arguments and checks as :func:`illumination_wavelet`.
+  """
+  base = illumination_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
+  length = int(math.floor(cycles * base.wavelength / setup.bin_length + 0.5))
+  if length < 2:
+    raise ValueError(f"the public wavelet is {length} sample(s) long at cycles={cycles}; "
+                     "raise cycles or sampling_coeff")
+  centre = ((length - 1) / 2 - length // 2) * setup.bin_width
+  return dataclasses.replace(base, sigma=0.15 * (length - 1) * setup.bin_width,
+                             num_samples=length, envelope_centre=centre)
 
 
 def resolved_sampling_coeff(setup: Setup, sampling_coeff: float = 2.0,
