@@ -298,9 +298,10 @@ def run_model(model_config, params, frames, *, batch_size: int = 4):
     ``volume [F, Z, H, W]``, ``transient [F, T, H, W]`` (counts: the network's
     output times its input scale).
   """
+  from nlosjax.physics.checks import checked
   x = triplets(np.asarray(frames, np.float32), model_config.frames)
   model = model_config.module()
-  apply = jax.jit(lambda p, b: model.apply({"params": p}, b))
+  apply = checked(lambda p, b: model.apply({"params": p}, b))     # NaN / negative counts raise
   out = {k: [] for k in ("intensity", "depth", "volume", "transient")}
   for s in range(0, len(x), batch_size):
     o = apply(params, jnp.asarray(x[s:s + batch_size]))

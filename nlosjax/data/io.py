@@ -866,9 +866,14 @@ def save_capture(path, transient, setup: Setup, *, overwrite: bool = False,
   The file is written to ``PATH.partial`` and renamed when complete, so a
   crash never leaves a half-written ``path`` or damages an existing one.
 
+  Everything is checked before the file is opened, so a refused call leaves
+  any existing ``path`` as it was.
+
   Raises:
     FileExistsError: ``path`` exists and ``overwrite`` is False.
-    ValueError: a transient that does not match ``setup``.
+    ValueError: a transient that does not match ``setup``, has no frame,
+      or holds NaN, infinite or negative counts; a dataset that is empty or
+      holds NaN or infinite values.
   """
   path = Path(path)
   if path.exists() and not overwrite:
@@ -878,6 +883,22 @@ def save_capture(path, transient, setup: Setup, *, overwrite: bool = False,
     setup.check_transient(transient)
     if transient.ndim not in (3, 4):
       raise ValueError(f"transient must be [T, H, W] or [F, T, H, W], got shape {transient.shape}")
+    if transient.size == 0:
+      raise ValueError(f"{path}: the transient has no frame (shape {transient.shape}); nothing to save")
+    if not np.all(np.isfinite(transient)):
+      raise ValueError(f"{path}: the transient holds {int(np.sum(~np.isfinite(transient)))} NaN or"
+                       " infinite values; counts must be finite")
+    if np.any(transient < 0):
+      raise ValueError(f"{path}: the transient holds {int(np.sum(transient < 0))} negative values;"
+                       " photon counts must be >= 0")
+  arrays = {}
+  for key, value in datasets.items():
+    arr = np.asarray(value, np.float32)
+    if arr.size == 0:
+      raise ValueError(f"{path}: dataset {key!r} is empty (shape {arr.shape})")
+    if not np.all(np.isfinite(arr)):
+      raise ValueError(f"{path}: dataset {key!r} holds NaN or infinite values")
+    arrays[key] = arr
   tmp = path.with_name(path.name + ".partial")
   try:
     with h5py.File(tmp, "w") as f:
@@ -899,8 +920,7 @@ def save_capture(path, transient, setup: Setup, *, overwrite: bool = False,
         chunks = (1,) * (transient.ndim - 2) + transient.shape[-2:]
         f.create_dataset("transient", data=transient, chunks=chunks, compression="gzip",
                          compression_opts=4, shuffle=True)
-      for key, value in datasets.items():
-        arr = np.asarray(value, np.float32)
+      for key, arr in arrays.items():
         f.create_dataset(key, data=arr, compression="gzip" if arr.size > 4096 else None)
     os.replace(tmp, path)
   except BaseException:

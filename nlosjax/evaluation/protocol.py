@@ -61,9 +61,15 @@ def load_split(config: dict, data_path, split: str, *, batch_size: int) -> dict:
 
 @functools.lru_cache(maxsize=8)
 def _jitted_apply(mcfg):
-  """The model's jitted forward, one per model config (checkpoints and seeds share it)."""
+  """The model's jitted forward, one per model config (checkpoints and seeds share it).
+
+  Compiled with nlosjax's input checks (:func:`nlosjax.physics.checks.checked`): a
+  NaN, infinite or negative count in a batch raises ``ValueError`` instead of
+  scoring a plausible image.
+  """
+  from nlosjax.physics.checks import checked
   model = mcfg.module()
-  return jax.jit(lambda p, x: model.apply({"params": p}, x))
+  return checked(lambda p, x: model.apply({"params": p}, x))
 
 
 def model_images(mcfg, params, loader) -> dict:

@@ -9,8 +9,10 @@ Public API::
     fbp, lct, fk, phasor, rsd  the same methods as plain functions
     illumination_wavelet       the phasor-field wavelet P(t) for a Setup
     intensity_depth            volume -> intensity image [0, 1] and depth map (metres)
+    checked                    jit a function with its input checks compiled in (``checks``)
 """
 
+from nlosjax.physics.checks import checked
 from nlosjax.physics.forward import render, render_points
 from nlosjax.physics.noise import add_spad_noise, expected_counts, jitter_kernel
 from nlosjax.physics.project import intensity_depth
@@ -21,5 +23,5 @@ from nlosjax.physics.wavelet import Wavelet, convolve_time, illumination_wavelet
 __all__ = [
     "Setup", "SPEED_OF_LIGHT", "render", "render_points", "add_spad_noise", "expected_counts",
     "jitter_kernel", "reconstruct", "METHODS", "fbp", "lct", "fk", "phasor", "rsd",
-    "illumination_wavelet", "Wavelet", "convolve_time", "intensity_depth",
+    "illumination_wavelet", "Wavelet", "convolve_time", "intensity_depth", "checked",
 ]

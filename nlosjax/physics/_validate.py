@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 
 import jax
@@ -23,9 +25,32 @@ def working_dtype(x) -> jnp.dtype:
   return jnp.dtype(jnp.float32)
 
 
+#: True while :func:`nlosjax.physics.checks.checked` traces a function: traced counts
+#: then get ``checkify`` checks (elsewhere, under a plain ``jit``, they cost nothing).
+_TRACED_CHECKS = contextvars.ContextVar("nlosjax_traced_checks", default=False)
+
+
+@contextlib.contextmanager
+def traced_checks():
+  """Within this block, :func:`check_counts` of a traced array adds ``checkify`` checks."""
+  token = _TRACED_CHECKS.set(True)
+  try:
+    yield
+  finally:
+    _TRACED_CHECKS.reset(token)
+
+
 def check_counts(x, name: str) -> None:
-  """Raise ValueError if concrete ``x`` holds NaN, inf or negative values."""
+  """Raise ValueError if concrete ``x`` holds NaN, inf or negative values.
+
+  A traced ``x`` is checked only inside :func:`nlosjax.physics.checks.checked`
+  (as ``checkify`` checks, raised when the compiled function runs).
+  """
   if not is_concrete(x):
+    if _TRACED_CHECKS.get():
+      from jax.experimental import checkify
+      checkify.check(jnp.all(jnp.isfinite(x)), f"{name} holds NaN or infinite values")
+      checkify.check(jnp.all(x >= 0), f"{name} holds negative values; photon counts must be >= 0")
     return
   arr = np.asarray(x)      # host-side: safe while another function is being traced
   if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)

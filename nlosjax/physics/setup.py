@@ -12,7 +12,12 @@ Conventions (the public confocal datasets'; every module of nlosjax keeps them):
   default, and a scatterer at ``z_k`` straight in front of a scan point returns
   in time bin ``k``.
 * Arrays: transient ``[..., T, H, W]``, volume ``[..., Z, H, W]``, image and
-  depth map ``[..., H, W]``.
+  depth map ``[..., H, W]``. The shape check cannot tell ``[T, H, W]`` from
+  ``[H, W, T]`` when ``T = H = W``; the rule is that a cube is read as
+  ``[T, H, W]``, with a :class:`LayoutWarning` saying so.
+* Units: seconds and metres. A ``bin_width`` outside 1 ps-1 ns or a
+  ``wall_size`` outside 5 cm-20 m is accepted with a :class:`UnitWarning`
+  (a bin width above 1 us is refused: picoseconds passed as seconds).
 
 A ``depth_range = (z_min, z_max)`` (metres) restricts reconstructions to the
 depth bins ``k`` with ``z_min <= z_k <= z_max`` and the time bins that can hold
@@ -23,12 +28,24 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import numpy as np
 
 SPEED_OF_LIGHT = 299_792_458.0  # m/s
 
 _EPS = 1e-9  # tolerance, in bins, for rounding depth-range ends onto the grid
+#: Bin widths (s) and wall sizes (m) of real confocal captures; a Setup outside warns.
+BIN_WIDTH_PLAUSIBLE = (1e-12, 1e-9)
+WALL_SIZE_PLAUSIBLE = (0.05, 20.0)
+
+
+class UnitWarning(UserWarning):
+  """A Setup value far outside what captures have: probably a unit slip (ps for s, cm for m)."""
+
+
+class LayoutWarning(UserWarning):
+  """A cube-shaped transient (``T = H = W``): its shape cannot show that it is ``[T, H, W]``."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,6 +92,16 @@ class Setup:
       raise ValueError(
           f"Setup.bin_width is in seconds and should be ~1e-12..1e-9, got {self.bin_width!r}"
           " (did you pass picoseconds?)")
+    if not BIN_WIDTH_PLAUSIBLE[0] <= self.bin_width <= BIN_WIDTH_PLAUSIBLE[1]:
+      warnings.warn(
+          f"Setup.bin_width = {self.bin_width!r} s is outside the {BIN_WIDTH_PLAUSIBLE[0]:g}-"
+          f"{BIN_WIDTH_PLAUSIBLE[1]:g} s of SPAD captures ({self.bin_width * 1e12:.4g} ps); check"
+          " the unit (seconds)", UnitWarning, stacklevel=3)
+    if not WALL_SIZE_PLAUSIBLE[0] <= self.wall_size <= WALL_SIZE_PLAUSIBLE[1]:
+      warnings.warn(
+          f"Setup.wall_size = {self.wall_size!r} m is outside the {WALL_SIZE_PLAUSIBLE[0]:g}-"
+          f"{WALL_SIZE_PLAUSIBLE[1]:g} m of NLOS scans; check the unit (metres, the whole side)",
+          UnitWarning, stacklevel=3)
 
     grid = self.grid
     if isinstance(grid, (int, np.integer)) and not isinstance(grid, bool):
@@ -242,6 +269,13 @@ class Setup:
       raise ValueError(
           f"{name} shape {shape} does not match the Setup: expected [..., T, H, W] ="
           f" [..., {self.num_bins}, {self.height}, {self.width}]")
+    if self.num_bins == self.height == self.width:
+      # The rule: nlosjax's layout is always [..., T, H, W] (time before the scan grid); a
+      # cube passes as that, so an [H, W, T] array would be read with its axes swapped.
+      warnings.warn(
+          f"{name} is a cube ({self.num_bins} bins on a {self.height} x {self.width} grid): its"
+          " shape cannot show the layout, so it is read as [..., T, H, W]; an [H, W, T] array"
+          " needs np.moveaxis(x, -1, -3) first", LayoutWarning, stacklevel=3)
 
   def check_volume(self, volume, name: str = "volume") -> None:
     """Raise ``ValueError`` unless ``volume`` is ``[..., Z, H, W]`` for this Setup."""
