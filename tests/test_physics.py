@@ -517,3 +517,26 @@ def test_convolve_time_matches_numpy():
   want = np.stack([np.convolve(x[:, a, b], wl.samples, mode="same")
                    for a in range(3) for b in range(2)], -1).reshape(512, 3, 2)
   np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("public", [False, True])
+def test_phasor_wavelet_matrix_is_matlabs_same_convolution(public):
+  """The phasor folds its wavelet convolution into the resampling matrix: that matrix applied to
+  a histogram equals MATLAB ``conv(x, w, 'same')`` (numpy's full convolution from ``L // 2``),
+  for the public even-length wavelet too; and convolve_time agrees."""
+  setup = Setup(1.0, (12, 12), 32e-12, 96)
+  wl = (physics.wavelet.public_wavelet if public else physics.illumination_wavelet)(setup)
+  assert (wl.num_samples % 2 == 0) == public                 # 5 cycles of 4 spacings: 190 samples
+  x = np.random.default_rng(0).uniform(size=96)
+  full = np.convolve(x, wl.samples)                           # [T + L - 1]
+  same = full[wl.num_samples // 2:wl.num_samples // 2 + 96]
+  m = RECON.wavelet_matrix(wl, (0, 96), (0, 96))
+  np.testing.assert_allclose(m @ x, same, rtol=1e-12, atol=1e-12)
+  np.testing.assert_allclose(np.asarray(physics.convolve_time(jnp.asarray(x, jnp.float32), wl, axis=0)),
+                             same, rtol=1e-4, atol=1e-5 * np.abs(same).max())
+  # a window: rows 20..60 of the field from samples 10..70 (zero outside)
+  part = x.copy()
+  part[:10] = part[70:] = 0
+  ref = np.convolve(part, wl.samples)[wl.num_samples // 2:][20:60]
+  np.testing.assert_allclose(RECON.wavelet_matrix(wl, (20, 60), (10, 70)) @ x[10:70], ref,
+                             rtol=1e-12, atol=1e-12)
