@@ -24,7 +24,8 @@ reconstructed frame by frame, "Ours" reading each frame with its neighbours);
 ``K // 2 + K i``, the network's convention): classic methods then run on the
 sparse scan interpolated back to the full grid (the paper's protocol), the
 network on the sparse scan itself (its trained stride; the default for
-``model``). ``--depth-range A B`` (metres) reconstructs only those depths.
+``model``). ``--depth-range A B`` (metres) reconstructs only those depths;
+``--depth-range auto`` estimates them from the capture.
 
 Writes into ``--out``: ``volume.h5`` (``volume [Z, H, W]`` or ``[F, Z, H, W]``,
 ``intensity``, ``depth`` and the Setup, method, options and timings as
@@ -82,8 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
   g = p.add_argument_group("geometry")
   g.add_argument("--scan-stride", type=int, default=None,
                  help="under-scan by K (scan points K//2 + K i); model: must be its trained stride")
-  g.add_argument("--depth-range", type=float, nargs=2, default=None, metavar=("A", "B"),
-                 help="reconstruct depths A..B metres only")
+  g.add_argument("--depth-range", nargs="+", default=None, metavar="A B | auto",
+                 help="reconstruct depths A..B metres only; 'auto': the range estimated from the"
+                      " capture (nlosjax.physics.estimate_depth_range)")
   g.add_argument("--edge-bins", type=int, default=11,
                  help="classic methods: leave the histogram's last N depth bins out of the images"
                       " (the public nlos-fk code zeroes 11; 0 keeps all)")
@@ -173,12 +175,24 @@ def load(args):
   if single:
     transient = transient[None]
   if args.depth_range is not None:
-    z0, z1 = args.depth_range
+    z0, z1 = parse_depth_range(args.depth_range, transient, setup)
     try:
       setup = setup.with_depth_range(z0, min(z1, setup.max_depth))
     except ValueError as e:
       raise ValueError(f"--depth-range {z0} {z1}: {e}") from None
   return transient, setup, single, fmt
+
+
+def parse_depth_range(values: list[str], transient, setup) -> tuple[float, float]:
+  """``--depth-range A B`` (metres) or ``--depth-range auto`` (estimated from ``transient``)."""
+  if len(values) == 1 and values[0] == "auto":
+    from nlosjax.physics import estimate_depth_range
+    return estimate_depth_range(transient, setup)
+  try:
+    z0, z1 = (float(v) for v in values)
+  except ValueError:
+    raise ValueError(f"--depth-range takes two depths in metres or 'auto', got {' '.join(values)}") from None
+  return z0, z1
 
 
 def classic_options(args) -> dict:

@@ -10,9 +10,11 @@ Public API::
     illumination_wavelet       the phasor-field wavelet P(t) for a Setup
     intensity_depth            volume -> intensity image [0, 1] and depth map (metres)
     checked                    jit a function with its input checks compiled in (``checks``)
+    estimate_depth_range       (z_min, z_max) of a capture's scene; auto_depth_range: gated Setup
 """
 
 from nlosjax.physics.checks import checked
+from nlosjax.physics.depth_range import auto_depth_range, estimate_depth_range
 from nlosjax.physics.forward import render, render_points
 from nlosjax.physics.noise import add_spad_noise, expected_counts, jitter_kernel
 from nlosjax.physics.project import intensity_depth
@@ -24,4 +26,5 @@ __all__ = [
     "Setup", "SPEED_OF_LIGHT", "render", "render_points", "add_spad_noise", "expected_counts",
     "jitter_kernel", "reconstruct", "METHODS", "fbp", "lct", "fk", "phasor", "rsd",
     "illumination_wavelet", "Wavelet", "convolve_time", "intensity_depth", "checked",
+    "estimate_depth_range", "auto_depth_range",
 ]

@@ -659,13 +659,17 @@ def rsd(transient, setup: Setup, *, cycles: float = 3.0, sampling_coeff: float =
 _FUNCTIONS = {"fbp": fbp, "lct": lct, "fk": fk, "phasor": phasor, "rsd": rsd}
 
 
-def reconstruct(transient, setup: Setup, method: str, **options) -> jax.Array:
+def reconstruct(transient, setup: Setup, method: str, *, depth_range=None, **options) -> jax.Array:
   """Reconstruct a hidden volume with one of the classic methods.
 
   Args:
     transient: ``[..., T, H, W]`` counts >= 0 (t = 0 at the wall).
     setup: the capture; its ``depth_range`` gates time and crops the volume.
     method: ``"fbp"``, ``"lct"``, ``"fk"``, ``"phasor"`` or ``"rsd"``.
+    depth_range: ``None`` (the Setup's), ``(z_min, z_max)`` metres, or
+      ``"auto"``: estimated from the capture
+      (:func:`nlosjax.physics.depth_range.auto_depth_range`; the volume's depth
+      bins are that Setup's ``depth_bins``; concrete input only).
     **options: passed to the method (e.g. ``snr``, ``falloff`` for ``lct``).
   Returns:
     ``[..., Z, H, W]`` float32 volume, >= 0 (``fk``: albedo squared).
@@ -674,6 +678,13 @@ def reconstruct(transient, setup: Setup, method: str, **options) -> jax.Array:
   """
   if method not in _FUNCTIONS:
     raise ValueError(f"unknown method {method!r}; choose one of {METHODS}")
+  if isinstance(depth_range, str):
+    if depth_range != "auto":
+      raise ValueError(f"depth_range must be None, (z_min, z_max) or 'auto', got {depth_range!r}")
+    from nlosjax.physics.depth_range import auto_depth_range
+    setup = auto_depth_range(transient, setup)
+  elif depth_range is not None:
+    setup = setup.ungated().with_depth_range(*depth_range)
   fn = _FUNCTIONS[method]
   try:
     return fn(transient, setup, **options)
