@@ -1,7 +1,7 @@
 """Evaluate a trained run on test sequences made by an independent generator.
 
     python -m benchmarks.independent_test [--checkpoint runs/default] [--sequences 8]
-        [--frames 8] [--seed 2026] [--data PATH]
+        [--frames 8] [--seed 2026] [--data PATH] [--first-seed-only]
         [--out benchmarks/results/table1_independent.md]
 
 The test file comes from :mod:`experiments.independent_set` (other shapes and
@@ -9,7 +9,8 @@ motions, a per-point renderer with exact distances, its own noise code; no
 code shared with the training generator), written if absent; ``--data``
 defaults to the run config's ``independent.path``. The main job
 scores its own models on the same set (``results/table1_independent.md`` in
-its workdir); this script scores any run's checkpoints and every classic
+its workdir); this script scores any run's checkpoints (every training seed's
+``<variant>[-seed<k>]`` folder unless ``--first-seed-only``) and every classic
 method (:func:`nlosjax.evaluation.protocol.evaluate`; classic settings as the
 run chose them on its validation split) and writes the table with intervals
 over sequences to ``--out`` (and ``.json``), with the command, date, machine
@@ -34,13 +35,16 @@ def main(argv=None):
   parser.add_argument("--data", default=None,
                       help="independent set (default: the run config's independent.path)")
   parser.add_argument("--out", default="benchmarks/results/table1_independent.md")
+  parser.add_argument("--first-seed-only", action="store_true",
+                      help="score only each variant's own folder, not its -seed<k> folders")
   args = parser.parse_args(argv)
   from nlosjax import checkpoints_io
   from nlosjax import train as T
   from nlosjax.evaluation import protocol, report
   from benchmarks._machine import provenance
   t0 = time.perf_counter()
-  config, trained = checkpoints_io.load_run(args.checkpoint)
+  config, trained = checkpoints_io.load_run(args.checkpoint, seeds=not args.first_seed_only)
+  n_seeds = {v: (len(m) if isinstance(m, list) else 1) for v, m in trained.items()}
   config = T.with_defaults(config)
   from experiments.independent_set import ensure_independent_set
   path = args.data or (config.get("independent") or {}).get("path", "runs/data/independent-cpu.h5")
@@ -55,8 +59,10 @@ def main(argv=None):
   cmd = "python -m benchmarks.independent_test " + " ".join(sys.argv[1:] if argv is None else argv)
   where = (f"the settings the run chose on its validation split (`{chosen}`)" if settings
            else "their defaults (the run recorded no validation choices)")
+  seeds = ", ".join(f"{v} {k}" for v, k in n_seeds.items())
   caption = (f"Models from `{args.checkpoint}` (the main job's CPU preset; each variant's "
-             f"checkpoint chosen on validation), evaluated on {args.sequences} sequences x "
+             f"checkpoint chosen on validation; training seeds per variant: {seeds}, intervals "
+             "over sequences and seeds), evaluated on {args.sequences} sequences x "
              f"{args.frames} frames of `experiments.independent_set` (rings, crosses, ellipses, "
              "triangles, L-shapes, some dim; bouncing linear motion with depth oscillation, no "
              "helix; a per-point renderer with exact distances and cosines; its own noise code), "

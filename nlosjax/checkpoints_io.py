@@ -61,7 +61,8 @@ def find_checkpoints(path, variant: str | None = None) -> tuple[pathlib.Path, st
   raise ValueError(f"{p}: no checkpoint of variant(s) {variants} under {workdir}")
 
 
-def load_trained(path, variant: str | None = None, *, step: int | None = None):
+def load_trained(path, variant: str | None = None, *, step: int | None = None,
+                 folder: str | None = None):
   """Restore a trained variant's parameters: ``(model_config, params, info)``.
 
   The model config is rebuilt from the run's ``config.json`` for the
@@ -76,6 +77,8 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None):
   Args:
     path, variant: see :func:`find_checkpoints`.
     step: checkpoint step (default: the latest).
+    folder: the model's folder in the workdir when it is not the variant's own,
+      e.g. ``"ours-seed1"`` (another training seed, :func:`seed_folders`).
   Returns:
     ``(ModelConfig, params, info)``; ``info`` holds ``workdir``, ``variant``,
     ``checkpoint`` (folder), ``step`` and ``config`` (the run config dict).
@@ -86,6 +89,10 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None):
   from nlosjax import train
 
   workdir, variant, ckpt = find_checkpoints(path, variant)
+  if folder is not None:
+    ckpt = workdir / folder / "checkpoints"
+    if not (ckpt.is_dir() and any(c.name.isdigit() for c in ckpt.iterdir())):
+      raise ValueError(f"{ckpt}: no checkpoint there")
   try:
     config = json.loads((workdir / "config.json").read_text())
     data = config["data"]
@@ -138,7 +145,23 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None):
   return mcfg, params, info
 
 
-def load_run(path, *, setup: Setup | None = None, log=print) -> tuple[dict, dict]:
+def seed_folders(workdir, variant: str) -> list[str]:
+  """The folders of ``variant``'s trained models in a main-job workdir: its own, then ``-seed<k>``.
+
+  Only folders holding a checkpoint count; ordered by seed.
+  """
+  workdir = pathlib.Path(workdir)
+  def trained(name):
+    ckpt = workdir / name / "checkpoints"
+    return ckpt.is_dir() and any(c.name.isdigit() for c in ckpt.iterdir())
+  extra = sorted((p.name for p in workdir.glob(f"{variant}-seed*")
+                  if p.name[len(variant) + 5:].isdigit() and trained(p.name)),
+                 key=lambda n: int(n[len(variant) + 5:]))
+  return ([variant] if trained(variant) else []) + extra
+
+
+def load_run(path, *, setup: Setup | None = None, seeds: bool = False,
+             log=print) -> tuple[dict, dict]:
   """Every trained variant of a run, for evaluation: ``(config, variant -> (model_config, params))``.
 
   ``path`` as in :func:`find_checkpoints`: a workdir gives each variant that
@@ -149,6 +172,10 @@ def load_run(path, *, setup: Setup | None = None, log=print) -> tuple[dict, dict
   the same parameters, the physics layer rebuilt), e.g. a dataset file's
   Setup; without it they keep the training Setup.
 
+  With ``seeds=True`` (a workdir only) each variant maps to the list of its
+  training seeds' ``(model_config, params)`` (:func:`seed_folders`), the form
+  :func:`nlosjax.evaluation.protocol.evaluate` scores over seeds.
+
   Raises:
     ValueError: as :func:`load_trained`.
   """
@@ -156,17 +183,22 @@ def load_run(path, *, setup: Setup | None = None, log=print) -> tuple[dict, dict
   workdir, first, _ = find_checkpoints(p)
   wanted = [first] if p.name in VARIANTS or p.name == "checkpoints" else list(VARIANTS)
   trained, config = {}, None
+  from nlosjax.train import read_selection
   for variant in wanted:
-    ckpt = workdir / variant / "checkpoints"
-    if not (ckpt.is_dir() and any(c.name.isdigit() for c in ckpt.iterdir())):
-      continue
-    from nlosjax.train import read_selection
-    selection = read_selection(workdir / variant)    # the checkpoint chosen on validation
-    mcfg, params, info = load_trained(workdir, variant,
-                                      step=selection["step"] if selection else None)
-    log(f"[{variant}] restored step {info['step']} from {ckpt}")
-    config = info["config"]
-    trained[variant] = (mcfg if setup is None or setup == mcfg.setup else mcfg.with_setup(setup), params)
+    folders = seed_folders(workdir, variant)
+    if not seeds:
+      folders = folders[:1] if folders and folders[0] == variant else []
+    models = []
+    for folder in folders:
+      selection = read_selection(workdir / folder)    # the checkpoint chosen on validation
+      mcfg, params, info = load_trained(workdir, variant, folder=folder,
+                                        step=selection["step"] if selection else None)
+      log(f"[{folder}] restored step {info['step']} from {workdir / folder / 'checkpoints'}")
+      config = info["config"]
+      models.append((mcfg if setup is None or setup == mcfg.setup else mcfg.with_setup(setup),
+                     params))
+    if models:
+      trained[variant] = models if seeds else models[0]
   return config, trained
 
 
