@@ -62,7 +62,7 @@ def main(argv=None):
   seeds = ", ".join(f"{v} {k}" for v, k in n_seeds.items())
   caption = (f"Models from `{args.checkpoint}` (the main job's CPU preset; each variant's "
              f"checkpoint chosen on validation; training seeds per variant: {seeds}, intervals "
-             "over sequences and seeds), evaluated on {args.sequences} sequences x "
+             f"over sequences and seeds), evaluated on {args.sequences} sequences x "
              f"{args.frames} frames of `experiments.independent_set` (rings, crosses, ellipses, "
              "triangles, L-shapes, some dim; bouncing linear motion with depth oscillation, no "
              "helix; a per-point renderer with exact distances and cosines; its own noise code), "
