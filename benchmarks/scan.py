@@ -1,7 +1,7 @@
 """Benchmark the selective-scan methods against two floors measured in the same run.
 
     python -m benchmarks.scan [--shapes 256x512x32x16 64x128x16x16 512x256x32x16]
-                              [--methods sequential associative chunked auto]
+                              [--methods sequential associative chunked blockwise auto]
                               [--repeats 5] [--chunk-size N] [--out benchmarks/results/scan.md] [--quick]
 
 A shape ``BtxLxDxN`` is ``x, dt`` ``[Bt, L, D]``, ``A`` ``[D, N]``, ``B, C``
@@ -49,7 +49,7 @@ from nlosjax.ssm import resolve_method, selective_scan
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "scan.md"
 DEFAULT_SHAPES = ("256x512x32x16", "64x128x16x16", "512x256x32x16")
 QUICK_SHAPES = ("16x64x8x4",)
-METHODS = ("sequential", "associative", "chunked", "auto")
+METHODS = ("sequential", "associative", "chunked", "blockwise", "auto")
 GOAL_FWD, GOAL_FWDBWD, GOAL_AUTO = 2.0, 6.0, 1.10
 MB = 1024.0 ** 2
 

@@ -27,7 +27,7 @@ import pytest
 from nlosjax.ssm import MambaMixer, bidirectional_scan, resolve_method, selective_scan
 from nlosjax.ssm.mamba import depthwise_conv
 
-METHODS = ("sequential", "associative", "chunked")
+METHODS = ("sequential", "associative", "chunked", "blockwise")
 # Every call under jit: op-by-op (eager) dispatch of the scans is what makes tests slow.
 scan = jax.jit(selective_scan, static_argnames=("reverse", "method", "return_state",
                                                 "chunk_size", "unroll"))
