@@ -34,14 +34,16 @@ import time
 import numpy as np
 
 from benchmarks import _machine
+from benchmarks.physics import ncc
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "depth_range.md"
 
 
-def _timed(fn, repeats: int = 2) -> float:
-  """Median warm seconds of ``fn()`` (one call first, to compile)."""
+def _timed(fn, repeats: int = 2, *, warm: bool = False) -> float:
+  """Median warm seconds of ``fn()`` (one call first, to compile, unless ``warm``)."""
   import jax
-  jax.block_until_ready(fn())
+  if not warm:
+    jax.block_until_ready(fn())
   times = []
   for _ in range(repeats):
     t0 = time.perf_counter()
@@ -85,7 +87,7 @@ def split_study(config: dict, methods, *, max_frames: int | None = None, log=pri
         vol = reconstruct(x, s, m, **opts)
         vol.block_until_ready()
         first = time.perf_counter() - t0
-        r[f"t_{key}"].append(_timed(lambda s=s: reconstruct(x, s, m, **opts)))
+        r[f"t_{key}"].append(_timed(lambda s=s: reconstruct(x, s, m, **opts), warm=True))
         if key == "gated":
           r["t_compile"].append(first - r["t_gated"][-1])
         vol = np.sqrt(np.asarray(vol)) if m == "fk" else np.asarray(vol)
@@ -114,11 +116,9 @@ def scan_study(methods) -> list[dict]:
       opts = {"variant": TABLE_VARIANT[m]} if m in TABLE_VARIANT else {}
       full = np.asarray(reconstruct(x, setup, m, **opts))
       part = np.asarray(reconstruct(x, gated, m, **opts))
-      a, b = full[k0:k1].max(0).ravel(), part.max(0).ravel()
-      a, b = a - a.mean(), b - b.mean()
-      row["methods"][m] = {"t_full": _timed(lambda: reconstruct(x, setup, m, **opts)),
-                           "t_gated": _timed(lambda: reconstruct(x, gated, m, **opts)),
-                           "ncc": float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))}
+      row["methods"][m] = {"t_full": _timed(lambda: reconstruct(x, setup, m, **opts), warm=True),
+                           "t_gated": _timed(lambda: reconstruct(x, gated, m, **opts), warm=True),
+                           "ncc": ncc(full[k0:k1].max(0), part.max(0))}
     out.append(row)
   return out
 

@@ -26,6 +26,11 @@ from nlosjax.physics.setup import Setup
 VARIANTS = ("ours", "ours_s", "usm")
 
 
+def _holds_checkpoint(ckpt: pathlib.Path) -> bool:
+  """Whether an orbax ``checkpoints`` folder holds at least one step."""
+  return ckpt.is_dir() and any(c.name.isdigit() for c in ckpt.iterdir())
+
+
 def find_checkpoints(path, variant: str | None = None) -> tuple[pathlib.Path, str, pathlib.Path]:
   """Locate a trained variant: ``(workdir, variant, checkpoints folder)``.
 
@@ -56,7 +61,7 @@ def find_checkpoints(path, variant: str | None = None) -> tuple[pathlib.Path, st
                      f" python -m experiments.train) or one of its folders {VARIANTS}")
   for v in variants:
     ckpt = workdir / v / "checkpoints"
-    if ckpt.is_dir() and any(c.name.isdigit() for c in ckpt.iterdir()):
+    if _holds_checkpoint(ckpt):
       return workdir, v, ckpt
   raise ValueError(f"{p}: no checkpoint of variant(s) {variants} under {workdir}")
 
@@ -91,7 +96,7 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
   workdir, variant, ckpt = find_checkpoints(path, variant)
   if folder is not None:
     ckpt = workdir / folder / "checkpoints"
-    if not (ckpt.is_dir() and any(c.name.isdigit() for c in ckpt.iterdir())):
+    if not _holds_checkpoint(ckpt):
       raise ValueError(f"{ckpt}: no checkpoint there")
   try:
     config = json.loads((workdir / "config.json").read_text())
@@ -151,9 +156,7 @@ def seed_folders(workdir, variant: str) -> list[str]:
   Only folders holding a checkpoint count; ordered by seed.
   """
   workdir = pathlib.Path(workdir)
-  def trained(name):
-    ckpt = workdir / name / "checkpoints"
-    return ckpt.is_dir() and any(c.name.isdigit() for c in ckpt.iterdir())
+  trained = lambda name: _holds_checkpoint(workdir / name / "checkpoints")
   extra = sorted((p.name for p in workdir.glob(f"{variant}-seed*")
                   if p.name[len(variant) + 5:].isdigit() and trained(p.name)),
                  key=lambda n: int(n[len(variant) + 5:]))

@@ -248,14 +248,14 @@ def _fk_grid(setup: Setup, dtype, variant: str = "refined"):
   l_t = scipy.fft.next_fast_len(2 * n_t, real=True)
   l_t += l_t % 2
   H, W = setup.grid
+  t = np.arange(n_t)
   if check_variant(variant) == "public":
     dy, dx = setup.wall_size / H, setup.wall_size / W
-    t = np.arange(n_t)
-    weight = np.where(t >= t0, (t / max(T - 1, 1)) ** 2, 0.0)
+    t_n = t / max(T - 1, 1)
   else:
     dy, dx = setup.spacing
-    t = np.arange(n_t)
-    weight = np.where(t >= t0, ((t + 0.5) / T) ** 2, 0.0)   # gating: bins before t0 dropped
+    t_n = (t + 0.5) / T
+  weight = np.where(t >= t0, t_n ** 2, 0.0)                  # gating: bins before t0 dropped
   ky = np.fft.fftfreq(2 * H, d=dy)           # cycles / m
   kx = np.fft.fftfreq(2 * W, d=dx)
   kperp = (l_t * setup.depth_bin_length) ** 2 * (ky[:, None] ** 2 + kx[None, :] ** 2)
