@@ -1,6 +1,6 @@
 """Benchmark dataset generation and loading, at the CPU preset and at paper scale.
 
-    python -m benchmarks.data [--sequences 8] [--paper-frames 4] [--repeats 3]
+    python -m benchmarks.data [--sequences 8] [--paper-frames 32] [--repeats 3] [--workers 2]
                               [--out benchmarks/results/data.md] [--quick]
 
 Generation (``nlosjax.data.dataset``): sequences per minute, with the LCT
@@ -13,11 +13,13 @@ renderer (``renderer="transport"``, :mod:`nlosjax.data.surfaces`).
   :func:`write_dataset` in this process (simulation + gzip HDF5 writing, "warm").
   The whole preset dataset's time is extrapolated from the warm rate.
 * Paper scale (``experiments/configs/paper.py``: 128 x 128 x 512 at 33 ps,
-  clean transients not stored): a paper sequence has 32 frames and takes
-  minutes on a CPU, so two sequences of ``--paper-frames`` frames are
-  simulated (cold, then warm) and the warm time is extrapolated linearly to 32
-  frames: per-sequence cost is per-frame (rasterise, render, noise) apart
-  from a few milliseconds of scene drawing. Stated as extrapolated in the table.
+  clean transients not stored): two sequences of ``--paper-frames`` frames
+  (default 32, whole paper sequences) are simulated, cold then warm. With
+  fewer frames the warm time is extrapolated linearly to 32 frames (the
+  per-sequence cost is per frame apart from milliseconds of scene drawing),
+  and the table says so.
+* Parallel generation: ``--sequences`` cpu-preset sequences written with 1
+  and with ``--workers`` processes, wall time from the call to the closed file.
 
 Loading (:class:`TripletLoader`, batch 4): triplets per second (one triplet =
 three under-scanned input frames + the middle frame's full-resolution target,
@@ -125,12 +127,15 @@ def bench_paper(frames, repeats, workdir):
   per_seq = warm * PAPER_FRAMES / frames
   # Compilation happens once whatever the frame count: only the warm part scales with frames.
   compile_s = max(cold - warm, 0.0)
+  measured = (f"1 whole sequence of {frames} frames (cold: a first one in a fresh process)"
+              if frames == PAPER_FRAMES else
+              f"1 sequence of {frames} frames, warm time x{PAPER_FRAMES / frames:g}"
+              f" extrapolated; cold = compilation ({compile_s:.1f} s, once) + warm")
   rows = {"preset": "paper", "setup": spec.setup, "frames": PAPER_FRAMES, "clean": spec.store_clean,
           "cold_s": compile_s + per_seq, "warm_s": per_seq, "seq_per_min": 60 / per_seq,
           "preset_minutes": (compile_s + per_seq * sum(data["num_sequences"].values())) / 60,
           "preset_sequences": sum(data["num_sequences"].values()),
-          "measured": (f"1 sequence of {frames} frames, warm time x{PAPER_FRAMES / frames:g}"
-                       f" extrapolated; cold = compilation ({compile_s:.1f} s, once) + warm"),
+          "measured": measured,
           "mib_per_seq": path.stat().st_size / 2 ** 20 * PAPER_FRAMES / frames}
   stride = data["input_stride"]
   # Few frames: use every frame as a middle frame (ends="replicate") to have triplets to time.
@@ -140,20 +145,37 @@ def bench_paper(frames, repeats, workdir):
   return rows
 
 
-def render(results, args) -> str:
+def bench_workers(n_seq, workers, workdir):
+  """Wall time of ``write_dataset`` for ``n_seq`` cpu-preset sequences with each worker count.
+
+  Everything a user waits for is counted: process start, jit compilation in
+  each worker, simulation and the single writer.
+  """
+  data = configs.get_config("cpu")["data"]
+  spec = D.DatasetSpec.from_config(data, num_train=n_seq, num_test=0, num_val=0)
+  out = {}
+  for w in workers:
+    path = pathlib.Path(workdir) / f"workers{w}.h5"
+    t0 = time.perf_counter()
+    D.write_dataset(path, spec, workers=w, progress=False)
+    out[w] = time.perf_counter() - t0
+  return {"renderer": spec.renderer, "sequences": n_seq, "frames": spec.frames, "seconds": out}
+
+
+def render(results, args, workers=None) -> str:
   now = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
   cmd = "python -m benchmarks.data" + (" --quick" if args.quick else
                                        f" --sequences {args.sequences} --paper-frames {args.paper_frames}"
-                                       f" --repeats {args.repeats}")
+                                       f" --repeats {args.repeats} --workers {args.workers}")
   lines = ["# Dynamic NLOS dataset: generation and loading throughput", "",
            f"Produced by `{cmd}`.", "", f"- Date: {now}"] + _machine() + [
       f"- Load average (1, 5, 15 min) when written: {_machine_facts.load_average(', ')}"
       f" (above {_machine_facts.usable_cores()}, the cores were shared and timings are upper"
       " bounds)", "",
       "Generation: cold = first sequence in the process (includes jit compilation); warm ="
-      " simulation + compressed HDF5 write per sequence once compiled. Paper-scale rows are"
-      " extrapolated from a short sequence (see 'measured'). Whole preset = cold + warm x"
-      " (sequences - 1), one process.", "",
+      " simulation + compressed HDF5 write per sequence once compiled ('measured' says whether"
+      " a paper-scale row is a whole sequence or extrapolated from a short one). Whole preset ="
+      " cold + warm x (sequences - 1), one process.", "",
       "| preset | full grid x T, bin | frames | clean stored | measured | cold s/seq | warm s/seq |"
       " sequences/min (warm) | MiB/seq | whole preset |",
       "|---|---|---|---|---|---|---|---|---|---|"]
@@ -164,6 +186,15 @@ def render(results, args) -> str:
         f" {r['frames']} | {'yes' if r['clean'] else 'no'} | {r['measured']} | {r['cold_s']:.1f} |"
         f" {r['warm_s']:.2f} | {r['seq_per_min']:.1f} | {r['mib_per_seq']:.1f} |"
         f" {r['preset_sequences']} seq: {r['preset_minutes']:.1f} min |")
+  if workers:
+    base = workers["seconds"][1]
+    lines += ["", f"Parallel generation: `write_dataset(workers=W)` (`python -m experiments.make_dataset"
+              f" --workers W`), {workers['sequences']} cpu-preset sequences of {workers['frames']}"
+              f" frames ({workers['renderer']} renderer), wall time from the call to the closed file"
+              " (process start and each worker's compilation included).", "",
+              "| workers | wall s | sequences/min | speed-up over 1 |", "|---|---|---|---|"]
+    for w, t in workers["seconds"].items():
+      lines.append(f"| {w} | {t:.1f} | {60 * workers['sequences'] / t:.1f} | {base / t:.2f}x |")
   lines += ["", f"Loading: `TripletLoader`, batch {BATCH}, median of {args.repeats if not args.quick else 1}"
             " passes; input frames/s = 3 x triplets/s.", "",
             "| preset | input grid | target | triplets per pass | disk: triplets/s | disk: input frames/s |"
@@ -210,7 +241,10 @@ def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
   parser.add_argument("--sequences", type=int, default=8, help="CPU-preset sequences to time")
-  parser.add_argument("--paper-frames", type=int, default=4, help="frames of the paper-scale sequences")
+  parser.add_argument("--paper-frames", type=int, default=PAPER_FRAMES,
+                      help="frames of the paper-scale sequences (default: a whole one, %(default)s)")
+  parser.add_argument("--workers", type=int, default=2,
+                      help="time write_dataset with 1 and with this many worker processes (1: skip)")
   parser.add_argument("--repeats", type=int, default=3, help="loading passes (median)")
   parser.add_argument("--skip-paper", action="store_true", help="CPU preset only")
   parser.add_argument("--out", default=None,
@@ -218,7 +252,7 @@ def main(argv=None):
   parser.add_argument("--quick", action="store_true", help="a smoke run: 3 sequences, 2 paper frames")
   args = parser.parse_args(argv)
   if args.quick:
-    args.sequences, args.paper_frames, args.repeats = 3, 2, 1
+    args.sequences, args.paper_frames, args.repeats, args.workers = 3, 2, 1, 1
   results = []
   with tempfile.TemporaryDirectory(prefix="nlosjax-bench-data-") as tmp:
     print(f"CPU preset: {args.sequences} sequences ...", flush=True)
@@ -226,10 +260,14 @@ def main(argv=None):
     n = min(args.sequences, 3)
     print(f"CPU preset, transport renderer: {n} sequences ...", flush=True)
     results.append(bench_cpu(n, args.repeats, tmp, renderer="transport"))
+    workers = None
+    if args.workers > 1:
+      print(f"CPU preset: {args.sequences} sequences with 1 and {args.workers} workers ...", flush=True)
+      workers = bench_workers(args.sequences, (1, args.workers), tmp)
     if not args.skip_paper:
       print(f"paper scale: 2 x {args.paper_frames} frames ...", flush=True)
       results.append(bench_paper(args.paper_frames, args.repeats, tmp))
-  text = render(results, args)
+  text = render(results, args, workers)
   print(text)
   out = args.out or (None if args.quick else DEFAULT_OUT)
   if out:

@@ -6,6 +6,9 @@ Usage::
   python -m experiments.train --config paper --workdir runs/paper   # paper scale (GPU)
   python -m experiments.train --config.train.steps=50 --config.train.seed=1
   python -m experiments.train --seeds 3 --workdir runs/seeds3   # Table 1 over 3 training seeds
+  python -m experiments.train --config paper --dry-run      # memory and time, nothing trained
+  # several hosts (or processes): the same command on each, process ids 0 .. N-1
+  python -m experiments.train --config paper --coordinator host0:1234 --num-processes N --process-id I
 
 Every choice (classic settings, checkpoints) is made on the validation split;
 the test split only writes the tables. Where the config has an ``independent``
@@ -15,6 +18,13 @@ and noise code) into ``results/table1_independent.md``. Writes ``WORKDIR/results
 table.json, comparisons.json, validation.json, comparison.png,
 training_curves.png}`` (see :mod:`nlosjax.main_job`); rerun the same command after an interruption to
 resume from the last checkpoint.
+
+``--dry-run`` builds the data spec, model and optimiser, compiles the train
+and inference steps from shapes, prints per device the planned peak memory,
+FLOPs and an estimated time per step and for the run (measured at a reduced
+size, :mod:`nlosjax.plan`), and exits without generating data. With several
+processes each one reads only its rows of every global batch; process 0 makes
+the dataset (on a file system the others see), writes the logs and evaluates.
 """
 
 import argparse
@@ -29,12 +39,29 @@ def main(argv=None):
   parser.add_argument("--seeds", type=int, default=None,
                       help="training seeds per variant (default: the config's train.seeds, 1); "
                            "tables then cover seeds too")
+  parser.add_argument("--dry-run", action="store_true",
+                      help="predict memory and time per device, then exit (no data, no training)")
+  parser.add_argument("--no-measure", action="store_true",
+                      help="with --dry-run: compile only, no timed steps at a reduced size")
+  parser.add_argument("--coordinator", default=None,
+                      help="host:port of process 0 for multi-process training (jax.distributed)")
+  parser.add_argument("--num-processes", type=int, default=1, help="processes in all (default 1)")
+  parser.add_argument("--process-id", type=int, default=0, help="this process, 0 .. N-1")
   args, overrides = parser.parse_known_args(argv)
   config = apply_overrides(load_config(args.config), overrides)
   if args.seeds is not None:
     if args.seeds < 1:
       parser.error(f"--seeds must be >= 1, got {args.seeds}")
     config.setdefault("train", {})["seeds"] = args.seeds
+  if args.num_processes > 1:
+    if not args.coordinator:
+      parser.error("--num-processes > 1 needs --coordinator host:port (process 0's address)")
+    from nlosjax.train import initialize_distributed
+    initialize_distributed(args.coordinator, args.num_processes, args.process_id)
+  if args.dry_run:
+    from nlosjax.plan import dry_run, format_plan
+    print(format_plan(dry_run(config, measure=not args.no_measure)))
+    return
   from nlosjax.main_job import train_and_evaluate
   extra = {}
   spec = config.get("independent")

@@ -22,6 +22,13 @@ Writes into ``workdir``: ``config.json``, ``<variant>[-seed<k>]/{checkpoints,
 metrics.jsonl, selection.json}``, and ``results/{table.md, table.json,
 comparisons.json, validation.json, comparison.png, training_curves.png}``.
 Rerunning after an interruption resumes from the checkpoints.
+
+With several processes (``jax.distributed.initialize`` first; ``experiments.train
+--num-processes``) every process trains its share of each global batch;
+process 0 alone makes the dataset, writes logs and evaluates. With
+``train.check_memory`` the train steps are compiled from shapes first and the
+job refuses, before any data exist, when one would not fit
+(:func:`nlosjax.plan.check_fits`).
 """
 
 from __future__ import annotations
@@ -60,12 +67,21 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
   """
   config = train.with_defaults(config)
   tr = config["train"]
+  primary = jax.process_index() == 0
+  if tr.get("check_memory"):
+    from nlosjax.plan import check_fits
+    check_fits(config, log=log)            # before any data or parameters exist
   workdir = pathlib.Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
-  (workdir / "config.json").write_text(json.dumps(config, indent=2, default=str) + "\n")
+  if primary:
+    (workdir / "config.json").write_text(json.dumps(config, indent=2, default=str) + "\n")
   t0 = time.perf_counter()
   data_path = pathlib.Path(config["data"]["path"])
-  train.ensure_dataset(config, data_path, log=log)
+  if primary:
+    train.ensure_dataset(config, data_path, log=log)
+  if jax.process_count() > 1:              # the others wait for process 0's dataset
+    from jax.experimental import multihost_utils
+    multihost_utils.sync_global_devices("nlosjax dataset ready")
   n_seeds = int(tr.get("seeds", 1))
   if n_seeds < 1:
     raise ValueError(f"train.seeds must be >= 1, got {n_seeds}")
@@ -78,12 +94,14 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
       run_config = {**config, "train": {**tr, "seed": seed}}
       mcfg, state = train.train_model(run_config, data_path, workdir, variant, folder=folder,
                                       validate=validate, log=log)
-      trained.setdefault(variant, []).append((mcfg, state.params))
+      trained.setdefault(variant, []).append((mcfg, train.to_host(state.params)))
       if seed == base:
         logs[variant] = train.read_metrics(workdir / folder / "metrics.jsonl")
       selection = train.read_selection(workdir / folder) or {}
       checkpoints[folder] = {"variant": variant, "seed": seed, "step": selection.get("step"),
                              "val_psnr": selection.get("val_psnr", {})}
+  if not primary:                         # process 0 evaluates; the others are done
+    return {}
   log("validation: tuning the classic methods ...")
   settings = _tune_classic(config, data_path, log)
   best = max(settings, key=lambda m: settings[m]["psnr"])

@@ -31,6 +31,7 @@ import functools
 import hashlib
 import json
 import math
+import os
 import pathlib
 import time
 from typing import Any, Callable
@@ -201,14 +202,65 @@ def train_step(state: TrainState, batch: dict, key: jax.Array, *, weights: losse
   return new_state, metrics
 
 
+def initialize_distributed(coordinator: str, num_processes: int, process_id: int) -> None:
+  """Join a multi-process run (``jax.distributed.initialize``) before any device is used.
+
+  On CPU the cross-process collectives use gloo (XLA:CPU has no default
+  implementation), so the same command runs on a laptop, a CPU cluster or
+  GPUs. Each process then sees every process's devices in ``jax.devices()``.
+  """
+  if num_processes < 1 or not 0 <= process_id < num_processes:
+    raise ValueError(f"need 0 <= process_id < num_processes, got {process_id} of {num_processes}")
+  if num_processes == 1:
+    return
+  try:
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+  except (AttributeError, ValueError):   # an older JAX without the option
+    pass
+  jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
+                             process_id=process_id)
+
+
 def make_mesh(devices=None) -> Mesh:
   """A 1D ``Mesh`` named ``"data"`` over ``devices`` (default: every device of every host)."""
   devices = np.asarray(devices if devices is not None else jax.devices())
   return Mesh(devices.reshape(-1), ("data",))
 
 
+def mesh_for(config: dict) -> Mesh:
+  """The data-parallel mesh of a run: every device, or the first ``config["train"]["devices"]``.
+
+  With several processes (``jax.distributed``) the mesh spans every process's
+  devices and ``train.devices`` must be None.
+  """
+  n = config.get("train", {}).get("devices")
+  if n is None:
+    return make_mesh()
+  n = int(n)
+  if jax.process_count() > 1:
+    raise ValueError("train.devices selects devices of one process; leave it None with jax.distributed")
+  if not 1 <= n <= jax.device_count():
+    raise ValueError(f"train.devices = {n}, but this process has {jax.device_count()} device(s)")
+  return make_mesh(jax.devices()[:n])
+
+
+def to_host(tree):
+  """Fully replicated (global) arrays as NumPy on this host; works with several processes too."""
+  def one(x):
+    if isinstance(x, jax.Array) and not x.is_fully_addressable:
+      if not x.is_fully_replicated:
+        raise ValueError("to_host needs fully replicated arrays across processes")
+      return np.asarray(x.addressable_data(0))
+    return np.asarray(x)
+  return jax.tree.map(one, tree)
+
+
 def shard_batch(batch: dict, mesh: Mesh) -> dict:
-  """Place a host batch on the mesh, split along axis 0 (the batch must divide evenly)."""
+  """Place a host batch on the mesh, split along axis 0 (the batch must divide evenly).
+
+  With several processes each passes its own rows (``TripletLoader(shard=...)``):
+  the global batch is their concatenation in process order.
+  """
   n = mesh.devices.size
   sharding = NamedSharding(mesh, P("data"))
   out = {}
@@ -332,11 +384,15 @@ USM_RECIPES = ("ours", "published")
 #: Defaults of a config's ``train`` section (the presets override some).
 #: ``seeds``: training seeds per variant (``seed``, ``seed + 1``, ...; tables
 #: then cover seeds too); ``select_checkpoint``: ``"last"`` or ``"val"`` (the
-#: kept checkpoint with the best validation intensity PSNR).
+#: kept checkpoint with the best validation intensity PSNR); ``check_memory``: before
+#: any data or parameters exist, compile each variant's train step and refuse when XLA's
+#: planned peak exceeds the device's memory (:func:`nlosjax.plan.check_fits`);
+#: ``devices``: train data-parallel on the first ``devices`` devices (None: all of them).
 TRAIN_DEFAULTS = {
     "steps": 300, "batch_size": 4, "seed": 0, "seeds": 1, "log_every": 10, "checkpoint_every": 50,
     "keep_checkpoints": 2, "eval_batch_size": 8, "variants": ("ours_s", "ours"),
     "data_workers": 1, "optim": {}, "loss": {}, "select_checkpoint": "last",
+    "check_memory": False, "devices": None,
 }
 
 
@@ -374,8 +430,12 @@ def select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
   return measurement[:, mid - frames // 2:mid + frames // 2 + 1]
 
 
-def make_loader(config: dict, path, split: str, *, batch_size: int, shuffle: bool, seed: int):
-  """The config's :class:`~nlosjax.data.dataset.TripletLoader` of ``split`` (the model's under-scan offset checked)."""
+def make_loader(config: dict, path, split: str, *, batch_size: int, shuffle: bool, seed: int,
+                shard: tuple[int, int] = (0, 1)):
+  """The config's :class:`~nlosjax.data.dataset.TripletLoader` of ``split`` (the model's under-scan offset checked).
+
+  ``shard = (index, count)``: this process's rows of every global batch.
+  """
   from nlosjax.data.dataset import TripletLoader
   data = config["data"]
   opts = data.get("loader", {})
@@ -387,7 +447,7 @@ def make_loader(config: dict, path, split: str, *, batch_size: int, shuffle: boo
   return TripletLoader(path, split=split, batch_size=batch_size, stride=stride, offset=offset,
                        seed=seed, shuffle=shuffle, drop_remainder=shuffle,
                        ends=opts.get("ends", "valid"), target=opts.get("target", "clean"),
-                       in_memory=opts.get("in_memory", True))
+                       in_memory=opts.get("in_memory", True), shard=shard)
 
 
 def ensure_dataset(config: dict, path: pathlib.Path, log: Callable[[str], None] = print) -> None:
@@ -483,12 +543,16 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   steps, batch_size, seed = int(tr["steps"]), int(tr["batch_size"]), int(tr.get("seed", 0))
   vdir = pathlib.Path(workdir) / (folder or variant)
   vdir.mkdir(parents=True, exist_ok=True)
-  loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed)
+  primary = jax.process_index() == 0
+  if not primary:
+    log = lambda s: None                                 # noqa: E731 -- one process reports
+  loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed,
+                       shard=(jax.process_index(), jax.process_count()))
   mcfg = model_config_for(config, loader.setup, variant)
   log(f"[{variant}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{variant}] "))
   model = network(mcfg)
   optim, weights = training_recipe(config, variant)
-  mesh = make_mesh()
+  mesh = mesh_for(config)
   key = jax.random.key(seed)
   init_key, loop_key = jax.random.split(key)
   del key
@@ -502,14 +566,18 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   if restored is not None:
     state, start = restored
     log(f"[{variant}] resumed from step {start} ({ckpt.directory})")
-  log_path = vdir / "metrics.jsonl"
-  kept = [r for r in read_metrics(log_path) if r["step"] <= start]
-  log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
+  # One process writes the log (several processes share the workdir); the others write
+  # theirs to /dev/null.
+  log_path = vdir / "metrics.jsonl" if primary else pathlib.Path(os.devnull)
+  if primary:
+    kept = [r for r in read_metrics(log_path) if r["step"] <= start]
+    log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
   step_fn = make_train_step(mcfg, weights, mesh)
   log_every = int(tr.get("log_every", 10))
   t_start = time.perf_counter()
   with open(log_path, "a") as f, tqdm(total=steps, initial=start, desc=f"train {variant}",
-                                      unit="step", dynamic_ncols=True, mininterval=2.0) as bar:
+                                      unit="step", dynamic_ncols=True, mininterval=2.0,
+                                      disable=not primary) as bar:
     for step in range(start, steps):
       host = loader.batch(step)
       batch = {k: host[k] for k in BATCH_KEYS}
@@ -517,7 +585,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
       state, metrics = step_fn(state, shard_batch(batch, mesh), jax.random.fold_in(loop_key, step))
       done = step + 1
       if done % log_every == 0 or done == steps:
-        m = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        m = {k: float(v) for k, v in to_host(metrics).items()}
         if not all(math.isfinite(v) for v in m.values()):
           raise FloatingPointError(f"[{variant}] non-finite metrics at step {done}: {m}")
         row = {"step": done, "time_s": round(time.perf_counter() - t_start, 3), **m}
@@ -535,7 +603,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     candidates = {}
     for step in ckpt.all_steps():
       candidate, _ = ckpt.restore(state, step)
-      selection["val_psnr"][step] = float(validate(mcfg, candidate.params))
+      selection["val_psnr"][step] = float(validate(mcfg, to_host(candidate.params)))
       candidates[step] = candidate
     best = max(selection["val_psnr"], key=lambda k: (selection["val_psnr"][k], k))
     state = candidates[best]
@@ -543,7 +611,8 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     log(f"[{variant}] checkpoint chosen on validation: step {best} "
         f"({', '.join(f'{k}: {v:.2f} dB' for k, v in selection['val_psnr'].items())})")
   ckpt.close()
-  (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
+  if primary:
+    (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
   return mcfg, state
 
 

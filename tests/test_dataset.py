@@ -532,7 +532,7 @@ def test_presets_keep_the_paper_ratios():
     assert spec.scene.depth_range[1] < spec.setup.max_depth
   paper = D.DatasetSpec.from_config(configs.get_config("paper")["data"])
   assert paper.setup == Setup(2.0, (128, 128), 33e-12, 512)
-  assert (paper.frames, paper.num_sequences, paper.num_test) == (32, 265, 17)
+  assert (paper.frames, paper.num_train, paper.num_test) == (32, 150, 17)   # Sec. 5.1
   assert configs.get_config("paper")["data"]["input_stride"] == 8
 
 
@@ -551,3 +551,23 @@ def test_cli_writes_the_preset_split_and_the_loader_reads_it_by_config(tmp_path)
     assert batch["measurement"].shape == (1, 3, data["num_bins"], 8, 8)
   with pytest.raises(ValueError, match="unknown data.loader"):
     D.TripletLoader.from_config({**data, "loader": {"shuffle": True}}, path=out)
+
+
+@pytest.mark.parametrize("in_memory", [False, True])
+def test_sharded_loaders_read_their_rows_of_the_global_batch(tiny, in_memory):
+  # Multi-process training (issue 22): process i of n gets rows i*B/n .. (i+1)*B/n.
+  path, _ = tiny
+  kw = dict(batch_size=4, stride=4, offset=1, seed=3, in_memory=in_memory)
+  with D.TripletLoader(path, **kw) as whole, D.TripletLoader(path, shard=(0, 2), **kw) as a, \
+       D.TripletLoader(path, shard=(1, 2), **kw) as b:
+    if in_memory:
+      assert a._cache == [None] * len(a.names)          # nothing read before it is needed
+    for step in (0, 1, 5):
+      full, parts = whole.batch(step), (a.batch(step), b.batch(step))
+      for k in full:
+        np.testing.assert_array_equal(np.concatenate([p[k] for p in parts]), full[k])
+      assert parts[0]["measurement"].shape[0] == 2
+  with pytest.raises(ValueError, match="shard"):
+    D.TripletLoader(path, batch_size=4, shard=(2, 2))
+  with pytest.raises(ValueError, match="split into 3 shards"):
+    D.TripletLoader(path, batch_size=4, shard=(0, 3))

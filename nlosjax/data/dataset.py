@@ -1050,6 +1050,11 @@ class TripletLoader:
     in_memory: read everything the loader needs once, at construction.
     setup: optional expected full-resolution Setup (checked).
     prefetch_size: default of :meth:`iterate`'s ``prefetch_size``.
+    shard: ``(index, count)``: :meth:`batch` returns rows ``index * B / count``
+      to ``(index + 1) * B / count`` of every global batch and reads only
+      those (one process of ``count`` in multi-process training; ``B`` must
+      divide by ``count``). With ``in_memory`` a sharded loader keeps the
+      sequences it has read instead of reading every one at construction.
 
   Batch (numpy, float32 unless noted): ``measurement [B, 3, T, h, w]``,
   ``transient [B, T, H, W]``, ``intensity [B, H, W]``, ``depth [B, H, W]``
@@ -1060,7 +1065,12 @@ class TripletLoader:
   def __init__(self, dataset, *, split: str = "train", batch_size: int = 4, stride: int = 1,
                offset: int = 0, seed: int = 0, shuffle: bool = True, drop_remainder: bool = True,
                ends: str = "valid", target: str = "clean", in_memory: bool = False,
-               setup: Setup | None = None, prefetch_size: int = 0):
+               setup: Setup | None = None, prefetch_size: int = 0,
+               shard: tuple[int, int] = (0, 1)):
+    index, count = (int(v) for v in shard)
+    if not (count >= 1 and 0 <= index < count):
+      raise ValueError(f"shard must be (index, count) with 0 <= index < count, got {shard!r}")
+    self.shard = (index, count)
     self._owns = not isinstance(dataset, DynamicDataset)
     self.dataset = open_dataset(dataset, setup) if self._owns else dataset
     if not self._owns and setup is not None:
@@ -1073,6 +1083,8 @@ class TripletLoader:
       raise ValueError(f'target must be "clean" or "measurement", got {target!r}')
     self.stride, self.offset = _check_stride(stride, offset)
     self.split, self.batch_size, self.seed = _check_split(split), int(batch_size), int(seed)
+    if self.batch_size % count:
+      raise ValueError(f"batch_size {batch_size} does not split into {count} shards")
     self.shuffle, self.drop_remainder, self.ends, self.target = shuffle, drop_remainder, ends, target
     if (isinstance(prefetch_size, bool) or not isinstance(prefetch_size, (int, np.integer))
         or prefetch_size < 0):
@@ -1106,7 +1118,8 @@ class TripletLoader:
                        " with drop_remainder=True")
     self._cache = None
     if in_memory:
-      self._cache = [self._load_sequence(name) for name in self.names]
+      self._cache = ([self._load_sequence(name) for name in self.names] if count == 1
+                     else [None] * len(self.names))
 
   @classmethod
   def from_config(cls, data: Mapping, *, split: str = "train", batch_size: int = 4, seed: int = 0,
@@ -1168,15 +1181,24 @@ class TripletLoader:
     return np.random.default_rng([self.seed, int(epoch)]).permutation(n)
 
   def batch(self, step: int) -> dict:
-    """The batch of global step ``step`` (epoch ``step // len(self)``); deterministic."""
+    """The batch of global step ``step`` (epoch ``step // len(self)``); deterministic.
+
+    A sharded loader returns its rows of that batch (``shard``).
+    """
     if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 0:
       raise ValueError(f"step must be an integer >= 0, got {step!r}")
     epoch, within = divmod(int(step), self.steps_per_epoch)
     idx = self.order(epoch)[within * self.batch_size:(within + 1) * self.batch_size]
+    index, count = self.shard
+    if count > 1:
+      rows = len(idx) // count if self.drop_remainder else -(-len(idx) // count)
+      idx = idx[index * rows:(index + 1) * rows]
     out = {k: [] for k in ("measurement", "transient", "intensity", "depth")}
     for s, m in self.examples[idx]:
       name = self.names[s]
       if self._cache is not None:
+        if self._cache[s] is None:
+          self._cache[s] = self._load_sequence(name)
         seq = self._cache[s]
         frames = self.triplet_frames(m, seq["measurement"].shape[0])
         out["measurement"].append(seq["measurement"][frames])
