@@ -23,7 +23,8 @@ model, seed by seed on the same frames):
   the paper's Table 3).
 
 Each run lives in ``WORKDIR/<row>/`` (the config's seed) or
-``WORKDIR/<row>-seed<k>/`` (resumable: a rerun reuses finished runs). Writes the Markdown table to ``--out`` and the numbers to the same
+``WORKDIR/<row>-seed<k>/`` (resumable: a rerun reuses finished runs). Writes the Markdown
+table to ``--out`` and the numbers to the same
 path with ``.json``.
 """
 
@@ -146,15 +147,16 @@ def _cell(s, digits, signed=False):
 
 
 def to_markdown(results: dict, summary: dict, cmd: str, steps: int, base: dict) -> str:
+  from experiments.provenance import provenance
   from nlosjax import stats
-  from benchmarks._machine import provenance
   tick = {True: "✓", False: "✗"}
   tr = base["train"]
   n = next(iter(summary["test"].values()))["psnr"]
   lines = ["# Table 2: ablations at the CPU preset (one shared budget)", ""] + provenance(cmd) + [
       "",
       f"Budget of every row: Ours (3 frames), {steps} steps of batch {tr['batch_size']}, seeds"
-      f" {tr.get('seed', 0)}-{tr.get('seed', 0) + n['n_seeds'] - 1}, AdamW lr {tr['optim'].get('learning_rate')} (cosine, warm-up"
+      f" {tr.get('seed', 0)}-{tr.get('seed', 0) + n['n_seeds'] - 1},"
+      f" AdamW lr {tr['optim'].get('learning_rate')} (cosine, warm-up"
       f" {tr['optim'].get('warmup_steps')}), the CPU preset's data (`{base['data']['path']}`) and"
       f" model, the last checkpoint. Scored on the test"
       f" split ({n['n_sequences']} sequences, {n['n_frames'] // max(n['n_seeds'], 1)} frames):"
@@ -210,9 +212,10 @@ def main(argv=None):
   parser.add_argument("--only", nargs="*", default=None, choices=list(ROWS))
   parser.add_argument("--out", default="benchmarks/results/table2.md")
   args = parser.parse_args(argv)
+  from tqdm import tqdm
+
   from experiments.cli import load_config
   from nlosjax.train import with_defaults
-  from tqdm import tqdm
   base = with_defaults(load_config(args.config))
   rows = args.only or list(ROWS)
   workdir = pathlib.Path(args.workdir)

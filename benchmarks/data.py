@@ -46,8 +46,8 @@ import time
 
 import numpy as np
 
-from benchmarks import _machine as _machine_facts
 from experiments import configs
+from experiments import provenance as _machine_facts
 from nlosjax.data import dataset as D
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "data.md"

@@ -33,8 +33,8 @@ import time
 
 import numpy as np
 
-from benchmarks import _machine
 from benchmarks.physics import ncc
+from experiments import provenance as _machine
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "depth_range.md"
 

@@ -16,7 +16,7 @@ import argparse
 import pathlib
 import sys
 
-from benchmarks import _machine
+from experiments import provenance as _machine
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "dry_run.md"
 

@@ -56,7 +56,7 @@ def main(argv=None):
   parser.add_argument("--out", default="benchmarks/results/main_job.md")
   parser.add_argument("--keep", default=None, help="clone into DIR and keep it (default: a temporary folder)")
   args = parser.parse_args(argv)
-  from benchmarks._machine import git_commit, load_average, provenance
+  from experiments.provenance import git_commit, load_average, provenance
   commit = git_commit()
   if "+changes" in commit:
     raise SystemExit("uncommitted edits to tracked code: commit them first (the clone would not have them)")

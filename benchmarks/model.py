@@ -45,7 +45,7 @@ import sys
 import time
 import traceback
 
-from benchmarks import _machine as _machine_facts
+from experiments import provenance as _machine_facts
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "model.md"
 GIB = 1024.0 ** 3
@@ -92,6 +92,7 @@ def run_case(name: str, frames: int, batch: int, repeats: int, forward: bool) ->
   """One config in this process; returns the measured numbers."""
   import jax
   import jax.numpy as jnp
+
   from nlosjax.models import STMambaNet, model_summary
 
   cfg = _config(name, frames)

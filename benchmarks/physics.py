@@ -12,7 +12,7 @@ scatterers, Poisson noise; 2 m wall, ``N x N`` scan points, ``--bins`` bins of
   ``--repeats`` warm calls (after one warm-up call), each ended by
   ``block_until_ready``; peak memory from ``compiled.memory_analysis()``
   (temp + argument + output buffers);
-* the NumPy/SciPy twin (``benchmarks/numpy_twins.py``, the public algorithm):
+* the NumPy/SciPy twin (``experiments/numpy_twins.py``, the public algorithm):
   operator build time, then the median of ``--repeats`` runs after one
   warm-up run, ``scipy.fft`` on all cores; peak memory is the ``tracemalloc``
   peak during one more run (allocations of the run only, operators excluded).
@@ -59,8 +59,8 @@ import tracemalloc
 
 import numpy as np
 
-from benchmarks import _machine as _machine_facts
-from benchmarks import numpy_twins
+from experiments import numpy_twins
+from experiments import provenance as _machine_facts
 from nlosjax.physics.setup import Setup
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "physics.md"
@@ -185,6 +185,7 @@ def _jax_worker(conn, method: str, n: int, bins: int, repeats: int, seed: int,
                 time_limit: float) -> None:
   try:
     import jax
+
     from nlosjax.physics import reconstruct
 
     setup = make_setup(n, bins)

@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks import _machine as _machine_facts
+from experiments import provenance as _machine_facts
 from nlosjax.ssm import resolve_method, selective_scan
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "scan.md"

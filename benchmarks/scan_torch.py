@@ -125,7 +125,7 @@ def main(argv=None):
   p.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
   p.add_argument("--out", type=pathlib.Path, default=DEFAULT_OUT)
   args = p.parse_args(argv)
-  from benchmarks import _machine
+  from experiments import provenance as _machine
   command = "python -m benchmarks.scan_torch " + " ".join(sys.argv[1:] if argv is None else argv)
   facts = _machine.provenance(command.strip())
   t_start = time.perf_counter()

@@ -62,6 +62,7 @@ def without_learned_transient(next_fun, args, kwargs, context):
   cross blocks then have no effect on any output. Other calls pass through.
   """
   import jax.numpy as jnp
+
   from nlosjax.models.blocks import TransientSpreading
   if isinstance(context.module, TransientSpreading) and context.method_name == "__call__":
     features, *rest = args
@@ -87,10 +88,11 @@ def main(argv=None):
   parser.add_argument("--out", default="benchmarks/results/temporal_probe.md")
   args = parser.parse_args(argv)
   import jax.numpy as jnp
+
+  from experiments.provenance import provenance
   from nlosjax import checkpoints_io, metrics
   from nlosjax import train as T
   from nlosjax.models.network import STMambaNet
-  from benchmarks._machine import provenance
   run = pathlib.Path(args.checkpoint)
   config = T.with_defaults(json.loads((run / "config.json").read_text()))
   mcfg, params, _ = checkpoints_io.load_trained(run / "ours", step=_chosen_step(run / "ours"))

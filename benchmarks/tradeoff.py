@@ -71,7 +71,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from benchmarks import _machine as _machine_facts
+from experiments import provenance as _machine_facts
 
 DEFAULT_OUT_DIR = pathlib.Path(__file__).resolve().parent / "results"
 DEFAULT_WORKDIR = pathlib.Path("runs/tradeoff")
@@ -258,8 +258,8 @@ def classic_pipeline(method: str, setup, stride: int, *, volume: bool = False) -
   import jax
   import jax.numpy as jnp
 
-  from nlosjax.physics import intensity_depth, reconstruct
   from nlosjax.evaluation.baselines import TABLE_VARIANT, upsample_scan
+  from nlosjax.physics import intensity_depth, reconstruct
   if method not in CLASSIC:
     raise ValueError(f"method must be one of {CLASSIC}, got {method!r}")
 
@@ -487,13 +487,21 @@ def train_learned(spec: Learned, config: dict, setup, root: pathlib.Path, steps:
       enough for ``spec.frames``); called only when training is needed.
   """
   import jax
+  from jax.sharding import NamedSharding
+  from jax.sharding import PartitionSpec as P
   from tqdm import tqdm
 
-  from jax.sharding import NamedSharding, PartitionSpec as P
-
-  from nlosjax.train import (BATCH_KEYS, Checkpointer, select_frames, create_train_state,
-                             make_mesh, make_optimizer, make_train_step, shard_batch,
-                             training_recipe)
+  from nlosjax.train import (
+    BATCH_KEYS,
+    Checkpointer,
+    create_train_state,
+    make_mesh,
+    make_optimizer,
+    make_train_step,
+    select_frames,
+    shard_batch,
+    training_recipe,
+  )
   tr = config["train"]
   batch_size, seed = int(tr["batch_size"]), int(tr.get("seed", 0))
   mcfg = learned_config(config, setup, spec)
@@ -885,8 +893,8 @@ def run(args) -> dict:
   for r in res["configs"]:
     r["time"] = per_call[r["key"]] / B
     r["time_range"] = [spread[r["key"]][0] / B, spread[r["key"]][1] / B]
-  for method, rr in gating.items():
-    for label, g in rr.items():
+  for rr in gating.values():
+    for g in rr.values():
       g["time"] = per_call[g["key"]] / B
   for label, _, _ in (ranges if res["stages"] else []):
     st = res["stages"]["lct"][label]
@@ -939,7 +947,7 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
   front_names = [p["name"] for p, f in zip(default, front) if f]
   rec = recommend(default)
   beats = learned_beats_classic(default)
-  from benchmarks._machine import git_commit
+  from experiments.provenance import git_commit
   by_name = {r["name"]: r for r in rows}
   out = [
       "# Speed and accuracy of every reconstruction knob",

@@ -45,8 +45,8 @@ def main(argv=None) -> dict:
   import json
 
   from nlosjax import checkpoints_io, train
-  from nlosjax.evaluation import baselines, protocol
   from nlosjax.data.dataset import open_dataset
+  from nlosjax.evaluation import baselines, protocol
   t0 = time.perf_counter()
   data = pathlib.Path(args.data)
   if not data.is_file():

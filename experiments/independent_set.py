@@ -153,7 +153,7 @@ def _jitter_taps(setup, jitter) -> tuple[np.ndarray, int]:
     return np.ones(1), 0
   dt = setup.bin_width
   if jitter == "measured":
-    from nlosjax.physics.noise import load_measured_jitter   # reads the shipped measured file
+    from nlosjax.physics.noise import load_measured_jitter  # reads the shipped measured file
     t, density = load_measured_jitter()
     peak = t[int(np.argmax(density))]
     k = np.arange(math.floor((t[0] - peak) / dt + 0.5), math.floor((t[-1] - peak) / dt + 0.5) + 1)

@@ -99,7 +99,8 @@ def main(argv=None) -> int:
     print(f"error: {out} exists; pass --overwrite to replace it", file=sys.stderr)
     return 2
   s = spec.setup
-  print(f"{args.config}: {spec.num_train} train + {spec.num_val} val + {spec.num_test} test sequences x {spec.frames} frames;"
+  print(f"{args.config}: {spec.num_train} train + {spec.num_val} val + {spec.num_test} test sequences"
+        f" x {spec.frames} frames;"
         f" grid {s.grid[0]}x{s.grid[1]}, {s.num_bins} bins of {s.bin_width * 1e12:.0f} ps,"
         f" wall {s.wall_size} m; clean {'on' if spec.store_clean else 'off'} -> {out}")
   t0 = time.perf_counter()

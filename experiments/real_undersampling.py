@@ -46,7 +46,7 @@ scored against its ground truth), to tell a reading or adaptation bug from the
 synthetic-to-real gap.
 
 Also times ``python -m experiments.reconstruct`` against the NumPy/SciPy twins
-of the public algorithms (``benchmarks/numpy_twins.py``) for LCT, f-k and
+of the public algorithms (``experiments/numpy_twins.py``) for LCT, f-k and
 phasor on one 64 x 64 x 512 scan (``--no-timing`` skips it).
 
 Writes the Markdown report (``--out``) and, beside it, ``real_<scene>.png``
@@ -66,7 +66,6 @@ import tempfile
 import time
 
 import numpy as np
-
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
@@ -125,6 +124,7 @@ def classic_intensity(transient, setup, method: str, stride: int, options=None) 
 def model_intensity(trained, transient, setup, stride: int) -> np.ndarray:
   """Intensity ``[H, W]`` of a trained network on the scan under-scanned by ``stride``."""
   import dataclasses
+
   from nlosjax import checkpoints_io as cio
   from nlosjax.models.network import underscan
   mcfg, params = trained
@@ -148,6 +148,7 @@ def model_intensity(trained, transient, setup, stride: int) -> np.ndarray:
 def run(files, strides, checkpoint, log=print) -> dict:
   """Every method on every scan and stride; returns the images and scores."""
   from tqdm import tqdm
+
   from nlosjax.data import io
   trained = {}
   if checkpoint is not None:
@@ -255,8 +256,8 @@ def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict
   points at the domain gap, not at the reading or the adaptation.
   """
   from nlosjax import metrics
-  from nlosjax.evaluation import baselines as B
   from nlosjax.data import dataset, io
+  from nlosjax.evaluation import baselines as B
   path = pathlib.Path(path)
   if not path.is_file() or not trained:
     return None
@@ -285,7 +286,7 @@ _TWIN_SCRIPT = r"""
 import json, sys, time
 t0 = time.perf_counter()
 import numpy as np, scipy.io
-from benchmarks import numpy_twins as twins
+from experiments import numpy_twins as twins
 from nlosjax.physics.setup import Setup
 t1 = time.perf_counter()
 raw = scipy.io.loadmat(sys.argv[1], variable_names=("rect_data", "width"))
@@ -364,7 +365,8 @@ def time_cli(path, methods=("lct", "fk", "phasor"), repeats: int = 3, log=print)
 def time_warm(path, methods=("lct", "fk", "phasor"), repeats: int = 5) -> dict:
   """In-process warm run times (compiled, operators built): JAX ``reconstruct`` vs the twin's run."""
   import jax
-  from benchmarks import numpy_twins as twins
+
+  from experiments import numpy_twins as twins
   from nlosjax import physics
   from nlosjax.data import io
   x, setup = io.load_measurement(path)
@@ -597,12 +599,13 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
         " (read + prepare the .mat) and *reconstruct* (operators, tracing, XLA compilation and"
         " the run), without the Python/JAX import and the PNG writing; *cold* = no compilation"
         " cache (`--no-cache`), *cached* = the persistent XLA cache filled by an earlier run."
-        " Twin = `benchmarks/numpy_twins.py` (NumPy/SciPy ports of the public code, `scipy.fft`"
+        " Twin = `experiments/numpy_twins.py` (NumPy/SciPy ports of the public code, `scipy.fft`"
         " on all cores, complex64): load (`scipy.io.loadmat` + the same preparation) + operator"
         " build + one run. *Process* columns are whole `python` processes (imports, writing"
         " PNGs included; the twin's process also imports JAX through `nlosjax.physics.setup`).",
         "",
-        "| method | CLI cold load + reconstruct s | CLI cached load + reconstruct s | twin load + build + run s | CLI cold process s | CLI cached process s | twin process s |",
+        "| method | CLI cold load + reconstruct s | CLI cached load + reconstruct s | twin load + build + run s"
+        " | CLI cold process s | CLI cached process s | twin process s |",
         "|---|---|---|---|---|---|---|"]
     for m, r in timing["methods"].items():
       c, k, t = r["cli_cold"], r["cli_cached"], r["twin"]
@@ -657,7 +660,7 @@ def main(argv=None):
   t0 = time.perf_counter()
   command = "python -m experiments.real_undersampling " + " ".join(
       sys.argv[1:] if argv is None else argv)
-  from benchmarks._machine import provenance
+  from experiments.provenance import provenance
   facts = provenance(command.strip())              # the commit the run starts from
   files = default_files(args.data_dir)
   checkpoint = None if args.checkpoint.lower() == "none" else args.checkpoint

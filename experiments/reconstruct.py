@@ -110,7 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
   g.add_argument("--model-bin-factor", type=int, default=None,
                  help="capture bins per network bin (default: nearest to the trained bin width)")
   p.add_argument("--no-cache", action="store_true",
-                 help="do not use the persistent XLA compilation cache (NLOSJAX_CACHE_DIR, default ~/.cache/nlosjax/xla)")
+                 help="do not use the persistent XLA compilation cache"
+                      " (NLOSJAX_CACHE_DIR, default ~/.cache/nlosjax/xla)")
   p.add_argument("--quiet", action="store_true", help="print only the timing line")
   return p
 
@@ -236,11 +237,12 @@ def reconstruct_classic(transient, setup, method: str, options: dict, stride: in
   square-rooted for them. The returned volume is the method's output, unmasked.
   """
   import jax
+
   from nlosjax import physics
   x = transient
   if stride is not None and stride > 1:
-    from nlosjax.models.network import underscan
     from nlosjax.evaluation.baselines import upsample_scan
+    from nlosjax.models.network import underscan
     x = upsample_scan(underscan(x, stride), setup.grid, stride)
   volume = np.asarray(jax.block_until_ready(physics.reconstruct(x, setup, method, **options)))
   linear = edge_masked(np.sqrt(np.maximum(volume, 0)) if method == "fk" else volume, setup,

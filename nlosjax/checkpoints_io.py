@@ -91,6 +91,7 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
     ValueError: naming the folder for a missing, unreadable or mismatched checkpoint.
   """
   import orbax.checkpoint as ocp
+
   from nlosjax import train
 
   workdir, variant, ckpt = find_checkpoints(path, variant)

@@ -40,7 +40,8 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec as P
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from nlosjax import train
 from nlosjax.physics import Setup
@@ -150,7 +151,10 @@ def _abstract_state(mcfg, batch: int, tx, mesh):
 
 
 def _abstract_batch(mcfg, batch: int, mesh) -> dict:
-  """``measurement [B, F, T, h, w]``, ``transient [B, T, H, W]``, ``intensity``/``depth [B, H, W]``, split over ``mesh``."""
+  """The batch as shapes, split over ``mesh``.
+
+  ``measurement [B, F, T, h, w]``, ``transient [B, T, H, W]``, ``intensity`` and ``depth [B, H, W]``.
+  """
   s = mcfg.setup
   split = NamedSharding(mesh, P("data"))
   shapes = {"measurement": tuple(mcfg.input_shape(batch)),
@@ -289,7 +293,7 @@ def estimate_step_s(measured: list[dict], flops: float) -> float:
 
 def _fixes(config: dict, plan: StepPlan, limit: int) -> list[str]:
   """What would make ``plan`` fit in ``limit`` bytes, most direct first."""
-  model, tr = config.get("model", {}), config["train"]
+  model = config.get("model", {})
   fixes = []
   per_device = plan.batch // plan.devices
   fixed = plan.peak_bytes - plan.temp_bytes          # state and arguments: do not shrink with the batch

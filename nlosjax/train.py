@@ -42,7 +42,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax.training import train_state
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from nlosjax import losses
 from nlosjax.physics import illumination_wavelet
@@ -537,8 +538,9 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     ``(model_config, state)``: after ``config["train"]["steps"]`` steps, or at
     the checkpoint chosen on validation.
   """
-  from nlosjax.models.network import format_summary, model_summary
   from tqdm import tqdm
+
+  from nlosjax.models.network import format_summary, model_summary
   tr = config["train"]
   steps, batch_size, seed = int(tr["steps"]), int(tr["batch_size"]), int(tr.get("seed", 0))
   vdir = pathlib.Path(workdir) / (folder or variant)

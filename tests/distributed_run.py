@@ -39,6 +39,7 @@ def _setup(data):
 
 def devices(data, out):
   import jax
+
   from nlosjax import train as T
   from tests.tiny_run import tiny_config
   quiet = lambda s: None                                            # noqa: E731
@@ -95,6 +96,7 @@ def worker(data, out, port, pid):
   T.initialize_distributed(f"localhost:{port}", 2, pid)
   import jax
   import numpy as np
+
   from tests.tiny_run import tiny_config
   cfg = tiny_config(data, steps=4, batch_size=4)
   loader = T.make_loader(T.with_defaults(cfg), data, "train", batch_size=4, shuffle=True, seed=0,

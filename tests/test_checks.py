@@ -6,7 +6,6 @@ naming the array, and good input gives exactly the plain result.
 """
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 

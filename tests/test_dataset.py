@@ -14,8 +14,7 @@ import h5py
 import numpy as np
 import pytest
 
-from experiments import configs
-from experiments import make_dataset
+from experiments import configs, make_dataset
 from nlosjax.data import dataset as D
 from nlosjax.data import scenes
 from nlosjax.physics import Setup, render_points

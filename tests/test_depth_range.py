@@ -53,6 +53,7 @@ def test_bad_requests_say_why(two_points):
 
 def test_cli_depth_range_auto(tmp_path, two_points):
   import h5py
+
   from experiments import reconstruct as cli
   from nlosjax.data import io
   path = io.save_capture(tmp_path / "cap.h5", two_points, SETUP)

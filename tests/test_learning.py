@@ -22,7 +22,8 @@ import jax
 import numpy as np
 import pytest
 
-from nlosjax import metrics, train as T
+from nlosjax import metrics
+from nlosjax import train as T
 from nlosjax.evaluation import baselines, protocol
 from nlosjax.models.network import STMambaNet
 from tests.tiny_run import tiny_config

@@ -15,10 +15,22 @@ import numpy as np
 import pytest
 
 from nlosjax import physics
-from nlosjax.models import (VARIANTS, CrossSTMambaBlock, FeatureTransform, ModelConfig,
-                            STMambaBlock, STMambaNet, VolumeReconstruction, blocks, coarsen_setup,
-                            count_params, mirror_spatial_params, model_summary, soft_projection,
-                            underscan)
+from nlosjax.models import (
+  VARIANTS,
+  CrossSTMambaBlock,
+  FeatureTransform,
+  ModelConfig,
+  STMambaBlock,
+  STMambaNet,
+  VolumeReconstruction,
+  blocks,
+  coarsen_setup,
+  count_params,
+  mirror_spatial_params,
+  model_summary,
+  soft_projection,
+  underscan,
+)
 from nlosjax.physics import Setup
 from tests.xla_options import xla_optimizations
 

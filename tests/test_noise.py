@@ -10,8 +10,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from nlosjax.physics.noise import (LARGE_RATE_THRESHOLD, MEASURED_JITTER_PATH, add_spad_noise,
-                                   expected_counts, jitter_kernel, load_measured_jitter)
+from nlosjax.physics.noise import (
+  LARGE_RATE_THRESHOLD,
+  MEASURED_JITTER_PATH,
+  add_spad_noise,
+  expected_counts,
+  jitter_kernel,
+  load_measured_jitter,
+)
 from nlosjax.physics.setup import Setup
 
 SETUP = Setup(1.0, (4, 4), 32e-12, 64)

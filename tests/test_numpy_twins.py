@@ -1,4 +1,4 @@
-"""Tests of the NumPy/SciPy twins of the public reconstructions (benchmarks/numpy_twins.py)."""
+"""Tests of the NumPy/SciPy twins of the public reconstructions (experiments/numpy_twins.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from benchmarks import numpy_twins as tw
+from experiments import numpy_twins as tw
 from nlosjax.physics.setup import Setup
 
 EXIT_SIGN = pathlib.Path("/work/shared/data/real/data_exit_sign.mat")
@@ -209,6 +209,7 @@ def test_benchmark_fft_floor_runs_the_methods_ffts(method):
   """``benchmarks.physics.fft_floor``: each method's FFTs alone compile and give finite numbers,
   and the goal line calls a method met only when both ratios hold."""
   import jax.numpy as jnp
+
   from benchmarks import physics as bench
   setup = Setup(wall_size=1.0, grid=(8, 8), bin_width=32e-12, num_bins=64)
   x = jnp.asarray(np.random.default_rng(0).poisson(1.0, (64, 8, 8)), jnp.float32)

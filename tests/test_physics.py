@@ -212,6 +212,7 @@ def test_lct_fft_length_stops_at_the_cone_and_changes_nothing(depth_range):
   fft_length="cone")`` shortens the FFT along time; backprojection (``filt=None``) and the forward model still
   equal the linear correlation / convolution done with NumPy on twice the full length."""
   import dataclasses
+
   from nlosjax.physics.forward import render_operators
   from nlosjax.physics.operators import cone_psf, cone_reach, lct_apply, lct_operators
   setup = Setup(0.2, (8, 7), 32e-12, 256, depth_range=depth_range)
@@ -486,7 +487,7 @@ def test_intensity_depth_of_a_known_volume():
 
 
 def test_point_scatterer_depth_map_is_metric(point_transients):
-  (x, y, z), transient = POINTS[1], point_transients[1]
+  (_, _, z), transient = POINTS[1], point_transients[1]
   intensity, depth = physics.intensity_depth(reconstruct(transient, SETUP, "fk"), SETUP)
   i, j = np.unravel_index(int(np.argmax(intensity)), intensity.shape)
   assert float(depth[i, j]) == pytest.approx(z, abs=3 * SETUP.depth_bin_length)

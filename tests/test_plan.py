@@ -56,7 +56,7 @@ def tiny(tmp_path_factory):
 def test_dry_run_plans_from_shapes_and_measures_without_data(tiny):
   result = plan.dry_run(tiny, log=lambda s: None)
   assert not __import__("pathlib").Path(tiny["data"]["path"]).exists()      # no data generated
-  for variant, v in result["variants"].items():
+  for v in result["variants"].values():
     p = v["train"]
     mcfg = v["model_config"]
     # Arguments of the train step: the state (params + AdamW's two moments + counts) and

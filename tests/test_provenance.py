@@ -5,7 +5,7 @@ import subprocess
 
 import pytest
 
-from benchmarks._machine import git_commit, provenance
+from experiments.provenance import git_commit, provenance
 
 
 def _git(repo, *args):

@@ -1,6 +1,6 @@
 """Measured scans: every classic method reproduces the public reference algorithm, down to 0.5 % of the photons.
 
-The reference is ``benchmarks/numpy_twins.py``, a NumPy port of the public
+The reference is ``experiments/numpy_twins.py``, a NumPy port of the public
 code written from its formulas (MATLAB resampling matrix, one-voxel cone PSF
 on wall/N spacing, full complex FFTs), not from our operators. Both shipped
 scans (exit sign, S U) are compared at full counts and binomially thinned to
@@ -13,7 +13,7 @@ import json
 import numpy as np
 import pytest
 
-from benchmarks import numpy_twins as twins
+from experiments import numpy_twins as twins
 from nlosjax import physics
 from nlosjax.data import io
 
@@ -134,6 +134,7 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
   """``real_undersampling.binned_classic``: at the capture's own bins it repeats the protocol's
   score; at a network trained on 2 x 16 ps it scores phasor on the scan summed in pairs by hand."""
   import dataclasses
+
   from experiments import real_undersampling as R
   from nlosjax import metrics
   from nlosjax.models.network import ModelConfig

@@ -28,7 +28,8 @@ def still_scene(*objects):
   return Scene(objects=tuple(objects) + (dyn,), helix=helix, num_frames=1, frame_rate=1.0, seed=0)
 
 
-def obj(kind, anchor, shape, radius, rotation=np.eye(3), albedo=0.8):
+def obj(kind, anchor, shape, radius, rotation=None, albedo=0.8):
+  rotation = np.eye(3) if rotation is None else rotation
   return SceneObject(kind, np.asarray(anchor, float), rotation, 2 * radius, radius, shape,
                      {"name": "uniform", "albedo": albedo})
 

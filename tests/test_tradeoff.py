@@ -167,6 +167,7 @@ def test_depth_ranges_halve():
 
 def test_lct_stages_compose_to_lct():
   import jax
+
   from nlosjax import physics
   setup = Setup(wall_size=1.0, grid=(8, 8), bin_width=64e-12, num_bins=48).with_depth_range(0.3, 0.7)
   albedo = np.zeros((48, 8, 8), np.float32)

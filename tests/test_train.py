@@ -13,6 +13,7 @@ from nlosjax import train as T
 from tests.nested import assert_nested_close
 from tests.tiny_run import make_tiny_dataset, tiny_config
 
+
 @pytest.fixture(scope="module")
 def data_path(tmp_path_factory):
   return make_tiny_dataset(tmp_path_factory)
@@ -131,9 +132,9 @@ def test_upsample_scan_interpolates_linearly_between_samples():
 
 
 def test_train_cli_seeds_flag_sets_the_config(monkeypatch):
+  from experiments import independent_set
   from experiments import train as cli
   from nlosjax import main_job
-  from experiments import independent_set
   seen = {}
   monkeypatch.setattr(main_job, "train_and_evaluate",
                       lambda config, workdir, **kw: seen.update(config=config, workdir=workdir, **kw))

@@ -17,8 +17,16 @@ import pytest
 
 from nlosjax import losses, physics, train
 from nlosjax.models import blocks, count_params, model_summary
-from nlosjax.models.usm import (PUBLISHED_LOSS, PUBLISHED_OPTIM, Extraction, USMConfig, USMNet,
-                                half_setup, scan_mask, zero_fill)
+from nlosjax.models.usm import (
+  PUBLISHED_LOSS,
+  PUBLISHED_OPTIM,
+  Extraction,
+  USMConfig,
+  USMNet,
+  half_setup,
+  scan_mask,
+  zero_fill,
+)
 from nlosjax.physics import Setup
 from tests.xla_options import xla_optimizations
 

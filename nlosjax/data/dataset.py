@@ -589,7 +589,8 @@ def _open_partial(tmp: pathlib.Path, spec: DatasetSpec, overwrite: bool) -> h5py
     except OSError as e:
       if "lock" in str(e).lower():
         raise ValueError(f"{tmp}: is locked; another process is writing this dataset") from e
-      warnings.warn(f"{tmp}: unreadable leftover of an interrupted run ({e}); starting over")
+      warnings.warn(f"{tmp}: unreadable leftover of an interrupted run ({e}); starting over",
+                    stacklevel=2)
       tmp.unlink()
     else:
       same = (f.attrs.get("format") == FORMAT_NAME

@@ -21,7 +21,6 @@ import json
 import pathlib
 from typing import Callable
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 

@@ -140,7 +140,7 @@ def format_choices(validation: dict) -> str:
   if checkpoints:
     lines += ["", "| model | seed | checkpoint step | val. intensity PSNR (dB) at each kept step |",
               "|---|---|---|---|"]
-    for name, c in checkpoints.items():
+    for c in checkpoints.values():
       steps = ", ".join(f"{s}: {v:.2f}" for s, v in c["val_psnr"].items())
       lines.append(f"| {label(c['variant'])} | {c['seed']} | {c['step']} | {steps} |")
   return "\n".join(lines) + "\n"

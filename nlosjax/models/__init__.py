@@ -13,13 +13,27 @@ Public API::
     ResBlock3D, InterlacedResBlock, soft_projection     the other blocks
 """
 
-from nlosjax.models.blocks import (FeatureTransform, InterlacedResBlock, InterleavedExtraction,
-                                   ResBlock3D, TransientSpreading, VolumeReconstruction,
-                                   coarsen_setup, physics_window, soft_projection)
-from nlosjax.models.network import (ModelConfig, STMambaNet, count_params, format_summary,
-                                    input_scale, model_summary, underscan)
-from nlosjax.models.stmamba import (VARIANTS, CrossSTMambaBlock, SelectiveSSM, STMambaBlock,
-                                    mirror_spatial_params)
+from nlosjax.models.blocks import (
+                                   FeatureTransform,
+                                   InterlacedResBlock,
+                                   InterleavedExtraction,
+                                   ResBlock3D,
+                                   TransientSpreading,
+                                   VolumeReconstruction,
+                                   coarsen_setup,
+                                   physics_window,
+                                   soft_projection,
+)
+from nlosjax.models.network import (
+                                   ModelConfig,
+                                   STMambaNet,
+                                   count_params,
+                                   format_summary,
+                                   input_scale,
+                                   model_summary,
+                                   underscan,
+)
+from nlosjax.models.stmamba import VARIANTS, CrossSTMambaBlock, SelectiveSSM, STMambaBlock, mirror_spatial_params
 
 __all__ = [
     "ModelConfig", "STMambaNet", "model_summary", "format_summary", "count_params", "underscan",

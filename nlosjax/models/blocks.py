@@ -48,8 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nlosjax.physics.operators import (check_falloff, lct_apply, lct_filter, lct_operators,
-                                       to_depth)
+from nlosjax.physics.operators import check_falloff, lct_apply, lct_filter, lct_operators, to_depth
 from nlosjax.physics.setup import Setup
 from nlosjax.physics.wavelet import convolve_time, illumination_wavelet
 

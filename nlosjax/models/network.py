@@ -253,7 +253,7 @@ class ModelConfig(ScanInputConfig):
     # Builds the coarse Setup and the wavelet: a depth range too narrow for the
     # coarse bins, or a wavelet the bins cannot resolve, fails here.
     try:
-      self.time_window
+      _ = self.time_window
     except ValueError as e:
       raise ValueError(f"ModelConfig: the physics layer cannot be built for this Setup: {e}") from None
 

@@ -24,8 +24,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from nlosjax.physics import _validate
-from nlosjax.physics.operators import (LCTDomain, check_falloff, cone_psf, lct_domain,
-                                       linear_axis_matrix, squared_axis_matrix)
+from nlosjax.physics.operators import (
+  LCTDomain,
+  check_falloff,
+  cone_psf,
+  lct_domain,
+  linear_axis_matrix,
+  squared_axis_matrix,
+)
 from nlosjax.physics.setup import Setup
 
 

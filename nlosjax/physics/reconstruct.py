@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -58,8 +57,15 @@ import numpy as np
 import scipy.fft
 
 from nlosjax.physics import _validate
-from nlosjax.physics.operators import (check_falloff, check_variant, lct_apply, lct_filter,
-                                       lct_operators, public_lct_operators, to_depth)
+from nlosjax.physics.operators import (
+  check_falloff,
+  check_variant,
+  lct_apply,
+  lct_filter,
+  lct_operators,
+  public_lct_operators,
+  to_depth,
+)
 from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
 from nlosjax.physics.wavelet import Wavelet, illumination_wavelet, public_wavelet
 

@@ -1,7 +1,9 @@
-"""What the benchmark reports say about the machine: CPU model, cores, memory, load.
+"""Provenance of a results file: the command, date, machine (CPU model, cores, memory, load) and commit.
 
-One place for the ``/proc`` reading that every ``benchmarks/*.py`` report
-header needs; each report formats these its own way.
+One place for the ``/proc`` reading that every results file's header needs:
+the benchmarks (``benchmarks/*.py``) and the experiments that write results
+(``experiments.real_undersampling``) import it from here, so arrows run
+downward (``nlosjax`` <- ``experiments`` <- ``benchmarks``).
 """
 
 from __future__ import annotations
@@ -84,6 +86,7 @@ def git_commit(repo=None) -> str:
 def provenance(command: str) -> list[str]:
   """Markdown lines every results file starts with: command, date, machine, commit."""
   import datetime
+
   import jax
   return [f"Produced by `{command}`.", "",
           f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
