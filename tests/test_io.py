@@ -15,6 +15,7 @@ import scipy.io
 import nlosjax.data
 from nlosjax.data import io as dio
 from nlosjax.data import load_measurement, shipped_scan_path
+from nlosjax.data.formats import registry
 from nlosjax.physics.setup import Setup
 
 REPO = Path(__file__).resolve().parents[1]
@@ -176,7 +177,8 @@ def test_matlab_v73_layout_detected_as_hdf5(tmp_path):
 
 
 def test_registry_plugs_in_a_new_format(tmp_path, monkeypatch):
-  monkeypatch.setattr(dio, "FORMATS", dict(dio.FORMATS))
+  # The registry lives in nlosjax.data.formats.registry (nlosjax.data.io re-exports it).
+  monkeypatch.setattr(registry, "FORMATS", dict(registry.FORMATS))
   path = tmp_path / "ours.h5"
   data = poisson_counts((8, 6, 6), seed=6).astype(np.float64)
   with h5py.File(path, "w") as f:

@@ -1,0 +1,56 @@
+"""Training of ST-Mamba (and USM): optimiser, state, one pure train step, sharding, checkpoints, the loop.
+
+One concern per module, each usable alone; everything is importable from
+``nlosjax.train`` as before:
+
+* :mod:`~nlosjax.train.optimizer` -- :class:`OptimConfig`, :func:`make_optimizer`:
+  optax AdamW with optional warm-up + cosine and clipping.
+* :mod:`~nlosjax.train.state` -- :func:`create_train_state`: parameters from
+  ``jax.eval_shape`` first (count, shape errors before any allocation), then
+  ``init`` jitted with replicated output sharding; :func:`network`.
+* :mod:`~nlosjax.train.step` -- :func:`train_step` ``(state, batch, key) ->
+  (state, metrics)``, pure; jitted by :func:`make_train_step` with the state
+  donated and the batch sharded over a ``Mesh``.
+* :mod:`~nlosjax.train.sharding` -- :func:`make_mesh`, :func:`mesh_for`,
+  :func:`shard_batch`, :func:`to_host`, :func:`initialize_distributed`: data
+  parallel on 1 CPU, several GPUs, or several processes and hosts.
+* :mod:`~nlosjax.train.checkpoint` -- :class:`Checkpointer` (orbax: params,
+  optimizer state, step and data position; refuses another run's checkpoint),
+  :func:`run_signature`.
+* :mod:`~nlosjax.train.loop` -- :func:`train_model`: one variant, one seed,
+  resumable; the config pieces it reads (:data:`TRAIN_DEFAULTS`,
+  :func:`model_config_for`, :func:`make_loader`, :func:`ensure_dataset`, ...).
+
+Evaluation (classic baselines, scores, tables, figures) is
+:mod:`nlosjax.evaluation`; the main job behind ``python -m experiments.train``
+is :func:`nlosjax.main_job.train_and_evaluate`; the dry run is :mod:`nlosjax.plan`.
+"""
+
+from nlosjax.train.checkpoint import Checkpointer, param_fingerprint, run_signature
+from nlosjax.train.loop import (
+    TRAIN_DEFAULTS,
+    USM_RECIPES,
+    VARIANT_FRAMES,
+    ensure_dataset,
+    make_loader,
+    model_config_for,
+    read_metrics,
+    read_selection,
+    select_frames,
+    train_model,
+    training_recipe,
+    with_defaults,
+)
+from nlosjax.train.optimizer import OptimConfig, make_optimizer
+from nlosjax.train.sharding import initialize_distributed, make_mesh, mesh_for, shard_batch, to_host
+from nlosjax.train.state import TrainState, create_train_state, network
+from nlosjax.train.step import BATCH_KEYS, make_targets, make_train_step, train_step
+
+__all__ = [
+    "BATCH_KEYS", "Checkpointer", "OptimConfig", "TRAIN_DEFAULTS", "TrainState", "USM_RECIPES",
+    "VARIANT_FRAMES", "create_train_state", "ensure_dataset", "initialize_distributed",
+    "make_loader", "make_mesh", "make_optimizer", "make_targets", "make_train_step", "mesh_for",
+    "model_config_for", "network", "param_fingerprint", "read_metrics", "read_selection",
+    "run_signature", "select_frames", "shard_batch", "to_host", "train_model", "train_step",
+    "training_recipe", "with_defaults",
+]

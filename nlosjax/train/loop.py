@@ -1,0 +1,271 @@
+"""The training loop of one variant and one seed (:func:`train_model`), and the config pieces it reads.
+
+Resumable (the latest checkpoint and the data position), data-parallel over
+the run's mesh, and multi-process: each process reads only its rows of every
+global batch; process 0 writes the log and the selection.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pathlib
+import time
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from nlosjax import losses
+from nlosjax.train.checkpoint import Checkpointer, run_signature
+from nlosjax.train.optimizer import OptimConfig, make_optimizer
+from nlosjax.train.sharding import mesh_for, shard_batch, to_host
+from nlosjax.train.state import TrainState, create_train_state, network
+from nlosjax.train.step import BATCH_KEYS, make_train_step
+
+VARIANT_FRAMES = {"ours": 3, "ours_s": 1, "usm": 1}
+#: USM's training recipes (``config["usm"]["recipe"]``): "ours" trains it with the config's
+#: ``train.optim`` and ``train.loss`` (Ours' recipe, the like-for-like default); "published"
+#: with USM's own (:data:`nlosjax.models.usm.PUBLISHED_OPTIM`, ``PUBLISHED_LOSS``).
+USM_RECIPES = ("ours", "published")
+
+#: Defaults of a config's ``train`` section (the presets override some).
+#: ``seeds``: training seeds per variant (``seed``, ``seed + 1``, ...; tables
+#: then cover seeds too); ``select_checkpoint``: ``"last"`` or ``"val"`` (the
+#: kept checkpoint with the best validation intensity PSNR); ``check_memory``: before
+#: any data or parameters exist, compile each variant's train step and refuse when XLA's
+#: planned peak exceeds the device's memory (:func:`nlosjax.plan.check_fits`);
+#: ``devices``: train data-parallel on the first ``devices`` devices (None: all of them).
+TRAIN_DEFAULTS = {
+    "steps": 300, "batch_size": 4, "seed": 0, "seeds": 1, "log_every": 10, "checkpoint_every": 50,
+    "keep_checkpoints": 2, "eval_batch_size": 8, "variants": ("ours_s", "ours"),
+    "data_workers": 1, "optim": {}, "loss": {}, "select_checkpoint": "last",
+    "check_memory": False, "devices": None,
+}
+
+
+def with_defaults(config: dict) -> dict:
+  """``config`` with :data:`TRAIN_DEFAULTS` filled into its ``train`` section (a new dict)."""
+  unknown = set(config.get("train", {})) - set(TRAIN_DEFAULTS)
+  if unknown:
+    raise ValueError(f"config train section: unknown key(s) {sorted(unknown)}; known: {sorted(TRAIN_DEFAULTS)}")
+  return {**config, "train": {**TRAIN_DEFAULTS, **config.get("train", {})}}
+
+
+def model_config_for(config: dict, setup, variant: str):
+  """The model config of ``variant`` for a dataset's Setup.
+
+  ``"ours"`` / ``"ours_s"``: a :class:`~nlosjax.models.network.ModelConfig` from
+  ``config["model"]``; ``"usm"``: a :class:`~nlosjax.models.usm.USMConfig`
+  from ``config["usm"]["model"]`` (USM's published widths where absent).
+  """
+  from nlosjax.models.network import ModelConfig
+  if variant not in VARIANT_FRAMES:
+    raise ValueError(f"variant must be one of {tuple(VARIANT_FRAMES)}, got {variant!r}")
+  if variant == "usm":
+    from nlosjax.models.usm import USMConfig
+    usm = config.get("usm", {})
+    return USMConfig(setup=setup, stride=int(config["data"]["input_stride"]),
+                     **dict(usm.get("model", {})))
+  overrides = dict(config.get("model", {}))
+  overrides["frames"] = VARIANT_FRAMES[variant]
+  return ModelConfig(setup=setup, stride=int(config["data"]["input_stride"]), **overrides)
+
+
+def select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
+  """``[B, 3, T, h, w] -> [B, frames, T, h, w]`` centred on the middle frame."""
+  mid = measurement.shape[1] // 2
+  return measurement[:, mid - frames // 2:mid + frames // 2 + 1]
+
+
+def make_loader(config: dict, path, split: str, *, batch_size: int, shuffle: bool, seed: int,
+                shard: tuple[int, int] = (0, 1)):
+  """The config's :class:`~nlosjax.data.dataset.TripletLoader` of ``split`` (the model's under-scan offset checked).
+
+  ``shard = (index, count)``: this process's rows of every global batch.
+  """
+  from nlosjax.data.dataset import TripletLoader
+  data = config["data"]
+  opts = data.get("loader", {})
+  stride = int(data["input_stride"])
+  offset = int(data.get("input_offset", stride // 2))
+  if offset != stride // 2:
+    raise ValueError(f"config data.input_offset = {offset}, but the model reads scan points "
+                     f"stride // 2 + stride * i (offset {stride // 2} for stride {stride})")
+  return TripletLoader(path, split=split, batch_size=batch_size, stride=stride, offset=offset,
+                       seed=seed, shuffle=shuffle, drop_remainder=shuffle,
+                       ends=opts.get("ends", "valid"), target=opts.get("target", "clean"),
+                       in_memory=opts.get("in_memory", True), shard=shard)
+
+
+def ensure_dataset(config: dict, path: pathlib.Path, log: Callable[[str], None] = print) -> None:
+  """Generate the config's dataset at ``path``, or add the sequences an existing file lacks.
+
+  An existing file made with the same data configuration but fewer sequences
+  (e.g. before the validation split existed) is extended in place, keeping
+  every stored sequence (:func:`~nlosjax.data.dataset.extend_dataset`); a file
+  made with another configuration is used as it is.
+  """
+  from nlosjax.data.dataset import DatasetSpec, extend_dataset, write_dataset
+  path = pathlib.Path(path)
+  spec = DatasetSpec.from_config(config["data"])
+  workers = int(config["train"].get("data_workers", 1))
+  if path.exists():
+    try:
+      result = extend_dataset(path, spec, workers=workers)
+    except ValueError as e:
+      log(f"dataset: using {path} as it is ({e})")
+      return
+    log(f"dataset: using {path}" + (f" (added {result.generated} sequences the config asks for)"
+                                    if result.generated else ""))
+    return
+  log(f"dataset: generating {path} ...")
+  t0 = time.perf_counter()
+  write_dataset(path, spec, workers=workers)
+  log(f"dataset: done in {time.perf_counter() - t0:.0f} s")
+
+
+def read_metrics(path) -> list[dict]:
+  """Rows of a ``metrics.jsonl`` training log (``[]`` if absent; stops at a line cut by a kill)."""
+  path = pathlib.Path(path)
+  if not path.exists():
+    return []
+  rows = []
+  for line in path.read_text().splitlines():
+    try:
+      rows.append(json.loads(line))
+    except json.JSONDecodeError:       # a line cut by a kill
+      break
+  return rows
+
+
+def train_model(config: dict, data_path, workdir, variant: str, *, folder: str | None = None,
+                validate: Callable[[Any, Any], float] | None = None,
+                log: Callable[[str], None] = print) -> tuple[Any, TrainState]:
+  """Train one variant (``"ours"``, ``"ours_s"`` or ``"usm"``), resuming from ``workdir/<folder>``.
+
+  Args:
+    config: the run config (:func:`with_defaults`); the seed is ``config["train"]["seed"]``.
+    data_path: the dataset file.
+    workdir: the run folder.
+    variant: ``"ours"``, ``"ours_s"`` or ``"usm"`` (:data:`VARIANT_FRAMES`).
+    folder: sub-folder of this model (default ``variant``).
+    validate: ``(model_config, params) -> score`` on the validation split
+      (higher is better). With ``config["train"]["select_checkpoint"] ==
+      "val"`` every kept checkpoint is scored after training and the best is
+      returned; the scores and the choice go to ``<folder>/selection.json``
+      (:func:`read_selection`).
+  Returns:
+    ``(model_config, state)``: after ``config["train"]["steps"]`` steps, or at
+    the checkpoint chosen on validation.
+  """
+  from tqdm import tqdm
+
+  from nlosjax.models.network import format_summary, model_summary
+  tr = config["train"]
+  steps, batch_size, seed = int(tr["steps"]), int(tr["batch_size"]), int(tr.get("seed", 0))
+  vdir = pathlib.Path(workdir) / (folder or variant)
+  vdir.mkdir(parents=True, exist_ok=True)
+  primary = jax.process_index() == 0
+  if not primary:
+    log = lambda s: None                                 # noqa: E731 -- one process reports
+  loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed,
+                       shard=(jax.process_index(), jax.process_count()))
+  mcfg = model_config_for(config, loader.setup, variant)
+  log(f"[{variant}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{variant}] "))
+  model = network(mcfg)
+  optim, weights = training_recipe(config, variant)
+  mesh = mesh_for(config)
+  key = jax.random.key(seed)
+  init_key, loop_key = jax.random.split(key)
+  del key
+  shape = (batch_size, mcfg.frames, loader.setup.num_bins) + tuple(loader.input_shape[-2:])
+  state = create_train_state(model, shape, make_optimizer(optim, steps), init_key, mesh)
+  signature = run_signature(mcfg, state.params, optim, weights, batch_size, seed)
+  ckpt = Checkpointer(vdir / "checkpoints", signature, every=int(tr.get("checkpoint_every", 50)),
+                      keep=int(tr.get("keep_checkpoints", 2)))
+  start = 0
+  restored = ckpt.restore_latest(state)
+  if restored is not None:
+    state, start = restored
+    log(f"[{variant}] resumed from step {start} ({ckpt.directory})")
+  # One process writes the log (several processes share the workdir); the others write
+  # theirs to /dev/null.
+  log_path = vdir / "metrics.jsonl" if primary else pathlib.Path(os.devnull)
+  if primary:
+    kept = [r for r in read_metrics(log_path) if r["step"] <= start]
+    log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
+  step_fn = make_train_step(mcfg, weights, mesh)
+  log_every = int(tr.get("log_every", 10))
+  t_start = time.perf_counter()
+  with open(log_path, "a") as f, tqdm(total=steps, initial=start, desc=f"train {variant}",
+                                      unit="step", dynamic_ncols=True, mininterval=2.0,
+                                      disable=not primary) as bar:
+    for step in range(start, steps):
+      host = loader.batch(step)
+      batch = {k: host[k] for k in BATCH_KEYS}
+      batch["measurement"] = select_frames(batch["measurement"], mcfg.frames)
+      state, metrics = step_fn(state, shard_batch(batch, mesh), jax.random.fold_in(loop_key, step))
+      done = step + 1
+      if done % log_every == 0 or done == steps:
+        m = {k: float(v) for k, v in to_host(metrics).items()}
+        if not all(math.isfinite(v) for v in m.values()):
+          raise FloatingPointError(f"[{variant}] non-finite metrics at step {done}: {m}")
+        row = {"step": done, "time_s": round(time.perf_counter() - t_start, 3), **m}
+        f.write(json.dumps(row) + "\n")
+        f.flush()
+        bar.set_postfix(loss=f"{m['loss']:.4f}")
+      ckpt.save(state, done, force=(done == steps))
+      bar.update(1)
+  loader.close()
+  selection = {"select": str(tr.get("select_checkpoint", "last")), "step": int(state.step),
+               "val_psnr": {}}
+  if selection["select"] not in ("last", "val"):
+    raise ValueError(f'train.select_checkpoint must be "last" or "val", got {selection["select"]!r}')
+  if selection["select"] == "val" and validate is not None:
+    candidates = {}
+    for step in ckpt.all_steps():
+      candidate, _ = ckpt.restore(state, step)
+      selection["val_psnr"][step] = float(validate(mcfg, to_host(candidate.params)))
+      candidates[step] = candidate
+    best = max(selection["val_psnr"], key=lambda k: (selection["val_psnr"][k], k))
+    state = candidates[best]
+    selection["step"] = int(best)
+    log(f"[{variant}] checkpoint chosen on validation: step {best} "
+        f"({', '.join(f'{k}: {v:.2f} dB' for k, v in selection['val_psnr'].items())})")
+  ckpt.close()
+  if primary:
+    (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
+  return mcfg, state
+
+
+def training_recipe(config: dict, variant: str) -> tuple[OptimConfig, losses.LossWeights]:
+  """``(optimiser, loss weights)`` a variant trains with.
+
+  The config's ``train.optim`` and ``train.loss``, except for ``"usm"`` with
+  ``config["usm"]["recipe"] == "published"`` (:data:`USM_RECIPES`): USM's
+  published AdamW (lr 1e-4, weight decay 1e-4, no schedule, no clipping) and loss.
+  """
+  tr = config["train"]
+  if variant == "usm":
+    recipe = config.get("usm", {}).get("recipe", "ours")
+    if recipe not in USM_RECIPES:
+      raise ValueError(f'config usm.recipe must be one of {USM_RECIPES}, got {recipe!r}')
+    if recipe == "published":
+      from nlosjax.models.usm import PUBLISHED_LOSS, PUBLISHED_OPTIM
+      return OptimConfig(**PUBLISHED_OPTIM), losses.LossWeights(**PUBLISHED_LOSS)
+  return OptimConfig(**tr.get("optim", {})), losses.LossWeights(**tr.get("loss", {}))
+
+
+def read_selection(folder) -> dict | None:
+  """A model folder's ``selection.json`` (written by :func:`train_model`), or None.
+
+  ``{"select": "last" | "val", "step": chosen step, "val_psnr": {step: dB}}``.
+  """
+  path = pathlib.Path(folder) / "selection.json"
+  if not path.exists():
+    return None
+  d = json.loads(path.read_text())
+  d["val_psnr"] = {int(k): v for k, v in d.get("val_psnr", {}).items()}
+  return d
