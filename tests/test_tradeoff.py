@@ -1,4 +1,4 @@
-"""Tests of the speed-accuracy benchmark's own logic (``benchmarks/tradeoff.py``).
+"""Tests of the speed-accuracy benchmark's own logic (``benchmarks/tradeoff/``).
 
 The Pareto front against a brute-force O(n^2) dominance check, the
 recommendations, the frame windows, the re-noising at another exposure

@@ -1,0 +1,125 @@
+"""Speed-accuracy trade-offs of every reconstruction knob, on the test split of the CPU-preset data.
+
+    python -m benchmarks.tradeoff [--quick] [--steps N] [--repeats N] [--batch 8] [--knobs ...]
+                                  [--workdir runs/tradeoff] [--out-dir benchmarks/results]
+
+For each configuration, on the test split of the CPU preset's dataset
+(``runs/data/cpu.h5``, made if absent; 8 sequences x 6 middle frames = 48
+frames, 32 x 32 x 128 bins of 132 ps, 2 m wall):
+
+* time per reconstructed frame: the pipeline ``input -> (intensity, depth)``
+  under one ``jax.jit``; compile time is ``.lower(x).compile()`` (tracing,
+  operator construction -- cached per Setup across configurations -- and XLA
+  compilation); the warm time of one batch of ``--batch`` frames, divided by
+  the batch, is the median over ``--repeats`` rounds in which *every*
+  executable of the run is called once in turn (each call ended by
+  ``block_until_ready``, after a warm-up round), so that the load of a shared
+  machine weighs on all configurations alike;
+* memory: XLA's planned buffers of the compiled pipeline,
+  ``memory_analysis()`` temp + argument + output bytes (constants such as the
+  physics operators not counted; not the process RSS);
+* accuracy against the ground truth of all 48 frames: intensity PSNR and SSIM
+  (data range 1), depth RMSE and MAD (metres; background 0 m), as in Table 1.
+
+Knobs, each varied with the others at the default (8 x 8 input = every 4th
+scan point, the stored exposure, 3 frames, the CPU preset's model, the
+``auto`` scan kernel, float32, no depth range):
+
+* method: FBP, LCT, f-k, phasor, RSD (input interpolated bilinearly to the
+  full grid, the paper's protocol), USM (the learned baseline, the preset's
+  ``usm`` section and recipe), Ours-S, Ours;
+* scan density: every 8th / 4th / 2nd / every scan point (4 x 4 ... 32 x 32)
+  of the same scenes, classic methods (the networks are trained for 8 x 8);
+* exposure: the stored noise-free transients re-noised with
+  ``nlosjax.physics.add_spad_noise`` at 0.1, 0.3, 1 and 3 times the stored
+  exposure (signal, ambient and dark counts scale together; each sequence
+  keeps its efficiency);
+* frames: 1 (Ours-S), 3 (Ours), 5 (windows of 5, clipped at sequence ends);
+* model: width ``C``, ST-Mamba depth and SSM state size ``N``;
+* scan kernel (associative, sequential, chunked) and bfloat16 activations on
+  the default model's weights (same parameter tree);
+* time gating: a Setup depth range (none, the first half of the full range,
+  the scenes' 0.5-1.5 m, its middle half and quarter) for the classic
+  methods and Ours (Ours-S at 0.5-1.5 m only), with the depth accuracy
+  inside each range and a per-stage profile of LCT and the network.
+
+``--knobs`` runs a subset (``method`` always runs). The quick mode (about 7
+minutes on 2 shared cores once the checkpoints exist) is what
+``benchmarks/results/tradeoff.md`` was produced with.
+
+Every learned configuration is trained by this benchmark with one shared
+budget (``--steps``; 150 with ``--quick``) and the CPU preset's optimiser
+and seed, into ``WORKDIR/s<steps>/<name>``; a rerun restores the
+checkpoints (an interrupted training resumes). Writes ``OUT/tradeoff.md``,
+``OUT/tradeoff.json`` and ``OUT/tradeoff.png`` (time per frame against
+intensity PSNR, every configuration a point, the Pareto front of the
+configurations that read the default capture drawn).
+
+The code, one concern per module; every name is importable from
+``benchmarks.tradeoff`` as before the split:
+
+* :mod:`~benchmarks.tradeoff.configs` -- the configurations: knobs and their
+  settings, the learned configurations (:data:`LEARNED`), the gating depth
+  ranges, budgets and default paths.
+* :mod:`~benchmarks.tradeoff.data` -- :class:`TestSplit`, the test split in memory.
+* :mod:`~benchmarks.tradeoff.pipelines` -- the jitted ``input -> (intensity,
+  depth)`` pipelines of a classic method and of a network.
+* :mod:`~benchmarks.tradeoff.training` -- :func:`train_learned`: every learned
+  configuration trained (or restored) with one budget.
+* :mod:`~benchmarks.tradeoff.runners` -- :func:`evaluate` (compile time, XLA
+  memory, outputs) and :func:`interleaved_times` (warm time, round-robin).
+* :mod:`~benchmarks.tradeoff.accuracy` -- :func:`scores` and
+  :func:`in_range_accuracy`.
+* :mod:`~benchmarks.tradeoff.stages` -- the LCT stage split and the network's
+  volume stage, for the time-gating profile.
+* :mod:`~benchmarks.tradeoff.machine` -- the machine line and load average.
+* :mod:`~benchmarks.tradeoff.study` -- :func:`run`: every measurement in one run.
+* :mod:`~benchmarks.tradeoff.pareto` -- the Pareto front, the recommended
+  settings, learned points that beat the classic ones.
+* :mod:`~benchmarks.tradeoff.report` -- :func:`to_markdown`, the report ``tradeoff.md``.
+* :mod:`~benchmarks.tradeoff.figure` -- :func:`plot`, the figure ``tradeoff.png``.
+* :mod:`~benchmarks.tradeoff.__main__` -- ``main``, the command line.
+"""
+
+from benchmarks.tradeoff.accuracy import in_range_accuracy, scores
+from benchmarks.tradeoff.configs import (
+  APERTURE,
+  CLASSIC,
+  DEFAULT_OUT_DIR,
+  DEFAULT_WORKDIR,
+  DENSITY_STRIDES,
+  EXPOSURES,
+  FULL_REPEATS,
+  FULL_STEPS,
+  GOAL_HALVING,
+  KNOBS,
+  LABELS,
+  LEARNED,
+  QUICK_REPEATS,
+  QUICK_STEPS,
+  Learned,
+  depth_ranges,
+  gated_setup,
+  learned_config,
+)
+from benchmarks.tradeoff.data import TestSplit
+from benchmarks.tradeoff.figure import plot
+from benchmarks.tradeoff.machine import load_average, machine_line
+from benchmarks.tradeoff.pareto import learned_beats_classic, pareto_front, pareto_points, recommend
+from benchmarks.tradeoff.pipelines import classic_pipeline, learned_pipeline
+from benchmarks.tradeoff.report import gating_markdown, knob_table, to_markdown
+from benchmarks.tradeoff.runners import MIB, evaluate, interleaved_times
+from benchmarks.tradeoff.stages import lct_stage_executables, lct_stages, network_volume_executable
+from benchmarks.tradeoff.study import run
+from benchmarks.tradeoff.training import train_learned, window_frames, window_loader
+
+__all__ = [
+    "APERTURE", "CLASSIC", "DEFAULT_OUT_DIR", "DEFAULT_WORKDIR", "DENSITY_STRIDES", "EXPOSURES",
+    "FULL_REPEATS", "FULL_STEPS", "GOAL_HALVING", "KNOBS", "LABELS", "LEARNED", "Learned", "MIB",
+    "QUICK_REPEATS", "QUICK_STEPS", "TestSplit", "classic_pipeline", "depth_ranges", "evaluate",
+    "gated_setup", "gating_markdown", "in_range_accuracy", "interleaved_times", "knob_table",
+    "lct_stage_executables", "lct_stages", "learned_beats_classic", "learned_config",
+    "learned_pipeline", "load_average", "machine_line", "network_volume_executable",
+    "pareto_front", "pareto_points", "plot", "recommend", "run", "scores", "to_markdown",
+    "train_learned", "window_frames", "window_loader",
+]

@@ -1,0 +1,89 @@
+"""The study's configurations: what is varied, the learned configurations, the depth ranges.
+
+The knobs (:data:`KNOBS`) and their settings (classic methods, scan-density strides,
+exposures), the networks the study trains (:class:`Learned`, :data:`LEARNED`,
+:func:`learned_config`), the depth ranges of the time-gating rows (:func:`depth_ranges`,
+:func:`gated_setup`), the budgets of ``--quick`` and the full run, and the default paths.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+DEFAULT_OUT_DIR = pathlib.Path(__file__).resolve().parent.parent / "results"
+DEFAULT_WORKDIR = pathlib.Path("runs/tradeoff")
+QUICK_STEPS, FULL_STEPS = 150, 300
+QUICK_REPEATS, FULL_REPEATS = 9, 15
+
+CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
+LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "RSD"}
+DENSITY_STRIDES = (8, 4, 2, 1)
+EXPOSURES = (0.1, 0.3, 1.0, 3.0)
+KNOBS = ("method", "density", "exposure", "frames", "model", "kernel", "gating")
+GOAL_HALVING = 1.6     # the issue's goal: halving the depth range cuts the time by this much
+APERTURE = 0.7         # m: lateral reach of the aperture gating rows (35 degrees off axis at 1 m)
+
+
+@dataclasses.dataclass(frozen=True)
+class Learned:
+  """A network configuration trained by this benchmark.
+
+  Attributes:
+    name: folder name under ``WORKDIR/s<steps>``.
+    label: table label.
+    frames: input frames (odd).
+    model: ``ModelConfig`` overrides on top of the preset's ``model`` section.
+    variant: the main job's variant it is built as (``"usm"``: the preset's
+      ``usm`` section and recipe, :func:`nlosjax.train.model_config_for`).
+  """
+
+  name: str
+  label: str
+  frames: int
+  model: tuple = ()
+  variant: str = "ours"
+
+
+LEARNED = (
+    Learned("usm", "USM", 1, variant="usm"),
+    Learned("ours_s", "Ours-S", 1),
+    Learned("ours", "Ours", 3),
+    Learned("ours_f5", "Ours, 5 frames", 5),
+    Learned("ours_w4", "Ours, width 4", 3, (("width", 4),)),
+    Learned("ours_w16", "Ours, width 16", 3, (("width", 16),)),
+    Learned("ours_d2", "Ours, 2 ST-Mamba blocks", 3, (("st_depth", 2),)),
+    Learned("ours_n1", "Ours, N = 1", 3, (("d_state", 1),)),
+    Learned("ours_n16", "Ours, N = 16", 3, (("d_state", 16),)),
+)
+
+
+def learned_config(config: dict, setup, spec: Learned):
+  """The model config of ``spec`` on ``setup`` (the preset's model section + overrides; USM's own)."""
+  from nlosjax.models.network import ModelConfig
+  if spec.variant == "usm":
+    from nlosjax.train import model_config_for
+    return model_config_for(config, setup, "usm")
+  kw = {**config.get("model", {}), **dict(spec.model), "frames": spec.frames}
+  return ModelConfig(setup=setup, stride=int(config["data"]["input_stride"]), **kw)
+
+
+def depth_ranges(scene_range: tuple[float, float], max_depth: float,
+                 aperture: float | None = None) -> list[tuple[str, tuple | None, float | None]]:
+  """``[(label, range, aperture)]``: no range (``full``), its first half (``full/2``), the
+  scenes' range ``R``, and the middle half and quarter of ``R``; with ``aperture``, also
+  ``R|a`` and ``R/2|a`` (the same ranges with ``Setup.aperture``)."""
+  z0, z1 = scene_range
+  mid, half = 0.5 * (z0 + z1), 0.5 * (z1 - z0)
+  out = [("full", None, None), ("full/2", (0.0, 0.5 * max_depth), None), ("R", (z0, z1), None),
+         ("R/2", (mid - half / 2, mid + half / 2), None),
+         ("R/4", (mid - half / 4, mid + half / 4), None)]
+  if aperture is not None:
+    out += [("R|a", (z0, z1), aperture), ("R/2|a", (mid - half / 2, mid + half / 2), aperture)]
+  return out
+
+
+def gated_setup(setup, rng, aperture=None):
+  """``setup`` with a depth range (``None``: ungated) and an aperture."""
+  su = setup if rng is None else setup.with_depth_range(*rng)
+  return su if aperture is None else su.with_aperture(aperture)
