@@ -541,3 +541,19 @@ def test_phasor_wavelet_matrix_is_matlabs_same_convolution(public):
   ref = np.convolve(part, wl.samples)[wl.num_samples // 2:][20:60]
   np.testing.assert_allclose(RECON.wavelet_matrix(wl, (20, 60), (10, 70)) @ x[10:70], ref,
                              rtol=1e-12, atol=1e-12)
+
+
+def test_sparse_resampling_equals_the_dense_product():
+  """The public ``mtx`` is applied as a gather + sorted segment sum: the same sums as NumPy's dense product."""
+  from nlosjax.physics.operators import apply_axis_matrix, public_resampling_matrix, sparse_rows
+  rng = np.random.default_rng(0)
+  for T in (64, 100, 256):
+    m = public_resampling_matrix(T).astype(np.float32)
+    assert np.count_nonzero(m) <= 2 * T                  # each x in 1..T^2 adds to one (row, col), both monotone
+    sparse = sparse_rows(m)
+    assert sparse is not None
+    x = rng.random((T, 5, 3)).astype(np.float32)
+    want = (m.astype(np.float64) @ x.reshape(T, -1)).reshape(T, 5, 3)
+    got = np.asarray(apply_axis_matrix(jnp.asarray(m), sparse, jnp.asarray(x)))
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+  assert sparse_rows(np.ones((8, 8))) is None              # dense stays dense

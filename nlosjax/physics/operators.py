@@ -266,7 +266,8 @@ def cone_psf(setup: Setup, domain: LCTDomain, *, lateral_samples: int = 4,
   return psf
 
 
-@functools.partial(jax.tree_util.register_dataclass, data_fields=["psf_fft", "to_v", "to_z"],
+@functools.partial(jax.tree_util.register_dataclass,
+                   data_fields=["psf_fft", "to_v", "to_z", "to_v_sparse", "to_z_sparse"],
                    meta_fields=["domain"])
 @dataclasses.dataclass(frozen=True)
 class LCTOperators:
@@ -277,12 +278,44 @@ class LCTOperators:
     psf_fft: ``[Lv, 2H, W + 1]`` complex, ``rfftn`` of :func:`cone_psf`.
     to_v: ``[Nv, Nt]`` time -> v resampling with the falloff power.
     to_z: ``[Z, Nu]`` u -> depth averaging.
+    to_v_sparse, to_z_sparse: ``(rows, cols, weights)`` of the same matrices
+      when they are mostly zeros (:func:`sparse_rows`), else None; the
+      resampling then gathers the few time bins each row reads instead of a
+      dense product. Set only by :func:`public_lct_operators` (the public
+      ``mtx`` has at most ``2T`` non-zeros in ``T^2``); replacing ``to_v`` or
+      ``to_z`` with :func:`dataclasses.replace` must reset them.
   """
 
   domain: LCTDomain
   psf_fft: jax.Array
   to_v: jax.Array
   to_z: jax.Array
+  to_v_sparse: tuple | None = None
+  to_z_sparse: tuple | None = None
+
+
+def sparse_rows(matrix: np.ndarray, max_density: float = 0.05) -> tuple | None:
+  """``(rows, cols, weights)`` int32/int32/float32 of a mostly-zero ``[R, C]`` matrix, row-major; None when denser.
+
+  Used when at most ``max_density`` of the entries are non-zero: then a
+  gather of the non-zero columns and a sorted segment sum
+  (:func:`apply_axis_matrix`) moves far fewer bytes than the dense product.
+  """
+  matrix = np.asarray(matrix)
+  rows, cols = np.nonzero(matrix)
+  if rows.size > max_density * matrix.size:
+    return None
+  return (jnp.asarray(rows, jnp.int32), jnp.asarray(cols, jnp.int32),
+          jnp.asarray(matrix[rows, cols], matrix.dtype))
+
+
+def apply_axis_matrix(dense: jax.Array, sparse: tuple | None, x: jax.Array) -> jax.Array:
+  """``[R, C] @ [C, H, W] -> [R, H, W]``: the dense product, or the same sums from ``sparse``."""
+  if sparse is None:
+    return jnp.einsum("rc,chw->rhw", dense, x, precision="highest")
+  rows, cols, weights = sparse
+  taken = weights.astype(x.dtype)[:, None, None] * x[cols]              # [nnz, H, W]
+  return jax.ops.segment_sum(taken, rows, num_segments=dense.shape[0], indices_are_sorted=True)
 
 
 @_validate.cached_operators(maxsize=16)
@@ -336,7 +369,7 @@ def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array | None) -> jax.Ar
   dom = ops.domain
   h, w = x.shape[-2:]
   lv, h2, w2 = dom.fft_shape
-  data_v = jnp.einsum("vt,thw->vhw", ops.to_v, x, precision="highest")
+  data_v = apply_axis_matrix(ops.to_v, ops.to_v_sparse, x)
   # rfftn / irfftn one axis at a time, skipping the zero padding going in and
   # the discarded rows going out: the same numbers as the full transforms
   # with about 20% fewer FLOPs (the data fills an eighth of the FFT box).
@@ -351,7 +384,7 @@ def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array | None) -> jax.Ar
 
 def to_depth(vol_u: jax.Array, ops: LCTOperators) -> jax.Array:
   """``[Nu, H, W]`` u-grid -> ``[Z, H, W]`` depth grid (bin averages)."""
-  return jnp.einsum("zu,uhw->zhw", ops.to_z, vol_u, precision="highest")
+  return apply_axis_matrix(ops.to_z, ops.to_z_sparse, vol_u)
 
 
 # ------------------------------------------------------- the public algorithm
@@ -448,6 +481,8 @@ def public_lct_operators(setup: Setup, time_power: int, *, z_margin: int = 0,
   t_n = np.linspace(0.0, 1.0, T)
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
   psf_fft = scipy.fft.rfftn(public_cone_psf(setup), workers=-1)
-  return LCTOperators(dom, jnp.asarray(psf_fft, cdtype),
-                      jnp.asarray(mtx * t_n[None, :] ** time_power, dtype),
-                      jnp.asarray(mtx.T[z[0]:z[1]], dtype))
+  real = np.float64 if jnp.dtype(dtype) == jnp.float64 else np.float32
+  to_v = (mtx * t_n[None, :] ** time_power).astype(real)
+  to_z = np.ascontiguousarray(mtx.T[z[0]:z[1]]).astype(real)
+  return LCTOperators(dom, jnp.asarray(psf_fft, cdtype), jnp.asarray(to_v), jnp.asarray(to_z),
+                      sparse_rows(to_v), sparse_rows(to_z))

@@ -354,7 +354,8 @@ def _phasor_problem(setup: Setup, wavelet: Wavelet, variant: str, oversample: in
   window = (max(0, t0 - half), min(setup.num_bins, t1 + half))
   fused = np.asarray(ops.to_v, np.float64) @ wavelet_matrix(wavelet, (t0, t1), window)
   dom = dataclasses.replace(ops.domain, t=window)
-  return tuple(dataclasses.replace(ops, domain=dom, to_v=jnp.asarray(part, dtype))
+  # The fused product is banded, not sparse: the dense form (to_v_sparse reset).
+  return tuple(dataclasses.replace(ops, domain=dom, to_v=jnp.asarray(part, dtype), to_v_sparse=None)
                for part in (fused.real, fused.imag))
 
 
