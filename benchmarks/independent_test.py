@@ -39,11 +39,11 @@ def main(argv=None):
                       help="score only each variant's own folder, not its -seed<k> folders")
   args = parser.parse_args(argv)
   from experiments.provenance import provenance
-  from nlosjax import checkpoints_io
+  from nlosjax import inference
   from nlosjax import train as T
   from nlosjax.evaluation import protocol, report
   t0 = time.perf_counter()
-  config, trained = checkpoints_io.load_run(args.checkpoint, seeds=not args.first_seed_only)
+  config, trained = inference.load_run(args.checkpoint, seeds=not args.first_seed_only)
   n_seeds = {v: (len(m) if isinstance(m, list) else 1) for v, m in trained.items()}
   config = T.with_defaults(config)
   from experiments.independent_set import ensure_independent_set

@@ -90,19 +90,19 @@ def main(argv=None):
   import jax.numpy as jnp
 
   from experiments.provenance import provenance
-  from nlosjax import checkpoints_io, metrics
+  from nlosjax import inference, metrics
   from nlosjax import train as T
   from nlosjax.models.network import STMambaNet
   run = pathlib.Path(args.checkpoint)
   config = T.with_defaults(json.loads((run / "config.json").read_text()))
-  mcfg, params, _ = checkpoints_io.load_trained(run / "ours", step=_chosen_step(run / "ours"))
+  mcfg, params, _ = inference.load_trained(run / "ours", step=_chosen_step(run / "ours"))
   if mcfg.frames != 3:
     raise SystemExit(f"{run / 'ours'} is a {mcfg.frames}-frame model; the probe needs 3 frames")
   apply, apply_zeroed = _intensity_fns(STMambaNet(mcfg))
   zeroed = {"Ours": []}
   single = None
   if (run / "ours_s").is_dir():
-    scfg, sparams, _ = checkpoints_io.load_trained(run / "ours_s", step=_chosen_step(run / "ours_s"))
+    scfg, sparams, _ = inference.load_trained(run / "ours_s", step=_chosen_step(run / "ours_s"))
     sapply, sapply_zeroed = _intensity_fns(STMambaNet(scfg))
     single = {v: [] for v in SINGLE_VARIANTS}
     zeroed["Ours-S"] = []

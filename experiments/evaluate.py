@@ -44,7 +44,7 @@ def main(argv=None) -> dict:
 
   import json
 
-  from nlosjax import checkpoints_io, train
+  from nlosjax import inference, train
   from nlosjax.data.dataset import open_dataset
   from nlosjax.evaluation import baselines, protocol
   t0 = time.perf_counter()
@@ -60,9 +60,9 @@ def main(argv=None) -> dict:
       setup = ds.setup
       if not ds.names(args.split):
         raise ValueError(f"{data}: no sequence in split {args.split!r}")
-    config, trained = checkpoints_io.load_run(args.checkpoint, setup=setup)
+    config, trained = inference.load_run(args.checkpoint, setup=setup)
     config = train.with_defaults(config)
-    workdir, _, _ = checkpoints_io.find_checkpoints(args.checkpoint)
+    workdir, _, _ = inference.find_checkpoints(args.checkpoint)
     chosen = workdir / "results" / "validation.json"
     settings, best, source = {}, None, "defaults (the run chose none)"
     thresholds = {}

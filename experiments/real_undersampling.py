@@ -27,7 +27,7 @@ Protocol (the paper's under-scanning experiment, on measured data):
   with 64 ps bins; see ``experiments/configs/real.py``) read the sparse scan
   with time summed to the trained bin width (4 x 16 ps), the physics layer
   rebuilt for the scan's wall and grid
-  (``nlosjax.checkpoints_io.adapt_to_capture``). At their trained stride they
+  (``nlosjax.inference.adapt_to_capture``). At their trained stride they
   output the 64 x 64 grid directly. At twice that stride (8) the network keeps
   its trained stride and outputs a 32 x 32 grid of every other scan point
   (full-grid points ``0, 2, ..., 62``, so its inputs ``2 + 4 i`` are the full
@@ -125,7 +125,7 @@ def model_intensity(trained, transient, setup, stride: int) -> np.ndarray:
   """Intensity ``[H, W]`` of a trained network on the scan under-scanned by ``stride``."""
   import dataclasses
 
-  from nlosjax import checkpoints_io as cio
+  from nlosjax import inference as cio
   from nlosjax.models.network import underscan
   mcfg, params = trained
   H, W = setup.grid
@@ -152,7 +152,7 @@ def run(files, strides, checkpoint, log=print) -> dict:
   from nlosjax.data import io
   trained = {}
   if checkpoint is not None:
-    from nlosjax import checkpoints_io as cio
+    from nlosjax import inference as cio
     for v in VARIANTS:
       try:
         mcfg, params, info = cio.load_trained(checkpoint, v)
@@ -213,7 +213,7 @@ def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
 
   Tells what the networks' coarser bins cost from what the networks do: the
   same sparse scans, interpolation and reference as :func:`run`, but time
-  summed over the bin factor :func:`nlosjax.checkpoints_io.adapt_to_capture`
+  summed over the bin factor :func:`nlosjax.inference.adapt_to_capture`
   uses, and phasor / RSD with the wavelength raised
   to 3 bins per period where their default is unresolved on those bins
   (``nlosjax.evaluation.baselines.default_options``).
@@ -225,9 +225,9 @@ def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
   trained = results.get("trained") or {}
   if not trained:
     return None
-  from nlosjax.checkpoints_io import adapt_to_capture
   from nlosjax.data import io
   from nlosjax.evaluation.baselines import default_options as classic_options
+  from nlosjax.inference import adapt_to_capture
   mcfg = next(iter(trained.values()))[0]
   rows, options = {}, {}
   for entry in results["scenes"].values():
@@ -524,7 +524,7 @@ def _network_text(results) -> str:
   trained = results.get("trained") or {}
   if not trained:
     return "no trained network."
-  from nlosjax.checkpoints_io import default_bin_factor
+  from nlosjax.inference import default_bin_factor
   mcfg = next(iter(trained.values()))[0]
   s = mcfg.setup
   factor = default_bin_factor(s.bin_width, CAPTURE_BIN_WIDTH)   # what adapt_to_capture sums

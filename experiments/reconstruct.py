@@ -270,7 +270,7 @@ def project(volume, setup, *, threshold: float = 0.1, background_depth: float = 
 
 def reconstruct_model(transient, setup, args, log):
   """``(volume, intensity, depth, model Setup, info)`` of the trained network on the capture."""
-  from nlosjax import checkpoints_io as cio
+  from nlosjax import inference as cio
   from nlosjax.models.network import underscan
   mcfg, params, info = cio.load_trained(args.checkpoint, args.variant)
   if args.scan_stride is not None and args.scan_stride != mcfg.stride:

@@ -80,7 +80,7 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
   """The ``real`` preset builds its model, and ``adapt_to_capture`` maps it onto the shipped scan
   with whole capture bins per network bin and the trained wavelength in bins (same depth range)."""
   from experiments.configs import get_config
-  from nlosjax import checkpoints_io as cio
+  from nlosjax import inference as cio
   from nlosjax import train as T
   from nlosjax.data.dataset import DatasetSpec
   from nlosjax.physics.wavelet import illumination_wavelet

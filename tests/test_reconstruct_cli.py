@@ -1,4 +1,4 @@
-"""Tests for ``python -m experiments.reconstruct`` and ``nlosjax.checkpoints_io``.
+"""Tests for ``python -m experiments.reconstruct`` and ``nlosjax.inference``.
 
 Tiny captures written here (a rendered patch, 16 x 16 scan points); the
 library calls they must reproduce are made independently in the tests; the
@@ -21,7 +21,7 @@ import optax
 import pytest
 
 from experiments import reconstruct as cli
-from nlosjax import checkpoints_io as cio
+from nlosjax import inference as cio
 from nlosjax import physics
 from nlosjax.data import io
 from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup

@@ -80,19 +80,19 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
   assert set(usm_rows[-1]) == set(rows[-1]) and {"pf", "ls", "tv"} <= set(usm_rows[-1])
   assert np.isfinite(usm_rows[-1]["loss"])
   # One variant's folder selects that variant only.
-  from nlosjax import checkpoints_io
-  _, only = checkpoints_io.load_run(tmp_path / "ours_s" / "checkpoints", log=lambda s: None)
+  from nlosjax import inference
+  _, only = inference.load_run(tmp_path / "ours_s" / "checkpoints", log=lambda s: None)
   assert set(only) == {"ours_s"}
   # Every training seed's folder with seeds=True (a copy stands in for a second seed).
   import shutil
-  before = checkpoints_io.seed_folders(tmp_path, "ours_s")
+  before = inference.seed_folders(tmp_path, "ours_s")
   assert before[0] == "ours_s" and all(f.startswith("ours_s-seed") for f in before[1:])
   shutil.copytree(tmp_path / "ours_s", tmp_path / "ours_s-seed30")
   (tmp_path / "ours_s-seedx").mkdir()                            # not a seed folder
-  assert checkpoints_io.seed_folders(tmp_path, "ours_s") == before + ["ours_s-seed30"]
-  _, by_seed = checkpoints_io.load_run(tmp_path, seeds=True, log=lambda s: None)
+  assert inference.seed_folders(tmp_path, "ours_s") == before + ["ours_s-seed30"]
+  _, by_seed = inference.load_run(tmp_path, seeds=True, log=lambda s: None)
   assert len(by_seed["ours_s"]) == len(before) + 1
-  assert len(by_seed["ours"]) == len(checkpoints_io.seed_folders(tmp_path, "ours"))
+  assert len(by_seed["ours"]) == len(inference.seed_folders(tmp_path, "ours"))
   assert_nested_close(by_seed["ours_s"][-1][1], by_seed["ours_s"][0][1], rtol=0, atol=0)
 
 

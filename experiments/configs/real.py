@@ -14,7 +14,7 @@ measured regime:
 * capture: 0.6 m wall (between the scans' 0.4 and 0.8 m), 64 x 64 scan points
   under-scanned at stride 4 (16 x 16 input, the under-scanning experiment's
   input), 128 bins of 64 ps = 4 x the scans' 16 ps (so
-  :func:`nlosjax.checkpoints_io.adapt_to_capture` sums exactly 4 capture bins
+  :func:`nlosjax.inference.adapt_to_capture` sums exactly 4 capture bins
   per network bin), maximum depth 1.23 m, the scans' 512 x 16 ps;
 * scenes: mostly planar targets (letters, digits, polygons, plates; textured
   half of the time) 0.35-1.1 m away, 0.12-0.4 m across, anchored within

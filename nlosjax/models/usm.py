@@ -206,7 +206,7 @@ class USMConfig(ScanInputConfig):
     """``(0, T)``: USM reads and recovers every bin."""
     return (0, self.setup.num_bins)
 
-  # What nlosjax.checkpoints_io.adapt_to_capture reads: time is halved once, before the LCT layer.
+  # What nlosjax.inference.adapt_to_capture reads: time is halved once, before the LCT layer.
   extract_time_stride = 1
   volume_time_stride = 2
 

@@ -1,0 +1,348 @@
+"""Restore a trained network (ST-Mamba or USM) for inference, and move it to another capture.
+
+:func:`load_trained` reads the parameters of the latest checkpoint written by
+``python -m experiments.train`` (``WORKDIR/<variant>/checkpoints``, orbax) and
+rebuilds the model config from the run's ``config.json``; it needs no
+optimizer state and no training data. :func:`adapt_to_capture` moves the
+trained network to a measured capture: the same parameters, the physics layer
+rebuilt for the capture's wall, grid and bins (the network's parameter tree
+does not depend on the Setup; see :mod:`nlosjax.models.network`), with time
+rebinned so the network sees bins of about its training width.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from nlosjax.physics.setup import Setup
+
+VARIANTS = ("ours", "ours_s", "usm")
+
+
+def _holds_checkpoint(ckpt: pathlib.Path) -> bool:
+  """Whether an orbax ``checkpoints`` folder holds at least one step."""
+  return ckpt.is_dir() and any(c.name.isdigit() for c in ckpt.iterdir())
+
+
+def find_checkpoints(path, variant: str | None = None) -> tuple[pathlib.Path, str, pathlib.Path]:
+  """Locate a trained variant: ``(workdir, variant, checkpoints folder)``.
+
+  Args:
+    path: a main-job workdir (``config.json`` plus ``ours``/``ours_s``/``usm``),
+      one variant's folder (``WORKDIR/ours``) or its ``checkpoints`` folder.
+    variant: ``"ours"``, ``"ours_s"`` or ``"usm"``; required only when ``path``
+      is a workdir holding several (default there: the first trained of
+      ``"ours"``, ``"ours_s"``, ``"usm"``).
+  Raises:
+    ValueError: naming ``path`` when it is not a trained run or the variant is missing.
+  """
+  if variant is not None and variant not in VARIANTS:
+    raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+  p = pathlib.Path(path).absolute()
+  if not p.is_dir():
+    raise ValueError(f"{p}: no such checkpoint folder")
+  if p.name == "checkpoints":
+    p = p.parent
+  if p.name in VARIANTS and (p.parent / "config.json").is_file():
+    if variant is not None and variant != p.name:
+      raise ValueError(f"{p}: is the {p.name!r} folder but variant {variant!r} was asked for")
+    workdir, variants = p.parent, [p.name]
+  elif (p / "config.json").is_file():
+    workdir, variants = p, [variant] if variant else list(VARIANTS)
+  else:
+    raise ValueError(f"{p}: not a training run: expected a workdir with config.json (written by"
+                     f" python -m experiments.train) or one of its folders {VARIANTS}")
+  for v in variants:
+    ckpt = workdir / v / "checkpoints"
+    if _holds_checkpoint(ckpt):
+      return workdir, v, ckpt
+  raise ValueError(f"{p}: no checkpoint of variant(s) {variants} under {workdir}")
+
+
+def load_trained(path, variant: str | None = None, *, step: int | None = None,
+                 folder: str | None = None):
+  """Restore a trained variant's parameters: ``(model_config, params, info)``.
+
+  The model config is rebuilt from the run's ``config.json`` for the
+  training Setup (:func:`nlosjax.train.model_config_for`); the checkpoint's
+  recorded model config (``repr``) must match it, the restored parameter
+  tree must have the shapes that config initialises, and the recorded
+  parameter-tree fingerprint (when present) must match, else ValueError.
+  Unlike :func:`nlosjax.train.load_trained` (resuming-grade: rebuilds and
+  compiles the full train state and checks the optimizer and loss settings),
+  this reads only the parameters and compiles nothing.
+
+  Args:
+    path, variant: see :func:`find_checkpoints`.
+    step: checkpoint step (default: the latest).
+    folder: the model's folder in the workdir when it is not the variant's own,
+      e.g. ``"ours-seed1"`` (another training seed, :func:`seed_folders`).
+  Returns:
+    ``(ModelConfig, params, info)``; ``info`` holds ``workdir``, ``variant``,
+    ``checkpoint`` (folder), ``step`` and ``config`` (the run config dict).
+  Raises:
+    ValueError: naming the folder for a missing, unreadable or mismatched checkpoint.
+  """
+  import orbax.checkpoint as ocp
+
+  from nlosjax import train
+
+  workdir, variant, ckpt = find_checkpoints(path, variant)
+  if folder is not None:
+    ckpt = workdir / folder / "checkpoints"
+    if not _holds_checkpoint(ckpt):
+      raise ValueError(f"{ckpt}: no checkpoint there")
+  try:
+    config = json.loads((workdir / "config.json").read_text())
+    data = config["data"]
+    grid = data["grid"]
+    train_setup = Setup(wall_size=data["wall_size"], grid=grid if isinstance(grid, int) else tuple(grid),
+                        bin_width=data["bin_width"], num_bins=data["num_bins"])
+  except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+    raise ValueError(f"{workdir / 'config.json'}: not a usable run config ({e})") from None
+  mcfg = train.model_config_for(config, train_setup, variant)
+  absl_logger = logging.getLogger("absl")
+  level = absl_logger.level
+  absl_logger.setLevel(logging.ERROR)      # orbax warns that a read-only manager cannot save
+  try:
+    options = ocp.CheckpointManagerOptions(read_only=True, create=False,
+                                           cleanup_tmp_directories=False)
+    manager = ocp.CheckpointManager(ckpt, options=options)
+  except BaseException:
+    absl_logger.setLevel(level)
+    raise
+  try:
+    step = manager.latest_step() if step is None else int(step)
+    if step is None or step not in manager.all_steps():
+      raise ValueError(f"{ckpt}: no checkpoint step {step} (steps: {sorted(manager.all_steps())})")
+    where = ckpt / str(step)
+    try:
+      meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
+      item = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))["state"]
+    except Exception as e:  # orbax raises many types for a damaged folder
+      raise ValueError(f"checkpoint {where} is unreadable ({type(e).__name__}: {e})") from None
+  finally:
+    manager.close()
+    absl_logger.setLevel(level)
+  signature = _signature(meta.get("model_config") if isinstance(meta, dict) else None)
+  recorded = signature.get("model")
+  if recorded is not None and recorded != repr(mcfg):
+    raise ValueError(f"checkpoint {where} was written by another model config than"
+                     f" {workdir / 'config.json'} gives:\n  checkpoint: {recorded}\n"
+                     f"  config.json: {mcfg!r}")
+  params = jax.tree.map(jnp.asarray, item["params"])
+  expected = jax.eval_shape(mcfg.module().init, jax.random.key(0),
+                            jax.ShapeDtypeStruct(mcfg.input_shape(), jnp.float32))["params"]
+  _check_tree(where, params, expected)
+  fingerprint = getattr(train, "param_fingerprint", None)
+  if fingerprint is not None and "params" in signature and signature["params"] != fingerprint(params):
+    raise ValueError(f"checkpoint {where}: its parameter-tree fingerprint {signature['params']}"
+                     f" differs from the restored tree's {fingerprint(params)} (written by another"
+                     " version of the model code?)")
+  info = {"workdir": workdir, "variant": variant, "checkpoint": where, "step": int(step),
+          "config": config}
+  return mcfg, params, info
+
+
+def seed_folders(workdir, variant: str) -> list[str]:
+  """The folders of ``variant``'s trained models in a main-job workdir: its own, then ``-seed<k>``.
+
+  Only folders holding a checkpoint count; ordered by seed.
+  """
+  workdir = pathlib.Path(workdir)
+  trained = lambda name: _holds_checkpoint(workdir / name / "checkpoints")
+  extra = sorted((p.name for p in workdir.glob(f"{variant}-seed*")
+                  if p.name[len(variant) + 5:].isdigit() and trained(p.name)),
+                 key=lambda n: int(n[len(variant) + 5:]))
+  return ([variant] if trained(variant) else []) + extra
+
+
+def load_run(path, *, setup: Setup | None = None, seeds: bool = False,
+             log=print) -> tuple[dict, dict]:
+  """Every trained variant of a run, for evaluation: ``(config, variant -> (model_config, params))``.
+
+  ``path`` as in :func:`find_checkpoints`: a workdir gives each variant that
+  has a checkpoint, a variant's folder gives that one. Each variant's
+  checkpoint is the one its ``selection.json`` names (chosen on validation by
+  the main job), else the latest. With ``setup`` the
+  models move to it (:meth:`~nlosjax.models.network.ModelConfig.with_setup`:
+  the same parameters, the physics layer rebuilt), e.g. a dataset file's
+  Setup; without it they keep the training Setup.
+
+  With ``seeds=True`` (a workdir only) each variant maps to the list of its
+  training seeds' ``(model_config, params)`` (:func:`seed_folders`), the form
+  :func:`nlosjax.evaluation.protocol.evaluate` scores over seeds.
+
+  Raises:
+    ValueError: as :func:`load_trained`.
+  """
+  p = pathlib.Path(path).absolute()
+  workdir, first, _ = find_checkpoints(p)
+  wanted = [first] if p.name in VARIANTS or p.name == "checkpoints" else list(VARIANTS)
+  trained, config = {}, None
+  from nlosjax.train import read_selection
+  for variant in wanted:
+    folders = seed_folders(workdir, variant)
+    if not seeds:
+      folders = folders[:1] if folders and folders[0] == variant else []
+    models = []
+    for folder in folders:
+      selection = read_selection(workdir / folder)    # the checkpoint chosen on validation
+      mcfg, params, info = load_trained(workdir, variant, folder=folder,
+                                        step=selection["step"] if selection else None)
+      log(f"[{folder}] restored step {info['step']} from {workdir / folder / 'checkpoints'}")
+      config = info["config"]
+      models.append((mcfg if setup is None or setup == mcfg.setup else mcfg.with_setup(setup),
+                     params))
+    if models:
+      trained[variant] = models if seeds else models[0]
+  return config, trained
+
+
+def _signature(signature) -> dict:
+  """A checkpoint's recorded run signature (JSON: ``model`` repr, ``params`` fingerprint, ...)."""
+  if not isinstance(signature, str):
+    return {}
+  try:
+    out = json.loads(signature)
+  except json.JSONDecodeError:
+    return {}
+  return out if isinstance(out, dict) else {}
+
+
+def _check_tree(where, params, expected) -> None:
+  got = {jax.tree_util.keystr(k): tuple(v.shape) for k, v in jax.tree_util.tree_leaves_with_path(params)}
+  want = {jax.tree_util.keystr(k): tuple(v.shape)
+          for k, v in jax.tree_util.tree_leaves_with_path(expected)}
+  if got != want:
+    missing = sorted(set(want) - set(got))[:3]
+    extra = sorted(set(got) - set(want))[:3]
+    shapes = [f"{k}: {got[k]} vs {want[k]}" for k in sorted(set(got) & set(want)) if got[k] != want[k]][:3]
+    raise ValueError(f"checkpoint {where}: parameters do not fit the model (missing {missing},"
+                     f" unexpected {extra}, shape mismatches {shapes})")
+
+
+@dataclasses.dataclass(frozen=True)
+class CaptureAdaptation:
+  """How a capture is presented to a trained network.
+
+  Attributes:
+    bin_factor: capture bins summed into one network bin.
+    setup: the network's full-grid Setup for the capture (the capture's wall
+      and grid; ``bin_factor`` times its bin width; ``T // bin_factor`` bins;
+      the capture's depth range, if any).
+    model_config: the trained config moved to ``setup``, with the physics
+      layer's wavelet rescaled (see :func:`adapt_to_capture`).
+  """
+
+  bin_factor: int
+  setup: Setup
+  model_config: object
+
+  def prepare(self, transient) -> np.ndarray:
+    """Sum ``bin_factor`` bins: ``[..., T, H, W] -> [..., T // bin_factor, H, W]`` float32."""
+    x = np.asarray(transient, np.float32)
+    k, n = self.bin_factor, self.setup.num_bins
+    x = x[..., :n * k, :, :]
+    return x.reshape(x.shape[:-3] + (n, k) + x.shape[-2:]).sum(axis=-3)
+
+
+def default_bin_factor(trained_bin_width: float, capture_bin_width: float) -> int:
+  """Capture bins summed per network bin: ``round(trained / capture)`` bin widths (seconds), >= 1."""
+  if not (trained_bin_width > 0 and capture_bin_width > 0):
+    raise ValueError(f"bin widths must be > 0 s, got trained {trained_bin_width!r} and capture"
+                     f" {capture_bin_width!r}")
+  return max(1, int(round(trained_bin_width / capture_bin_width)))
+
+
+def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = None) -> CaptureAdaptation:
+  """Move a trained model to a capture's geometry, keeping what it learned in bin units.
+
+  * Time: ``bin_factor`` (default ``round(trained bin width / capture bin
+    width)``, at least 1) capture bins are summed per network bin, so the
+    network's convolutions and scans see bins of about the width they were
+    trained on; the capture's whole range is kept (``T // bin_factor`` bins).
+  * Space: the capture's wall and grid (the output grid; the input is that
+    grid under-scanned by the trained ``stride``).
+  * Physics layer: rebuilt for this Setup. Its wavelet's virtual wavelength
+    is ``2 sampling_coeff Delta``; on a small wall with coarse bins that
+    wavelength could fall below two bins (unresolved), and in any case the
+    layers around the physics layer learned features whose carrier spans a
+    fixed number of bins. So ``wavelet_sampling`` is rescaled to keep the
+    wavelength in (coarse) bins what it was in training.
+
+  Args:
+    model_config: the trained :class:`~nlosjax.models.network.ModelConfig`.
+    capture: the capture's full-grid Setup (its depth range is kept).
+    bin_factor: override the time binning.
+  """
+  from nlosjax.physics.wavelet import illumination_wavelet
+  trained = model_config.setup
+  if bin_factor is None:
+    bin_factor = default_bin_factor(trained.bin_width, capture.bin_width)
+  if not isinstance(bin_factor, int) or bin_factor < 1:
+    raise ValueError(f"bin_factor must be a positive integer, got {bin_factor!r}")
+  num_bins = capture.num_bins // bin_factor
+  if num_bins < 4 * model_config.extract_time_stride * model_config.volume_time_stride:
+    raise ValueError(f"the capture's {capture.num_bins} bins of {capture.bin_width:.3g} s give only"
+                     f" {num_bins} network bins of {bin_factor * capture.bin_width:.3g} s")
+  setup = Setup(wall_size=capture.wall_size, grid=capture.grid,
+                bin_width=capture.bin_width * bin_factor, num_bins=num_bins,
+                depth_range=capture.depth_range, aperture=capture.aperture)
+  # Wavelength in coarse bins, as trained.
+  stride = model_config.volume_time_stride
+  trained_coarse = dataclasses.replace(trained.ungated(), bin_width=trained.bin_width * stride)
+  wl = illumination_wavelet(trained_coarse, cycles=model_config.wavelet_cycles,
+                            sampling_coeff=model_config.wavelet_sampling)
+  per_bin = wl.wavelength / trained_coarse.bin_length
+  coarse_length = setup.bin_length * stride
+  sampling = max(1.0, per_bin * coarse_length / (2.0 * max(setup.spacing)))
+  mcfg = dataclasses.replace(model_config, setup=setup, wavelet_sampling=float(sampling))
+  return CaptureAdaptation(bin_factor=bin_factor, setup=setup, model_config=mcfg)
+
+
+def triplets(frames: np.ndarray, num_frames: int) -> np.ndarray:
+  """``[F, T, h, w] -> [F, num_frames, T, h, w]``: each frame with its neighbours, ends replicated.
+
+  Frame ``m`` gets frames ``m - n//2 .. m + n//2`` clipped to ``[0, F - 1]``
+  (a static capture, ``F = 1``, repeats its only frame), as the dataset
+  loader's ``ends="replicate"``.
+  """
+  f = frames.shape[0]
+  half = num_frames // 2
+  idx = np.clip(np.arange(f)[:, None] + np.arange(-half, half + 1)[None, :], 0, f - 1)
+  return frames[idx]
+
+
+def run_model(model_config, params, frames, *, batch_size: int = 4):
+  """Apply a network to under-scanned frames, one output per frame.
+
+  Args:
+    model_config: the (adapted) config.
+    params: its parameters.
+    frames: ``[F, T, h, w]`` under-scanned counts of consecutive frames.
+    batch_size: frames per forward pass.
+  Returns:
+    dict of NumPy arrays ``intensity [F, H, W]`` in [0, 1], ``depth [F, H, W]``,
+    ``volume [F, Z, H, W]``, ``transient [F, T, H, W]`` (counts: the network's
+    output times its input scale).
+  """
+  from nlosjax.physics.checks import checked
+  x = triplets(np.asarray(frames, np.float32), model_config.frames)
+  model = model_config.module()
+  apply = checked(lambda p, b: model.apply({"params": p}, b))     # NaN / negative counts raise
+  out = {k: [] for k in ("intensity", "depth", "volume", "transient")}
+  for s in range(0, len(x), batch_size):
+    o = apply(params, jnp.asarray(x[s:s + batch_size]))
+    out["intensity"].append(np.clip(np.asarray(o["intensity"]), 0.0, 1.0))   # USM's is unclamped
+    for k in ("depth", "volume"):
+      out[k].append(np.asarray(o[k]))
+    out["transient"].append(np.asarray(o["transient"] * o["scale"][:, None, None, None]))
+  return {k: np.concatenate(v) for k, v in out.items()}
