@@ -486,7 +486,7 @@ def test_existing_files_are_never_overwritten_without_permission(tiny, tmp_path,
       raise RuntimeError("killed")
     return real(spec_, split, index)
 
-  monkeypatch.setattr(D, "simulate_sequence", crash_on_third)
+  monkeypatch.setattr(D.file, "simulate_sequence", crash_on_third)
   with pytest.raises(RuntimeError, match="killed"):
     D.write_dataset(out, spec, overwrite=True, progress=False)
   assert out.read_bytes() == before
@@ -495,7 +495,7 @@ def test_existing_files_are_never_overwritten_without_permission(tiny, tmp_path,
     assert sorted(f["sequences"]) == ["train-00000", "train-00001"]
     f["sequences/train-00001"].attrs["complete"] = False     # as if killed while writing it
   # ... and the rerun resumes: keeps the finished sequence, redoes the half-written one.
-  monkeypatch.setattr(D, "simulate_sequence", real)
+  monkeypatch.setattr(D.file, "simulate_sequence", real)
   result = D.write_dataset(out, spec, overwrite=True, progress=False)
   assert (result.resumed, result.generated) == (1, 3)
   assert not partial.exists()

@@ -1,0 +1,453 @@
+"""The HDF5 file format (layout in the :mod:`nlosjax.data.dataset` docstring): writer and reader.
+
+Writing (:func:`write_dataset`, :func:`extend_dataset`): sequences go to
+``<path>.partial``, flushed one by one (a rerun resumes it), simulated here
+or in ``spawn``ed worker processes (:func:`_simulate_job`), and the file is
+renamed to ``path`` when complete. Reading: :class:`DynamicDataset`
+(:func:`open_dataset`) checks the format, version and Setup and reads
+frames, under-scanned row by row.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import datetime
+import json
+import math
+import multiprocessing
+import os
+import pathlib
+import warnings
+
+import h5py
+import numpy as np
+
+from nlosjax.data import scenes
+from nlosjax.data.dataset.simulate import simulate_sequence
+from nlosjax.data.dataset.spec import SPLITS, DatasetSpec, _check_split, sequence_name
+from nlosjax.data.dataset.undersampling import _check_stride
+from nlosjax.physics.setup import Setup
+
+#: Value of the root ``format`` attribute.
+FORMAT_NAME = "nlosjax-dynamic-nlos"
+#: Layout version; readers refuse newer files.
+FORMAT_VERSION = 1
+#: Per-sequence datasets: name -> whether every file has it.
+DATASETS = {"measurement": True, "clean": False, "albedo": False, "intensity": True,
+            "depth": True, "trajectory": True}
+
+
+# ------------------------------------------------------------------ write
+def _chunks(name, shape):
+  if name in ("measurement", "clean", "albedo"):
+    return (1, shape[1], 1, shape[3])
+  if name in ("intensity", "depth"):
+    return (1,) + tuple(shape[1:])
+  return None
+
+
+def _write_sequence(f: h5py.File, spec: DatasetSpec, seq: dict) -> None:
+  group = f.require_group("sequences")
+  name = seq["name"]
+  if name in group:
+    del group[name]
+  g = group.create_group(name)
+  g.attrs["complete"] = False
+  for key, arr in seq["arrays"].items():
+    chunks = _chunks(key, arr.shape)
+    kw = {}
+    if chunks is not None and spec.compression is not None:
+      kw = dict(compression=spec.compression, shuffle=True)
+      if spec.compression == "gzip":
+        kw["compression_opts"] = spec.compression_level
+    g.create_dataset(key, data=arr, chunks=chunks, **kw)
+  for key, value in seq["attrs"].items():
+    g.attrs[key] = value
+  g.attrs["complete"] = True
+  f.flush()
+
+
+def _version() -> str:
+  try:
+    from importlib.metadata import version
+    return version("nlosjax")
+  except Exception:  # noqa: BLE001 - not installed
+    return "unknown"
+
+
+def _init_file(f: h5py.File, spec: DatasetSpec) -> None:
+  s = spec.setup
+  a = f.attrs
+  a["format"] = FORMAT_NAME
+  a["format_version"] = FORMAT_VERSION
+  a["generator_version"] = scenes.GENERATOR_VERSION
+  a["nlosjax_version"] = _version()
+  a["wall_size"] = s.wall_size
+  a["grid"] = np.asarray(s.grid, np.int64)
+  a["bin_width"] = s.bin_width
+  a["num_bins"] = s.num_bins
+  a["spec"] = json.dumps(spec.to_dict())
+  a["seed"] = spec.seed
+  a["background_depth"] = scenes.BACKGROUND_DEPTH
+  a["complete"] = False
+  a["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+  f.require_group("sequences")
+
+
+def _partial_path(path: pathlib.Path) -> pathlib.Path:
+  return path.with_name(path.name + ".partial")
+
+
+def _open_partial(tmp: pathlib.Path, spec: DatasetSpec, overwrite: bool) -> h5py.File:
+  """Open (resume) or create the temp file; drop half-written sequences."""
+  if tmp.exists():
+    try:
+      f = h5py.File(tmp, "a")
+    except OSError as e:
+      if "lock" in str(e).lower():
+        raise ValueError(f"{tmp}: is locked; another process is writing this dataset") from e
+      warnings.warn(f"{tmp}: unreadable leftover of an interrupted run ({e}); starting over",
+                    stacklevel=2)
+      tmp.unlink()
+    else:
+      same = (f.attrs.get("format") == FORMAT_NAME
+              and f.attrs.get("generator_version") == scenes.GENERATOR_VERSION
+              and _generation_key(f.attrs.get("spec")) == spec.generation_key())
+      if same:
+        for name in list(f.get("sequences", {})):
+          if not f["sequences"][name].attrs.get("complete", False):
+            del f["sequences"][name]  # half-written: redo it
+        return f
+      f.close()
+      if not overwrite:
+        raise ValueError(f"{tmp}: a leftover partial dataset made with another configuration or"
+                         " generator version; pass overwrite=True (--overwrite) to replace it")
+      tmp.unlink()
+  f = h5py.File(tmp, "w")
+  _init_file(f, spec)
+  return f
+
+
+def _generation_key(spec_json):
+  try:
+    d = json.loads(spec_json)
+    d.pop("num_sequences", None)
+    return d
+  except (TypeError, ValueError):
+    return None
+
+
+def _simulate_job(spec_dict, split, index):
+  """Worker entry point (process pools pickle a plain dict, not the Setup)."""
+  return simulate_sequence(DatasetSpec.from_config(spec_dict), split, index)
+
+
+@dataclasses.dataclass(frozen=True)
+class WriteResult:
+  """What :func:`write_dataset` did: the file, sequences simulated now, sequences kept."""
+
+  path: pathlib.Path
+  generated: int
+  resumed: int
+
+
+def write_dataset(path, spec: DatasetSpec, *, overwrite: bool = False, workers: int = 1,
+                  progress: bool = True) -> WriteResult:
+  """Simulate every sequence of ``spec`` into the HDF5 file ``path``.
+
+  Crash safety: the data go to ``<path>.partial`` first, flushed after each
+  sequence, and the file is renamed to ``path`` only when complete, so an
+  existing ``path`` survives a crash. A rerun after a crash resumes the
+  partial file: finished sequences are kept, a half-written one is redone.
+
+  Args:
+    path: output file.
+    spec: the :class:`DatasetSpec`.
+    overwrite: replace an existing ``path`` (and a leftover partial file of
+      another configuration); without it an existing ``path`` raises.
+    workers: processes simulating sequences in parallel (``1``: in this
+      process; more use ``spawn``ed processes; the writing stays here).
+    progress: show a tqdm progress bar.
+  Returns:
+    :class:`WriteResult` (``path``, sequences ``generated`` in this call,
+    sequences ``resumed`` from a partial file).
+  Raises:
+    FileExistsError: ``path`` exists and ``overwrite`` is false.
+    ValueError: bad arguments, or a partial file that cannot be resumed.
+  """
+  if not isinstance(spec, DatasetSpec):
+    raise ValueError(f"spec must be a DatasetSpec, got {type(spec).__name__}")
+  if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+    raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+  path = pathlib.Path(path)
+  if path.exists() and not overwrite:
+    raise FileExistsError(f"{path}: exists; pass overwrite=True (--overwrite) to replace it")
+  if path.is_dir():
+    raise ValueError(f"path {path} is a directory")
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = _partial_path(path)
+  f = _open_partial(tmp, spec, overwrite)
+  try:
+    done = set(f["sequences"])
+    jobs = [(split, i) for split in SPLITS for i in range(spec.count(split))
+            if sequence_name(split, i) not in done]
+    from tqdm.auto import tqdm
+    total = spec.num_sequences
+    bar = tqdm(total=total, initial=total - len(jobs), unit="seq", desc=f"writing {path.name}",
+               disable=not progress)
+    if workers == 1 or len(jobs) <= 1:
+      for split, i in jobs:
+        _write_sequence(f, spec, simulate_sequence(spec, split, i))
+        bar.update()
+    else:
+      ctx = multiprocessing.get_context("spawn")
+      spec_dict = spec.to_dict()
+      with concurrent.futures.ProcessPoolExecutor(max_workers=int(workers), mp_context=ctx) as pool:
+        pending = set()
+        queue_ = list(jobs)
+        while queue_ or pending:
+          while queue_ and len(pending) < 2 * workers:
+            pending.add(pool.submit(_simulate_job, spec_dict, *queue_.pop(0)))
+          finished, pending = concurrent.futures.wait(
+              pending, return_when=concurrent.futures.FIRST_COMPLETED)
+          for fut in finished:
+            _write_sequence(f, spec, fut.result())
+            bar.update()
+    bar.close()
+    f.attrs["num_train"] = spec.num_train
+    f.attrs["num_test"] = spec.num_test
+    f.attrs["num_val"] = spec.num_val
+    f.attrs["spec"] = json.dumps(spec.to_dict())    # the counts of a resumed or extended file
+    f.attrs["complete"] = True
+    f.flush()
+  finally:
+    f.close()
+  os.replace(tmp, path)
+  return WriteResult(path=path, generated=len(jobs), resumed=len(done))
+
+
+def extend_dataset(path, spec: DatasetSpec, *, workers: int = 1, progress: bool = True) -> WriteResult:
+  """Add to the complete file ``path`` the sequences ``spec`` has and it lacks.
+
+  For a file made before a split existed (e.g. ``val``) or with fewer
+  sequences: the stored sequences are kept byte for byte (a sequence depends
+  on its seed, not on the counts), the missing ones are simulated, and the
+  file is replaced atomically as :func:`write_dataset` does (the original
+  stays untouched until the extended file is complete).
+
+  Returns:
+    :class:`WriteResult` (``generated`` 0 when nothing was missing).
+  Raises:
+    ValueError: ``path`` was made with another generation configuration, or
+      holds more sequences of a split than ``spec`` asks for.
+  """
+  import shutil
+  path = pathlib.Path(path)
+  with h5py.File(path, "r") as f:
+    if _generation_key(f.attrs.get("spec")) != spec.generation_key() or \
+        f.attrs.get("generator_version") != scenes.GENERATOR_VERSION:
+      raise ValueError(f"{path}: made with another data configuration or generator version; "
+                       "move it away (or point data.path elsewhere) to generate this one")
+    have = {split: sum(1 for n in f["sequences"] if n.startswith(split + "-")) for split in SPLITS}
+  more = {s: have[s] for s in SPLITS if have[s] > spec.count(s)}
+  if more:
+    raise ValueError(f"{path}: holds more sequences than the config asks for ({more}); "
+                     "use a config with at least these counts")
+  if all(have[s] == spec.count(s) for s in SPLITS):
+    return WriteResult(path=path, generated=0, resumed=sum(have.values()))
+  tmp = _partial_path(path)
+  if not tmp.exists():
+    shutil.copyfile(path, tmp)
+  return write_dataset(path, spec, overwrite=True, workers=workers, progress=progress)
+
+
+# ------------------------------------------------------------------- read
+class DynamicDataset:
+  """Read access to a dataset file written by :func:`write_dataset`.
+
+  Args:
+    path: the HDF5 file.
+    setup: optional expected full-resolution :class:`Setup` (e.g. the
+      model's); a mismatch raises.
+
+  Raises:
+    FileNotFoundError: ``path`` does not exist.
+    ValueError: naming the file, when it is not HDF5 (truncated or
+      foreign), not an nlosjax dynamic dataset, of a newer format version,
+      unfinished, or its Setup differs from ``setup``.
+  """
+
+  def __init__(self, path, setup: Setup | None = None):
+    self.path = pathlib.Path(path)
+    if not self.path.exists():
+      raise FileNotFoundError(f"{self.path}: no such dataset file")
+    try:
+      self._file = h5py.File(self.path, "r")
+    except OSError as e:
+      raise ValueError(f"{self.path}: cannot be read as HDF5 (truncated, corrupt or not an HDF5"
+                       f" file): {e}") from None
+    try:
+      self._check()
+      if setup is not None:
+        self.check_setup(setup)
+    except BaseException:
+      self._file.close()
+      raise
+
+  def _check(self):
+    a = self._file.attrs
+    fmt = a.get("format")
+    if isinstance(fmt, bytes):
+      fmt = fmt.decode()
+    if fmt != FORMAT_NAME:
+      raise ValueError(f"{self.path}: an HDF5 file but not an nlosjax dynamic NLOS dataset"
+                       f" (attribute 'format' is {fmt!r}, expected {FORMAT_NAME!r})")
+    version = int(a.get("format_version", -1))
+    if version > FORMAT_VERSION or version < 1:
+      raise ValueError(f"{self.path}: format_version {version} is not supported (this nlosjax"
+                       f" reads versions 1..{FORMAT_VERSION}); update nlosjax")
+    if not bool(a.get("complete", False)):
+      raise ValueError(f"{self.path}: the dataset was not finished (interrupted writer?)")
+    missing = [k for k in ("wall_size", "grid", "bin_width", "num_bins") if k not in a]
+    if missing or "sequences" not in self._file:
+      raise ValueError(f"{self.path}: malformed dataset; missing {missing or ['/sequences']}")
+    try:
+      self.setup = Setup(wall_size=float(a["wall_size"]), grid=tuple(int(v) for v in a["grid"]),
+                         bin_width=float(a["bin_width"]), num_bins=int(a["num_bins"]))
+    except ValueError as e:
+      raise ValueError(f"{self.path}: invalid Setup attributes: {e}") from None
+    self.attrs = dict(a)
+    self._names = sorted(self._file["sequences"])
+    self._handles = {}
+
+  # -- context manager
+  def close(self):
+    self._file.close()
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
+
+  @property
+  def generator_version(self) -> str:
+    return str(self.attrs.get("generator_version"))
+
+  def check_setup(self, setup: Setup) -> None:
+    """Raise ``ValueError`` naming the file if its Setup differs from ``setup``."""
+    if not isinstance(setup, Setup):
+      raise ValueError(f"setup must be a nlosjax.physics.Setup, got {type(setup).__name__}")
+    mine, theirs = self.setup, setup.ungated()
+    diffs = []
+    for field in ("wall_size", "grid", "bin_width", "num_bins"):
+      a, b = getattr(mine, field), getattr(theirs, field)
+      same = a == b if field in ("grid", "num_bins") else math.isclose(a, b, rel_tol=1e-9)
+      if not same:
+        diffs.append(f"{field} {a!r} in the file vs {b!r} expected")
+    if diffs:
+      raise ValueError(f"{self.path}: dataset Setup does not match: " + "; ".join(diffs))
+
+  def names(self, split: str | None = None) -> list[str]:
+    """Sequence names (sorted), all or those of ``split``."""
+    if split is None:
+      return list(self._names)
+    _check_split(split)
+    return [n for n in self._names if self._group(n).attrs.get("split") == split]
+
+  def _group(self, name):
+    try:
+      return self._file["sequences"][name]
+    except (KeyError, TypeError):
+      raise ValueError(f"{self.path}: no sequence {name!r}") from None
+
+  def sequence_attrs(self, name: str) -> dict:
+    """Attributes of sequence ``name`` (numpy scalars/arrays, strings)."""
+    return dict(self._group(name).attrs)
+
+  def has(self, name: str, key: str) -> bool:
+    return key in self._group(name)
+
+  def num_frames(self, name: str) -> int:
+    return int(self._dataset(name, "measurement").shape[0])
+
+  def _dataset(self, name, key):
+    ds = self._handles.get((name, key))
+    if ds is None:
+      ds = self._handles[(name, key)] = self._open_dataset(name, key)
+    return ds
+
+  def _open_dataset(self, name, key):
+    g = self._group(name)
+    if key not in g:
+      raise ValueError(f"{self.path}: sequence {name!r} has no dataset {key!r} (it has"
+                       f" {sorted(g)})")
+    ds = g[key]
+    H, W = self.setup.grid
+    T = self.setup.num_bins
+    expected = {"measurement": (T, H, W), "clean": (T, H, W), "albedo": (T, H, W),
+                "intensity": (H, W), "depth": (H, W), "trajectory": (3,)}.get(key)
+    if expected is not None and tuple(ds.shape[1:]) != expected:
+      raise ValueError(f"{self.path}: {name}/{key} has shape {ds.shape}, expected [F, "
+                       f"{', '.join(map(str, expected))}] for the file's Setup")
+    return ds
+
+  def read(self, name: str, key: str, frames=slice(None), stride: int = 1, offset: int = 0,
+           dtype=None) -> np.ndarray:
+    """Read ``key`` of sequence ``name``.
+
+    Args:
+      name: sequence name (see :meth:`names`).
+      key: one of :data:`DATASETS`.
+      frames: an int, a slice, or a list of frame indices.
+      stride, offset: under-scanning of the scan grid (not for ``trajectory``).
+      dtype: cast to this dtype (default: as stored).
+    Returns:
+      numpy array, ``[F', ...]`` (``[...]`` for an int frame).
+    """
+    stride, offset = _check_stride(stride, offset)
+    ds = self._dataset(name, key)
+    if key == "trajectory" and stride != 1:
+      raise ValueError("stride applies to scan-grid datasets, not 'trajectory'")
+    index = frames
+    if isinstance(frames, (int, np.integer)) and not isinstance(frames, bool):
+      if not 0 <= frames < ds.shape[0]:
+        raise ValueError(f"frames {frames} out of range [0, {ds.shape[0]}) of {name}/{key}")
+      index = int(frames)
+    elif not isinstance(frames, slice):
+      index = np.asarray(frames, np.int64)
+    try:
+      if isinstance(index, np.ndarray):
+        uniq, inverse = np.unique(index, return_inverse=True)
+        if uniq.size and (uniq[0] < 0 or uniq[-1] >= ds.shape[0]):
+          raise ValueError(f"frames {index.tolist()} out of range [0, {ds.shape[0]})")
+        lo, hi = (int(uniq[0]), int(uniq[-1]) + 1) if uniq.size else (0, 0)
+        out = self._read_grid(ds, slice(lo, hi), stride, offset)[uniq - lo][inverse]
+      else:
+        out = self._read_grid(ds, index, stride, offset)
+    except OSError as e:
+      raise ValueError(f"{self.path}: reading {name}/{key} failed (corrupt file?): {e}") from None
+    return out if dtype is None else out.astype(dtype)
+
+
+  @staticmethod
+  def _read_grid(ds, frames, stride, offset):
+    """``ds[frames]`` under-scanned; transients are read one kept scan row at a time.
+
+    HDF5 strided selections are slow (per-element bookkeeping); rows are
+    whole chunks (``[1, T, 1, W]``), so reading the kept rows and slicing
+    the columns in numpy is 5-20x faster and decompresses ``1 / stride`` of the data.
+    """
+    if ds.ndim < 3 or stride == 1:
+      return ds[frames]
+    if ds.ndim == 3:
+      return ds[frames][..., offset::stride, offset::stride]
+    rows = range(offset, ds.shape[2], stride)
+    out = np.stack([ds[frames, :, r, :] for r in rows], axis=-2)
+    return out[..., offset::stride]
+
+
+def open_dataset(path, setup: Setup | None = None) -> DynamicDataset:
+  """Open a dataset file for reading; see :class:`DynamicDataset`."""
+  return DynamicDataset(path, setup)
