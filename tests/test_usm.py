@@ -291,6 +291,12 @@ def test_published_recipe_and_variant_config():
   assert train.training_recipe(config, "ours")[1].object_intensity == 3.0
   config["usm"]["recipe"] = "ours"
   assert train.training_recipe(config, "usm")[1].object_intensity == 3.0
+  # USM's own optimiser entries (its learning rate chosen on validation) over Ours'.
+  config["train"]["optim"] = {"learning_rate": 1e-3, "weight_decay": 0.95}
+  config["usm"]["optim"] = {"learning_rate": 3e-4}
+  usm_optim = train.training_recipe(config, "usm")[0]
+  assert (usm_optim.learning_rate, usm_optim.weight_decay) == (3e-4, 0.95)
+  assert train.training_recipe(config, "ours")[0].learning_rate == 1e-3
   config["usm"]["recipe"] = "nope"
   with pytest.raises(ValueError, match="recipe"):
     train.training_recipe(config, "usm")

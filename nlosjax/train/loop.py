@@ -243,19 +243,24 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
 def training_recipe(config: dict, variant: str) -> tuple[OptimConfig, losses.LossWeights]:
   """``(optimiser, loss weights)`` a variant trains with.
 
-  The config's ``train.optim`` and ``train.loss``, except for ``"usm"`` with
-  ``config["usm"]["recipe"] == "published"`` (:data:`USM_RECIPES`): USM's
-  published AdamW (lr 1e-4, weight decay 1e-4, no schedule, no clipping) and loss.
+  The config's ``train.optim`` and ``train.loss``, except for ``"usm"``: with
+  ``config["usm"]["recipe"] == "published"`` (:data:`USM_RECIPES`) USM's
+  published AdamW (lr 1e-4, weight decay 1e-4, no schedule, no clipping) and
+  loss; with ``"ours"``, Ours' recipe with ``config["usm"]["optim"]``'s entries
+  (e.g. its own learning rate, chosen on validation) replacing ``train.optim``'s.
   """
   tr = config["train"]
+  optim = dict(tr.get("optim", {}))
   if variant == "usm":
-    recipe = config.get("usm", {}).get("recipe", "ours")
+    usm = config.get("usm", {})
+    recipe = usm.get("recipe", "ours")
     if recipe not in USM_RECIPES:
       raise ValueError(f'config usm.recipe must be one of {USM_RECIPES}, got {recipe!r}')
     if recipe == "published":
       from nlosjax.models.usm import PUBLISHED_LOSS, PUBLISHED_OPTIM
       return OptimConfig(**PUBLISHED_OPTIM), losses.LossWeights(**PUBLISHED_LOSS)
-  return OptimConfig(**tr.get("optim", {})), losses.LossWeights(**tr.get("loss", {}))
+    optim.update(usm.get("optim", {}))
+  return OptimConfig(**optim), losses.LossWeights(**tr.get("loss", {}))
 
 
 def read_selection(folder) -> dict | None:
