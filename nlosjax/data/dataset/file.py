@@ -143,6 +143,19 @@ def _simulate_job(spec_dict, split, index):
   return simulate_sequence(DatasetSpec.from_config(spec_dict), split, index)
 
 
+def _worker_threads(threads: int) -> None:
+  """Worker initializer: limit XLA:CPU to ``threads`` threads before the worker computes anything.
+
+  One JAX process already spreads its work over every core; ``W`` worker
+  processes that each did so would share the cores ``W`` ways and gain
+  nothing. With one thread per worker the processes run side by side.
+  """
+  if threads == 1:
+    flags = os.environ.get("XLA_FLAGS", "")
+    os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_multi_thread_eigen=false"
+                               " intra_op_parallelism_threads=1").strip()
+
+
 @dataclasses.dataclass(frozen=True)
 class WriteResult:
   """What :func:`write_dataset` did: the file, sequences simulated now, sequences kept."""
@@ -167,7 +180,9 @@ def write_dataset(path, spec: DatasetSpec, *, overwrite: bool = False, workers: 
     overwrite: replace an existing ``path`` (and a leftover partial file of
       another configuration); without it an existing ``path`` raises.
     workers: processes simulating sequences in parallel (``1``: in this
-      process; more use ``spawn``ed processes; the writing stays here).
+      process; more use ``spawn``ed processes; the writing stays here). Where
+      workers outnumber half the cores, each runs XLA on one thread
+      (:func:`_worker_threads`): one process already uses every core.
     progress: show a tqdm progress bar.
   Returns:
     :class:`WriteResult` (``path``, sequences ``generated`` in this call,
@@ -203,7 +218,10 @@ def write_dataset(path, spec: DatasetSpec, *, overwrite: bool = False, workers: 
     else:
       ctx = multiprocessing.get_context("spawn")
       spec_dict = spec.to_dict()
-      with concurrent.futures.ProcessPoolExecutor(max_workers=int(workers), mp_context=ctx) as pool:
+      threads = max(1, (os.cpu_count() or 1) // int(workers))
+      with concurrent.futures.ProcessPoolExecutor(max_workers=int(workers), mp_context=ctx,
+                                                  initializer=_worker_threads,
+                                                  initargs=(threads,)) as pool:
         pending = set()
         queue_ = list(jobs)
         while queue_ or pending:
