@@ -44,6 +44,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from nlosjax import train
+from nlosjax.models.network import flop_counts
 from nlosjax.physics import Setup
 
 GIB = 2 ** 30
@@ -116,13 +117,8 @@ def device_memory(device=None) -> tuple[int | None, str]:
 
 
 def _flops(compiled, mcfg, batch: int, devices: int, backward: bool) -> float:
-  cost = compiled.cost_analysis()
-  if isinstance(cost, (list, tuple)):
-    cost = cost[0] if cost else {}
-  xla = float((cost or {}).get("flops", 0.0))
-  fft, scan = mcfg.analytic_flops(batch)
-  if backward:
-    fft, scan = 2 * fft, 3 * scan
+  """FLOPs per device of one compiled step: XLA's per-device count plus the global FFT and scan estimates split."""
+  xla, fft, scan = flop_counts(compiled.cost_analysis(), mcfg, batch, backward=backward)
   return xla + (fft + scan) / devices
 
 
@@ -135,19 +131,6 @@ def _step_plan(kind, compiled, mcfg, batch, devices, compile_s, backward) -> Ste
                   output_bytes=int(mem.output_size_in_bytes), temp_bytes=int(mem.temp_size_in_bytes),
                   alias_bytes=int(getattr(mem, "alias_size_in_bytes", 0) or 0),
                   flops=_flops(compiled, mcfg, batch, devices, backward), compile_s=float(compile_s))
-
-
-def _abstract_state(mcfg, batch: int, tx, mesh):
-  """The TrainState as shapes with replicated shardings; nothing allocated."""
-  model = train.network(mcfg)
-  shape = tuple(mcfg.input_shape(batch))
-
-  def init(k, x):
-    return train.TrainState.create(apply_fn=model.apply, params=model.init(k, x)["params"], tx=tx)
-
-  abstract = jax.eval_shape(init, jax.random.key(0), jax.ShapeDtypeStruct(shape, jnp.float32))
-  replicated = NamedSharding(mesh, P())
-  return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated), abstract)
 
 
 def _abstract_batch(mcfg, batch: int, mesh) -> dict:
@@ -173,7 +156,7 @@ def compile_train_step(config: dict, mcfg, variant: str, mesh):
                      f"use a multiple of {n} (or train.devices)")
   optim, weights = train.training_recipe(config, variant)
   tx = train.make_optimizer(optim, int(tr["steps"]))
-  state = _abstract_state(mcfg, batch, tx, mesh)
+  state = train.abstract_train_state(train.network(mcfg), tuple(mcfg.input_shape(batch)), tx, mesh)
   batch_shapes = _abstract_batch(mcfg, batch, mesh)
   key = jax.eval_shape(lambda: jax.random.key(0))
   step = train.make_train_step(mcfg, weights, mesh)
@@ -206,6 +189,8 @@ def plan_variant(config: dict, setup: Setup, variant: str, mesh, *, inference: b
 
 def reduced_setup(setup: Setup, stride: int, factor: int) -> Setup | None:
   """``setup`` with grid and bins divided by ``factor`` (same wall, same depth range), or None if it does not divide."""
+  if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
+    raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
   H, W = setup.grid
   T = setup.num_bins
   if H % (factor * stride) or W % (factor * stride) or T % factor:
@@ -235,7 +220,7 @@ def measure_reduced(config: dict, setup: Setup, variant: str, mesh, *, steps: in
       continue
     try:
       mcfg = train.model_config_for(config, small, variant)
-      compiled, _, _ = compile_train_step(config, mcfg, variant, mesh)
+      compiled, _, batch_shapes = compile_train_step(config, mcfg, variant, mesh)
     except (ValueError, TypeError) as e:
       last_error = e
       continue
@@ -244,10 +229,8 @@ def measure_reduced(config: dict, setup: Setup, variant: str, mesh, *, steps: in
     state = train.create_train_state(train.network(mcfg), mcfg.input_shape(batch), tx,
                                      jax.random.key(0), mesh)
     rng = np.random.default_rng(0)
-    host = {"measurement": rng.poisson(0.5, mcfg.input_shape(batch)).astype(np.float32),
-            "transient": rng.random((batch, small.num_bins) + tuple(small.grid), np.float32),
-            "intensity": rng.random((batch,) + tuple(small.grid), np.float32),
-            "depth": rng.random((batch,) + tuple(small.grid), np.float32)}
+    host = {k: (rng.poisson(0.5, s.shape) if k == "measurement" else rng.random(s.shape)).astype(np.float32)
+            for k, s in batch_shapes.items()}
     data = train.shard_batch(host, mesh)
     key = jax.random.key(1)
     state, m = compiled(state, data, key)                      # warm-up

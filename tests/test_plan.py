@@ -61,7 +61,8 @@ def test_dry_run_plans_from_shapes_and_measures_without_data(tiny):
     mcfg = v["model_config"]
     # Arguments of the train step: the state (params + AdamW's two moments + counts) and
     # the batch, counted here from shapes independently of XLA.
-    state = plan._abstract_state(mcfg, 2, T.make_optimizer(T.OptimConfig(), 10), T.make_mesh())
+    state = T.abstract_train_state(T.network(mcfg), mcfg.input_shape(2), T.make_optimizer(T.OptimConfig(), 10),
+                                   T.make_mesh())
     batch = plan._abstract_batch(mcfg, 2, T.make_mesh())
     nbytes = sum(np.prod(x.shape) * x.dtype.itemsize
                  for x in jax.tree.leaves((state, batch)) if hasattr(x, "shape"))

@@ -467,6 +467,28 @@ def count_params(params) -> int:
   return int(sum(math.prod(v.shape) for v in jax.tree_util.tree_leaves(params)))
 
 
+def flop_counts(cost, config, batch: int, *, backward: bool) -> tuple[float, float, float]:
+  """``(xla, fft, scan)`` FLOPs of one call of ``config``'s model on ``batch`` examples.
+
+  Args:
+    cost: ``cost_analysis()`` of the lowered or compiled call (a dict, a
+      one-element list of dicts, or None).
+    config: the model config (its ``analytic_flops`` adds what XLA does not
+      count: FFTs, ``lax.scan`` bodies).
+    batch: examples per call.
+    backward: the call is a forward + backward pass (FFTs x2, scans x3).
+  Returns:
+    XLA's count and the FFT and scan estimates, for the whole call.
+  """
+  if isinstance(cost, (list, tuple)):
+    cost = cost[0] if cost else {}
+  xla = float((cost or {}).get("flops", 0.0))
+  fft, scan = config.analytic_flops(batch)
+  if backward:
+    fft, scan = 2 * fft, 3 * scan
+  return xla, fft, scan
+
+
 def model_summary(config: ModelConfig, setup: Setup | None = None, *, batch: int = 1,
                   backward: bool = False) -> dict:
   """Parameter count and FLOPs of one forward pass per reconstructed frame, without allocating.
@@ -509,13 +531,7 @@ def model_summary(config: ModelConfig, setup: Setup | None = None, *, batch: int
   else:
     fn = model.apply
   lowered = jax.jit(fn).lower(variables, x)
-  cost = lowered.cost_analysis()
-  if isinstance(cost, (list, tuple)):
-    cost = cost[0] if cost else {}
-  xla = float((cost or {}).get("flops", 0.0))
-  fft, scan = config.analytic_flops(batch)
-  if backward:
-    fft, scan = 2 * fft, 3 * scan
+  xla, fft, scan = flop_counts(lowered.cost_analysis(), config, batch, backward=backward)
   return {
       "params": count_params(variables["params"]),
       "flops": (xla + fft + scan) / batch,

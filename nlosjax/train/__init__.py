@@ -43,12 +43,12 @@ from nlosjax.train.loop import (
 )
 from nlosjax.train.optimizer import OptimConfig, make_optimizer
 from nlosjax.train.sharding import initialize_distributed, make_mesh, mesh_for, shard_batch, to_host
-from nlosjax.train.state import TrainState, create_train_state, network
+from nlosjax.train.state import TrainState, abstract_train_state, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_targets, make_train_step, train_step
 
 __all__ = [
     "BATCH_KEYS", "Checkpointer", "OptimConfig", "TRAIN_DEFAULTS", "TrainState", "USM_RECIPES",
-    "VARIANT_FRAMES", "create_train_state", "ensure_dataset", "initialize_distributed",
+    "VARIANT_FRAMES", "abstract_train_state", "create_train_state", "ensure_dataset", "initialize_distributed",
     "make_loader", "make_mesh", "make_optimizer", "make_targets", "make_train_step", "mesh_for",
     "model_config_for", "network", "param_fingerprint", "read_metrics", "read_selection",
     "run_signature", "select_frames", "shard_batch", "to_host", "train_model", "train_step",

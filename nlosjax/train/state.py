@@ -46,13 +46,34 @@ def _jitted_init(model: nn.Module, input_shape: tuple[int, ...], tx, mesh: Mesh)
   CPU), so the seeds of one run share it: pass the same ``model`` instance
   (:func:`network`) and optimiser (:func:`make_optimizer` is cached).
   """
+  abstract = abstract_train_state(model, input_shape, tx, mesh)
+  return jax.jit(_init_fn(model, tx), out_shardings=jax.tree.map(lambda a: a.sharding, abstract))
+
+
+def _init_fn(model: nn.Module, tx) -> Callable:
+  """``init(key, x) -> TrainState``: parameters from ``model.init``, optimiser state from ``tx``."""
   def init(k, x):
     params = model.init(k, x)["params"]
     return TrainState.create(apply_fn=model.apply, params=params, tx=tx)
+  return init
 
-  abstract = jax.eval_shape(init, jax.random.key(0), jax.ShapeDtypeStruct(input_shape, jnp.float32))
-  replicated = jax.tree.map(lambda _: NamedSharding(mesh, P()), abstract)
-  return jax.jit(init, out_shardings=replicated)
+
+def abstract_train_state(model: nn.Module, input_shape: tuple[int, ...], tx, mesh: Mesh) -> TrainState:
+  """The train state as ``jax.ShapeDtypeStruct`` leaves replicated over ``mesh``; nothing allocated.
+
+  Args:
+    model, tx: as :func:`create_train_state`.
+    input_shape: ``[B, F, T, h, w]`` of one batch.
+    mesh: devices the state is replicated over.
+  Returns:
+    A :class:`TrainState` whose array leaves are shapes, dtypes and shardings:
+    what :func:`create_train_state` would build, e.g. to lower a step ahead
+    of time (:mod:`nlosjax.plan`).
+  """
+  abstract = jax.eval_shape(_init_fn(model, tx), jax.random.key(0),
+                            jax.ShapeDtypeStruct(tuple(input_shape), jnp.float32))
+  replicated = NamedSharding(mesh, P())
+  return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated), abstract)
 
 
 @functools.lru_cache(maxsize=8)
