@@ -16,6 +16,10 @@ forward+backward medians (ms) per shape, the shapes of ``benchmarks.scan``'s
   ``(exp(dt A), dt x B)`` pairs, then ``y = sum_n h C``; skipped with a note
   when mambapy is not installed (it is in the ``bench`` extra).
 
+our own kernels in the same run and the same way (``nlosjax blockwise`` and
+so on: ``selective_scan(method=...)`` jitted, forward and ``value_and_grad``),
+so that the ratio to mambapy is measured side by side; issue 21's goal is the
+associative kernel ("blockwise") at least 5x faster than mambapy forward+backward;
 and two parallel formulations written here from their published descriptions,
 with PyTorch autograd for the backward:
 
@@ -55,7 +59,9 @@ try:
 except ImportError:
   mambapy_pscan = None
 
-DEFAULT_SHAPES = ("256x512x32x16", "64x128x16x16", "512x256x32x16")
+DEFAULT_SHAPES = ("64x512x32x16", "128x256x32x16")   # issue 21's, as benchmarks.scan
+JAX_METHODS = ("blockwise", "sequential", "associative")
+GOAL_VS_MAMBAPY = 5.0
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "scan_torch.md"
 
 
@@ -138,9 +144,10 @@ def main(argv=None):
     assert err < 1e-4, (fn.__name__, err)
   rows = []
   ctx = multiprocessing.get_context("spawn")
+  names = [fn.__name__.removesuffix("_scan") for fn in methods] + [f"nlosjax {m}" for m in JAX_METHODS]
+  both_s = {}
   for s in args.shapes:
-    for fn in methods:
-      name = fn.__name__.removesuffix("_scan")
+    for name in names:
       # Each case in a child process, so one killed for memory (heinsen keeps
       # complex64 [Bt, L, D, N] tensors for autograd) is reported, not fatal.
       queue = ctx.Queue()
@@ -157,8 +164,19 @@ def main(argv=None):
         fwd, both = f"failed: {result['error']}", ""
       else:
         fwd, both = f"{result['fwd'] * 1e3:.1f}", f"{result['both'] * 1e3:.1f}"
+        both_s[(s, name)] = result["both"]
       rows.append(f"| {s} | {name} | {fwd} | {both} |")
       print(rows[-1], flush=True)
+  ratios = []
+  for s in args.shapes:
+    if (s, "mambapy") not in both_s:
+      continue
+    for m in JAX_METHODS:
+      if (s, f"nlosjax {m}") in both_s:
+        r = both_s[(s, "mambapy")] / both_s[(s, f"nlosjax {m}")]
+        goal = (f" ({'met' if r >= GOAL_VS_MAMBAPY else 'NOT met'}, goal >= {GOAL_VS_MAMBAPY}x)"
+                if m == "blockwise" else "")
+        ratios.append(f"- {s}: mambapy fwd+bwd / nlosjax {m} fwd+bwd = {r:.2f}x{goal}")
   mamba_note = ("mambapy " + _dist_version("mambapy") if mambapy_pscan is not None else
                 "mambapy not installed (`pip install -e \".[bench]\"`): its row is missing")
   lines = ["# Pure-PyTorch parallel selective scans (peers, not dependencies)", "", *facts,
@@ -177,7 +195,11 @@ def main(argv=None):
            "signed inputs, autograd backward.",
            "- `mambapy`: the `mambapy` package's `pscan` (Blelloch up/down sweeps in place, "
            "its own backward).", "",
-           "| shape | method | fwd ms | fwd+bwd ms |", "|---|---|---|---|", *rows, ""]
+           "- `nlosjax <method>`: `nlosjax.ssm.selective_scan(method=...)`, jitted, the same "
+           "loss `sum(y * w)` and gradients for x, dt, A, B, C (JAX's own threads; "
+           "compile excluded).", "",
+           "| shape | method | fwd ms | fwd+bwd ms |", "|---|---|---|---|", *rows, "",
+           "Speed-up over mambapy, forward+backward (same run):", "", *ratios, ""]
   args.out.parent.mkdir(parents=True, exist_ok=True)
   args.out.write_text("\n".join(lines))
   print(f"wrote {args.out}")
@@ -185,6 +207,9 @@ def main(argv=None):
 
 def _measure(shape_text: str, name: str, repeats: int, threads: int, queue) -> None:
   """Child process: time one method at one shape; puts ``{"fwd", "both"}`` (s) or ``{"error"}``."""
+  if name.startswith("nlosjax "):
+    queue.put(_measure_jax(shape_text, name.removeprefix("nlosjax "), repeats))
+    return
   torch.set_num_threads(threads)
   fn = globals()[f"{name}_scan"]
   x, dt, A, B, C, w = make_inputs(tuple(int(v) for v in shape_text.split("x")))
@@ -200,6 +225,21 @@ def _measure(shape_text: str, name: str, repeats: int, threads: int, queue) -> N
     queue.put({"fwd": fwd, "both": timed(fwd_bwd, repeats)})
   except RuntimeError as e:
     queue.put({"error": str(e).splitlines()[0][:80]})
+
+
+def _measure_jax(shape_text: str, method: str, repeats: int) -> dict:
+  """Time ``selective_scan(method=method)`` forward and forward+backward, as ``benchmarks.scan`` does."""
+  import jax
+  import jax.numpy as jnp
+
+  from benchmarks.scan import make_inputs as jax_inputs
+  from nlosjax.ssm import selective_scan
+  args, w = jax_inputs(tuple(int(v) for v in shape_text.split("x")))
+  fwd = jax.jit(lambda *a: selective_scan(*a, method=method))
+  both = jax.jit(jax.value_and_grad(lambda *a: jnp.sum(selective_scan(*a, method=method) * w),
+                                    argnums=(0, 1, 2, 3, 4)))
+  return {"fwd": timed(lambda: jax.block_until_ready(fwd(*args)), repeats),
+          "both": timed(lambda: jax.block_until_ready(both(*args)), repeats)}
 
 
 def _dist_version(name: str) -> str:

@@ -25,7 +25,9 @@ Methods (all exact; they differ in speed and memory):
   updates the state and contracts it with ``C_t``; only the state
   ``[..., Dch, N]`` lives between steps, nothing ``[..., L, Dch, N]`` is built.
 * ``"chunked"``: an outer ``lax.scan`` over chunks of ``chunk_size`` steps that
-  carries the state, an associative scan inside each chunk.
+  carries the state, an associative scan inside each chunk (8 steps by default:
+  at (64, 512, 32, 16) and (128, 256, 32, 16) on 2 cores, 8 steps ran forward
+  and forward+backward about 1.5x faster than 64, with a quarter of the memory).
 * ``"blockwise"``: time in blocks of ``chunk_size`` steps, all blocks at once:
   each block's affine summary from a zero state (one fused scan over its
   steps, batched over blocks; the decay product in closed form), an
@@ -34,12 +36,9 @@ Methods (all exact; they differ in speed and memory):
   contracting with ``C`` as it goes. The forward builds nothing
   ``[L, ..., N, Dch]``; about twice the exponentials of "sequential". Its
   backward has the same structure (block summaries of the adjoint, a reverse
-  associative scan over blocks, then each block's cotangents step by step), but
-  recomputes every block's states at once: ``[L, ..., N, Dch]`` transiently, as
-  "associative" (bounding that by processing blocks in groups is still to do). Block size 64 by default:
-  measured at (64, 512, 32, 16) on 2 shared cores, forward 2.09x the exp floor
-  at 64 steps per block, 2.52x at 32, 2.74x at 16, 3.45x at 8 (sequential 1.41x,
-  chunked 7.73x); forward+backward 16.6x (sequential 12.3x).
+  associative scan over blocks), then forms each block's cotangents step by
+  step, one block at a time, so that one block's ``[K, ..., N, Dch]`` states
+  are the largest transient. Block size 64 by default.
 * ``"auto"``: chosen per backend and shape by :func:`resolve_method` from the
   numbers in ``benchmarks/results/scan.md``.
 
@@ -80,7 +79,7 @@ from jax import lax
 
 METHODS = ("associative", "sequential", "chunked", "blockwise", "auto")
 COMBINES = ("mean", "sum", "none")
-DEFAULT_CHUNK = {"sequential": 64, "chunked": 64, "blockwise": 64}
+DEFAULT_CHUNK = {"sequential": 64, "chunked": 8, "blockwise": 64}
 
 
 # ------------------------------------------------------------------ validation
@@ -196,7 +195,21 @@ def _discretize(x, dt, At, B):
 
 def _contract(h, C):
   """``y[..., d] = sum_n h[..., n, d] C[..., n]``."""
-  return jnp.sum(h * C[..., :, None], axis=-2)
+  return _sum_n(h, C)
+
+
+# The reductions of a step are written as contractions (dot_general), not as
+# multiply-then-sum: XLA:CPU runs a [Bt, N, Dch] reduction over N or Dch as a
+# slow, poorly vectorised loop, and the batched matrix-vector product fast
+# (measured at (64, 512, 32, 16): the adjoint step's reductions 1.5x faster).
+def _sum_n(v, w):
+  """``out[..., d] = sum_n v[..., n, d] w[..., n]`` for ``v`` ``[..., N, Dch]``, ``w`` ``[..., N]``."""
+  return jnp.einsum("...nd,...n->...d", v, w, precision="highest")
+
+
+def _sum_d(v, w):
+  """``out[..., n] = sum_d v[..., n, d] w[..., d]`` for ``v`` ``[..., N, Dch]``, ``w`` ``[..., Dch]``."""
+  return jnp.einsum("...nd,...d->...n", v, w, precision="highest")
 
 
 def _seq_forward(At, h0, x, dt, B, C, reverse, unroll):
@@ -273,11 +286,11 @@ def _chunked_forward(At, h0, x, dt, B, C, reverse, K, inner, unroll, keep_states
 def _grads(At, x, dt, B, gy, h, h_prev, a, g):
   """Cotangents of one step (or a block of steps) from the adjoint ``g`` ``[..., N, Dch]``."""
   gla = g * h_prev * a                               # dL/d(dt A)
-  s = jnp.sum(g * B[..., :, None], axis=-2)          # [..., Dch]
+  s = _sum_n(g, B)                                   # [..., Dch]
   return ((dt * s,                                   # gx
            x * s + jnp.sum(gla * At, axis=-2),       # gdt
-           jnp.sum(g * (dt * x)[..., None, :], axis=-1),   # gB
-           jnp.sum(gy[..., None, :] * h, axis=-1)),  # gC
+           _sum_d(g, dt * x),                        # gB
+           _sum_d(h, gy)),                           # gC
           gla * dt[..., None, :])                    # gA terms
 
 
@@ -390,7 +403,8 @@ def _blockwise_backward(At, entering, g_last, x, dt, B, C, gy, reverse, K, unrol
   (``Q``: the block's own ``C gy`` terms carried back from a zero cotangent). A reverse
   associative scan over the blocks' ``(P, Q)`` gives every ``G_out``; then each block's
   states and adjoint are recomputed and its cotangents formed step by step
-  (:func:`_seq_chunk_backward`, batched over blocks).
+  (:func:`_seq_chunk_backward`), one block at a time so that no more than one block's
+  ``[K, Bt, N, Dch]`` states are alive.
   """
   L = x.shape[0]
   xb, dtb, Bb, Cb, gyb = (_to_blocks(v, K) for v in (x, dt, B, C, gy))
@@ -402,10 +416,16 @@ def _blockwise_backward(At, entering, g_last, x, dt, B, C, gy, reverse, K, unrol
   Q, _ = lax.scan(adjoint_summary_step, jnp.zeros_like(entering), (xb, dtb, Bb, Cb, gyb),
                   reverse=not reverse, unroll=unroll)
   G_out, _ = _entering(_block_decay(At, dtb, reverse), Q, g_last, not reverse)
-  G_in, gAt, grads = _seq_chunk_backward(At, entering, G_out, xb, dtb, Bb, Cb, gyb, reverse,
-                                         unroll)
+  del xb, dtb, Bb, Cb, gyb
+
+  def one_block(inp):
+    h_in, G, *steps = inp
+    return _seq_chunk_backward(At, h_in, G, *steps, reverse, unroll)
+  # One block at a time: its states and adjoint, [K, Bt, N, Dch], are the largest
+  # transients (all blocks at once held [L, Bt, N, Dch]: 111 MB at (64, 512, 32, 16)).
+  G_in, gAt, grads = lax.map(one_block, (entering, G_out) + tuple(_chunk(v, K) for v in (x, dt, B, C, gy)))
   gh0 = G_in[-1] if reverse else G_in[0]
-  gx, gdt, gB, gC = (_from_blocks(v, L) for v in grads)
+  gx, gdt, gB, gC = (_unchunk(v, L) for v in grads)
   return gh0, jnp.sum(gAt, axis=0), (gx, gdt, gB, gC)
 
 
@@ -496,8 +516,8 @@ def selective_scan(x, dt, A, B, C, D=None, *, reverse: bool = False, method: str
     return_state: also return the state after the last step.
     chunk_size: steps per chunk for "chunked" (the scan unit), per block for
       "blockwise", and for "sequential" (how often the forward pass of a
-      differentiated call keeps the state for the backward pass); default 64.
-      Ignored by "associative".
+      differentiated call keeps the state for the backward pass); default
+      :data:`DEFAULT_CHUNK` (64, "chunked" 8). Ignored by "associative".
     unroll: ``lax.scan`` unroll factor of the sequential steps.
 
   Returns:
