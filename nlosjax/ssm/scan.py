@@ -148,17 +148,17 @@ def resolve_method(method: str, *, length: int, channels: int, state: int, batch
                    backend: str | None = None) -> str:
   """The concrete method ``"auto"`` stands for (other methods pass through).
 
-  Rule (measured in ``benchmarks/results/scan.md``, 2-core AMD EPYC, XLA:CPU):
-  on CPU "sequential" at every shape. It was the fastest method forward and
-  forward+backward at all three issue shapes (``(256, 512, 32, 16)``,
-  ``(64, 128, 16, 16)``, ``(512, 256, 32, 16)``): forward 1.3-3.5x the exp floor
-  against 10-35x for "chunked" and "associative", and 2.6-11x less time for
-  forward+backward, with the least memory. The associative scan does about twice
-  the work and writes ``[L, ..., N, Dch]`` arrays at every level; the per-step
-  cost of ``lax.scan`` on CPU is a few microseconds, negligible next to the
+  Rule (measured in ``benchmarks/results/scan.md``, 2 cores, XLA:CPU): on CPU
+  "sequential" at every shape. At issue 21's shapes ``(64, 512, 32, 16)`` and
+  ``(128, 256, 32, 16)`` it was the fastest method forward (1.2-1.7x the exp
+  floor, against 2.2-2.8x for "blockwise", 4.8-5.9x "chunked", 14-19x
+  "associative") and forward+backward (13-15x, against 14-18x for "blockwise"
+  and "chunked"), with the least memory; the earlier shapes ``(256, 512, 32, 16)``,
+  ``(64, 128, 16, 16)``, ``(512, 256, 32, 16)`` ranked the same. The per-step cost
+  of ``lax.scan`` on CPU is a few microseconds, small next to the
   ``Bt * Dch * N`` exponentials of a step. Elsewhere (GPU/TPU, not measured
-  here) "chunked": parallel inside chunks of 64 steps, memory bounded by one
-  chunk, a short serial loop over chunks.
+  here) "chunked": parallel inside chunks, memory bounded by one chunk, a short
+  serial loop over chunks.
 
   Args:
     method: one of :data:`METHODS`.
