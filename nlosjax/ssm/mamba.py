@@ -144,7 +144,7 @@ class MambaMixer(nn.Module):
       VMamba's 2-D conv; only with ``direction="bidirectional"``).
     share_params: bidirectional only: share conv, x_proj, dt_proj, A_log and D
       between directions (default False: separate, Vim v2).
-    scan_method: selective-scan method ("auto" | "sequential" | "associative" | "chunked").
+    scan_method: selective-scan method ("auto" | "sequential" | "blockwise" | "chunked" | "associative").
     chunk_size: selective-scan chunk size (None: the kernel's default).
     dt_min, dt_max, dt_init, dt_scale, dt_init_floor: dt initialisation (Mamba's names).
     conv_bias: conv has a bias.

@@ -492,7 +492,7 @@ _ssm.defvjp(_ssm_fwd, _ssm_bwd)
 
 
 # ------------------------------------------------------------------ public API
-def selective_scan(x, dt, A, B, C, D=None, *, reverse: bool = False, method: str = "associative",
+def selective_scan(x, dt, A, B, C, D=None, *, reverse: bool = False, method: str = "auto",
                    initial_state=None, return_state: bool = False, chunk_size: int | None = None,
                    unroll: int = 1):
   """Mamba v1 selective scan ``y_t = <C_t, h_t> + D x_t``, ``h_t = exp(dt_t A) h_{t-1} + dt_t B_t x_t``.
@@ -509,8 +509,9 @@ def selective_scan(x, dt, A, B, C, D=None, *, reverse: bool = False, method: str
     D: ``[Dch]`` skip weight, or None for no skip term.
     reverse: scan from the last step to the first (anti-causal): ``h_t``
       depends on ``h_{t+1}`` and ``initial_state`` enters at step ``L``.
-    method: "associative" | "sequential" | "chunked" | "blockwise" | "auto" (see module docstring
-      and :func:`resolve_method`). All give the same result up to rounding.
+    method: "auto" (default: the fastest measured kernel, :func:`resolve_method`) |
+      "sequential" | "blockwise" | "chunked" | "associative" (see the module docstring).
+      All give the same result up to rounding.
     initial_state: ``[..., Dch, N]`` state before the first step (in the scan's
       direction), zeros when None.
     return_state: also return the state after the last step.
@@ -573,7 +574,7 @@ def selective_scan(x, dt, A, B, C, D=None, *, reverse: bool = False, method: str
 
 
 def bidirectional_scan(x, dt, A, B, C, D=None, *, reverse_inputs: Mapping | None = None,
-                       combine: str = "mean", method: str = "associative",
+                       combine: str = "mean", method: str = "auto",
                        chunk_size: int | None = None, unroll: int = 1):
   """Forward (causal) plus reverse (anti-causal) selective scans of one sequence (Vision Mamba).
 
