@@ -201,7 +201,8 @@ def test_lct_apply_equals_the_full_padded_fft_convolution():
   got = np.asarray(lct_apply(jnp.asarray(x, jnp.float32), ops, filt))
   data_v = np.asarray(ops.to_v, np.float64) @ x.reshape(64, -1)
   data_v = data_v.reshape(-1, 6, 5)
-  ref = np.fft.irfftn(np.fft.rfftn(data_v, s=ops.domain.fft_shape, axes=(0, 1, 2)) * np.asarray(filt),
+  filt = np.moveaxis(np.asarray(filt), -1, 0)        # [2H, W + 1, Lv] -> NumPy's [Lv, 2H, W + 1]
+  ref = np.fft.irfftn(np.fft.rfftn(data_v, s=ops.domain.fft_shape, axes=(0, 1, 2)) * filt,
                       s=ops.domain.fft_shape, axes=(0, 1, 2))[:ops.domain.num_u, :6, :5]
   np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
 

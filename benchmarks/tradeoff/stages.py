@@ -34,8 +34,10 @@ def lct_stages(setup, *, snr: float = 0.1) -> tuple[dict, Any]:
     v = jnp.einsum("vt,bthw->bvhw", ops.to_v, x[:, t0:t1], precision="highest")
     return jnp.fft.fft(jnp.fft.rfft(v, n=w2, axis=3), n=h2, axis=2)
 
-  def stage_v(spec):
-    return jnp.fft.ifft(jnp.fft.fft(spec, n=lv, axis=1) * filt, axis=1)[:, :dom.num_u]
+  def stage_v(spec):      # v moved last (the filter's layout), as lct_apply
+    spec = jnp.moveaxis(spec, 1, -1)
+    out = jnp.fft.ifft(jnp.fft.fft(spec, n=lv, axis=-1) * filt, axis=-1)[..., :dom.num_u]
+    return jnp.moveaxis(out, -1, 1)
 
   def stage_out(spec):
     vol = jnp.fft.irfft(jnp.fft.ifft(spec, axis=2)[:, :, :H], n=w2, axis=3)[..., :W]

@@ -275,7 +275,11 @@ class LCTOperators:
 
   Attributes:
     domain: the bin windows (static).
-    psf_fft: ``[Lv, 2H, W + 1]`` complex, ``rfftn`` of :func:`cone_psf`.
+    psf_fft: ``[2H, W + 1, Lv]`` complex, ``rfftn`` of :func:`cone_psf` with its v axis
+      moved last (time-minor): :func:`lct_apply` then transforms, filters and
+      inverts along v with no transposes of the padded spectrum (measured at
+      128 x 128 x 512: 15 % faster than the ``[Lv, 2H, W + 1]`` layout, the
+      same numbers).
     to_v: ``[Nv, Nt]`` time -> v resampling with the falloff power.
     to_z: ``[Z, Nu]`` u -> depth averaging.
     to_v_sparse, to_z_sparse: ``(rows, cols, weights)`` of the same matrices
@@ -338,15 +342,20 @@ def lct_operators(setup: Setup, power: float, *, t_margin: int = 0, z_margin: in
   T = setup.num_bins
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
   real = np.float64 if jnp.dtype(dtype) == jnp.float64 else np.float32
-  psf_fft = scipy.fft.rfftn(cone_psf(setup, dom, dtype=real), workers=-1)   # once per Setup; all cores
+  psf_fft = _time_minor(scipy.fft.rfftn(cone_psf(setup, dom, dtype=real), workers=-1))   # all cores
   to_v = squared_axis_matrix(T, dom.v, dom.t, power=power, oversample=oversample)
   to_z = linear_axis_matrix(T, dom.z, dom.u, power=0.0, oversample=oversample)
   return LCTOperators(dom, jnp.asarray(psf_fft, cdtype), jnp.asarray(to_v, dtype),
                       jnp.asarray(to_z, dtype))
 
 
+def _time_minor(spectrum: np.ndarray) -> np.ndarray:
+  """``[Lv, 2H, W + 1]`` -> ``[2H, W + 1, Lv]``, contiguous (the layout of ``LCTOperators.psf_fft``)."""
+  return np.ascontiguousarray(np.moveaxis(spectrum, 0, -1))
+
+
 def lct_filter(ops: LCTOperators, snr: float | None) -> jax.Array:
-  """``[Lv, 2H, W + 1]``: ``conj(F)`` (backprojection, ``snr=None``) or the Wiener ``conj(F)/(|F|^2 + 1/snr)``."""
+  """``[2H, W + 1, Lv]``: ``conj(F)`` (backprojection, ``snr=None``) or the Wiener ``conj(F)/(|F|^2 + 1/snr)``."""
   f = ops.psf_fft
   if snr is None:
     return jnp.conj(f)
@@ -359,7 +368,7 @@ def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array | None) -> jax.Ar
   Args:
     x: ``[Nt, H, W]`` real time window ``transient[t0:t1]``.
     ops: operators of the problem.
-    filt: ``[Lv, 2H, W + 1]`` complex frequency-domain filter
+    filt: ``[2H, W + 1, Lv]`` complex frequency-domain filter
       (:func:`lct_filter`), or ``None`` for the backprojection ``conj(F)``
       taken inside the product (no second spectrum-sized array, nothing to
       compile beforehand).
@@ -372,12 +381,15 @@ def lct_apply(x: jax.Array, ops: LCTOperators, filt: jax.Array | None) -> jax.Ar
   data_v = apply_axis_matrix(ops.to_v, ops.to_v_sparse, x)
   # rfftn / irfftn one axis at a time, skipping the zero padding going in and
   # the discarded rows going out: the same numbers as the full transforms
-  # with about 20% fewer FLOPs (the data fills an eighth of the FFT box).
+  # with about 20% fewer FLOPs (the data fills an eighth of the FFT box). The
+  # v axis is moved last once each way, so its FFT, the filter and its inverse
+  # run on the minor axis (XLA:CPU transposes around an FFT of any other axis).
   spec = jnp.fft.rfft(data_v, n=w2, axis=2)                 # [Nv, H, W + 1]
   spec = jnp.fft.fft(spec, n=h2, axis=1)                    # [Nv, 2H, W + 1]
-  spec = jnp.fft.fft(spec, n=lv, axis=0)                    # [Lv, 2H, W + 1]
+  spec = jnp.moveaxis(spec, 0, -1)                          # [2H, W + 1, Nv]
   filt = lct_filter(ops, None) if filt is None else filt
-  out = jnp.fft.ifft(spec * filt, axis=0)[:dom.num_u]       # [Nu, 2H, W + 1]
+  out = jnp.fft.ifft(jnp.fft.fft(spec, n=lv, axis=-1) * filt, axis=-1)[..., :dom.num_u]
+  out = jnp.moveaxis(out, -1, 0)                            # [Nu, 2H, W + 1]
   out = jnp.fft.ifft(out, axis=1)[:, :h]                    # [Nu, H, W + 1]
   return jnp.fft.irfft(out, n=w2, axis=2)[:, :, :w]         # [Nu, H, W]
 
@@ -480,7 +492,7 @@ def public_lct_operators(setup: Setup, time_power: int, *, z_margin: int = 0,
   mtx = public_resampling_matrix(T)
   t_n = np.linspace(0.0, 1.0, T)
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
-  psf_fft = scipy.fft.rfftn(public_cone_psf(setup), workers=-1)
+  psf_fft = _time_minor(scipy.fft.rfftn(public_cone_psf(setup), workers=-1))
   real = np.float64 if jnp.dtype(dtype) == jnp.float64 else np.float32
   to_v = (mtx * t_n[None, :] ** time_power).astype(real)
   to_z = np.ascontiguousarray(mtx.T[z[0]:z[1]]).astype(real)
