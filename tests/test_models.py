@@ -298,16 +298,16 @@ def test_softplus_volume_activation_keeps_gradients_where_relu_is_dead():
     a, b = stage.window()
     if x is None:
       x = jnp.asarray(point_scene(setup)[None, a:b])
-    params = stage.init(jax.random.key(3), x)
+    params = jax.jit(stage.init)(jax.random.key(3), x)
     params["params"]["refine"]["to_volume"]["bias"] = jnp.full((1,), -0.9)
     if dead is None:
-      dead = stage.apply(params, x)["intensity"] == 0
+      dead = jax.jit(stage.apply)(params, x)["intensity"] == 0
       assert 0.3 < float(dead.mean()) < 1.0
 
-    def loss(p):
+    def loss(p, dead=dead):
       return jnp.sum(jnp.where(dead, stage.apply(p, x)["intensity"], 0.0))
 
-    g = jax.grad(loss)(params)
+    g = jax.jit(jax.grad(loss))(params)
     grads[act] = max(float(jnp.max(jnp.abs(v))) for v in jax.tree_util.tree_leaves(g))
   assert grads["relu"] == 0.0 and grads["softplus"] > 1e-6, grads
   with pytest.raises(ValueError, match="volume_activation"):
@@ -447,11 +447,11 @@ def test_weighted_skip_is_the_softmax_mix_of_the_frames():
   params["skip_frame_logits"] = jnp.log(jnp.array([1.0, 2.0, 1.0]))   # w = (1/4, 1/2, 1/4)
   params["spread"]["to_transient"] = jax.tree_util.tree_map(jnp.zeros_like,
                                                             params["spread"]["to_transient"])
-  out = model.apply({"params": params}, x)
+  out = jax.jit(model.apply)({"params": params}, x)
   mixed = 0.25 * x[:, 0] + 0.5 * x[:, 1] + 0.25 * x[:, 2]
   middle = STMambaNet(cfg.replace(skip_frames="middle"))
   p_mid = {k: v for k, v in params.items() if k != "skip_frame_logits"}
-  ref = middle.apply({"params": p_mid}, jnp.stack([mixed] * 3, axis=1))
+  ref = jax.jit(middle.apply)({"params": p_mid}, jnp.stack([mixed] * 3, axis=1))
   got = out["transient"] * out["scale"][:, None, None, None]
   want = ref["transient"] * ref["scale"][:, None, None, None]
   np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * float(jnp.max(want)))
@@ -460,14 +460,14 @@ def test_weighted_skip_is_the_softmax_mix_of_the_frames():
     o = model.apply({"params": {**params, "skip_frame_logits": logits}}, x)
     return jnp.sum(o["transient"] ** 2)
 
-  assert float(jnp.max(jnp.abs(jax.grad(loss)(params["skip_frame_logits"])))) > 0.0
+  assert float(jnp.max(jnp.abs(jax.jit(jax.grad(loss))(params["skip_frame_logits"])))) > 0.0
 
 
 def test_weighted_skip_of_one_frame_is_the_middle_frame():
   single = tiny_config(frames=1, skip_frames="weighted")
   x = counts(jax.random.key(2), single.input_shape(1))
-  p_w = STMambaNet(single).init(jax.random.key(3), x)["params"]
-  p_m = STMambaNet(single.replace(skip_frames="middle")).init(jax.random.key(3), x)["params"]
+  p_w = jax.eval_shape(STMambaNet(single).init, jax.random.key(3), x)["params"]
+  p_m = jax.eval_shape(STMambaNet(single.replace(skip_frames="middle")).init, jax.random.key(3), x)["params"]
   assert jax.tree_util.tree_structure(p_w) == jax.tree_util.tree_structure(p_m)
   with pytest.raises(ValueError, match="skip_frames"):
     tiny_config(skip_frames="mean")

@@ -24,7 +24,7 @@ def test_zeroed_features_make_stage_one_irrelevant():
                     volume_features=1, refine_width=2, skip_frames="weighted")
   model = STMambaNet(cfg)
   x = jax.random.uniform(jax.random.key(0), cfg.input_shape(2), minval=0.0, maxval=5.0)
-  params = model.init(jax.random.key(1), x)["params"]
+  params = jax.jit(model.init)(jax.random.key(1), x)["params"]
   trained, zeroed = P._intensity_fns(model)
   stage1 = ("extract", "st_mamba", "cross_")
   other = _perturb(params, stage1)

@@ -9,6 +9,8 @@ reproduce it), and the geometry of the scan points (a coarse point is the
 mean of its 2 x 2 block).
 """
 
+import functools
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -199,18 +201,24 @@ def test_shapes_and_finite_outputs():
   assert float(out["volume"].min()) >= 0.0
 
 
-@pytest.mark.parametrize("kind", ["zero", "single", "saturated"])
-def test_extreme_inputs_stay_finite(kind):
+@functools.lru_cache(maxsize=1)
+def _tiny_usm_compiled():
+  """``(input shape, variables, jitted apply)`` of the tiny USM, built once per test process."""
   cfg = tiny()
   shape = cfg.input_shape(1)
+  model = USMNet(cfg)
+  return shape, jax.jit(model.init)(jax.random.key(7), jnp.ones(shape)), jax.jit(model.apply)
+
+
+@pytest.mark.parametrize("kind", ["zero", "single", "saturated"])
+def test_extreme_inputs_stay_finite(kind):
+  shape, params, apply = _tiny_usm_compiled()
   x = np.zeros(shape, np.float32)
   if kind == "single":
     x[0, 0, 5, 1, 2] = 1.0
   elif kind == "saturated":
     x[:] = 1e9
-  model = USMNet(cfg)
-  params = model.init(jax.random.key(7), jnp.ones(shape))
-  out = model.apply(params, jnp.asarray(x))
+  out = apply(params, jnp.asarray(x))
   for k, v in out.items():
     assert bool(jnp.all(jnp.isfinite(v))), (kind, k)
 
@@ -219,14 +227,14 @@ def test_gradients_reach_every_parameter():
   cfg = tiny()
   x = counts(jax.random.key(8), cfg.input_shape(2), 2.0)
   model = USMNet(cfg)
-  params = model.init(jax.random.key(9), x)["params"]
+  params = jax.jit(model.init)(jax.random.key(9), x)["params"]
 
   def loss(p):
     out = model.apply({"params": p}, x)
     return (jnp.mean(out["intensity"] ** 2) + jnp.mean(out["depth"] ** 2)
             + jnp.mean(out["transient"] ** 2) + jnp.mean(out["feature_volume"] ** 2))
 
-  grads = jax.grad(loss)(params)
+  grads = jax.jit(jax.grad(loss))(params)
   for path, g in jax.tree_util.tree_leaves_with_path(grads):
     assert bool(jnp.all(jnp.isfinite(g))), jax.tree_util.keystr(path)
     assert float(jnp.abs(g).max()) > 0, f"no gradient reaches {jax.tree_util.keystr(path)}"
