@@ -128,8 +128,9 @@ def fft_floor(method: str, setup: Setup):
     ``t``) and the box's FFT pair for its real and imaginary parts;
   * ``fk``: ``rfft`` along ``t`` (length ``2T``), ``fft2`` on ``(2H, 2W)``, and
     back (``ifft2``, ``ifft``);
-  * ``rsd``: ``fft2`` of the ``K`` wall fields on ``(2H, 2W)``, ``ifft2`` of
-    the NUFFT grid's rows, ``ifft`` along its ``M`` cells (sizes from the plan).
+  * ``rsd``: ``rfft`` along ``t`` (the wall fields' DTFT), ``fft2`` of the ``K``
+    wall fields on ``(2H, 2W)``, ``ifft2`` of the NUFFT grid's rows, ``ifft`` along
+    its ``M`` cells (sizes from the plan).
   """
   import jax.numpy as jnp
 
@@ -158,10 +159,11 @@ def fft_floor(method: str, setup: Setup):
     import importlib
     recon = importlib.import_module("nlosjax.physics.reconstruct")   # the module, not the function
     plan = recon._rsd_plan(setup, 3.0, 2.0, 0.1, jnp.float32)
-    k, rows, m = plan.dtft.shape[0], plan.num_rows, plan.fft_len
+    k, rows, m = plan.bins.shape[0], plan.num_rows, plan.fft_len
 
     def rsd_floor(v):
-      fields = jnp.fft.fft2(v[:k].astype(jnp.complex64), s=(2 * H, 2 * W))
+      spec = jnp.fft.rfft(jnp.moveaxis(v, 0, -1), axis=-1)[..., :k]        # the wall fields' DTFT
+      fields = jnp.fft.fft2(jnp.moveaxis(spec, -1, 0), s=(2 * H, 2 * W))
       grid = jnp.resize(fields, (rows, 2 * H, 2 * W))
       g = jnp.fft.ifft2(grid)[:, :H, :W].reshape(rows, H * W)
       return jnp.fft.ifft(g.T, n=m, axis=-1)

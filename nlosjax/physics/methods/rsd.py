@@ -74,8 +74,9 @@ def _es_kernel(t, xp=np):
 
 
 @functools.partial(jax.tree_util.register_dataclass,
-                   data_fields=["dtft", "source", "column", "row", "offset", "phase", "deconv"],
-                   meta_fields=["grid", "num_depths", "fft_len", "num_rows"])
+                   data_fields=["bins", "weight", "source", "column", "row", "offset", "phase",
+                                "deconv"],
+                   meta_fields=["grid", "num_depths", "fft_len", "num_rows", "num_bins"])
 @dataclasses.dataclass(frozen=True)
 class RSDPlan:
   """Operators of RSD with the depth sum done by a type-1 NUFFT (see :func:`rsd`).
@@ -95,7 +96,12 @@ class RSDPlan:
     fft_len: ``M`` grid cells along the depth-frequency axis (static).
     num_rows: grid cells that receive any weight (static); they are stored
       from cell ``-taps / 2`` on (sources lie in ``[0, M / 2]``).
-    dtft: ``[K, Nt]`` complex, wall field per frequency from the time window.
+    num_bins: ``T``, the capture's time bins (static): the frequencies are bins of
+      its ``rfft``.
+    bins: ``[K]`` int32, the ``rfft`` bin ``k`` of each frequency ``omega_k = 2 pi k / (T dt)``.
+    weight: ``[K]`` complex, ``P_hat(omega_k) exp(-i omega_k t0 dt)``: the wall field
+      per frequency is ``weight * rfft(x[t0:t1], n=T)[bins]`` (the DTFT of the
+      time window, by FFT).
     source: ``[P]`` int32, flat index ``k * 4HW + f`` of each propagating pair.
     column: ``[P]`` int32, its lateral frequency ``f``.
     row: ``[P]`` int32, first stored cell the pair spreads to.
@@ -110,7 +116,9 @@ class RSDPlan:
   num_depths: int
   fft_len: int
   num_rows: int
-  dtft: jax.Array
+  num_bins: int
+  bins: jax.Array
+  weight: jax.Array
   source: jax.Array
   column: jax.Array
   row: jax.Array
@@ -122,7 +130,7 @@ class RSDPlan:
 @_validate.cached_operators(maxsize=16)
 def _rsd_plan(setup: Setup, cycles: float, sampling_coeff: float, ratio: float, dtype) -> RSDPlan:
   """Build (once per Setup and options) the NUFFT operators of :func:`rsd`."""
-  dtft, kz, mask = _rsd_operators(setup, cycles, sampling_coeff, ratio, dtype)
+  _, kz, mask = _rsd_operators(setup, cycles, sampling_coeff, ratio, dtype)
   kz = np.asarray(kz, np.float64)
   k0, k1 = setup.depth_bins
   n_z = k1 - k0
@@ -157,16 +165,41 @@ def _rsd_plan(setup: Setup, cycles: float, sampling_coeff: float, ratio: float, 
   flat = kk * kz[0].size + ff
   if max(flat.max(initial=0), num_rows * kz[0].size) >= 2 ** 31:
     raise ValueError(f"{setup}: RSD problem too large for 32-bit indices; use fewer scan points")
-  return RSDPlan(setup.grid, n_z, fft_len, num_rows, dtft, jnp.asarray(flat, jnp.int32),
+  wl = illumination_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
+  omega = wl.frequencies(setup.num_bins, ratio)
+  bins = np.rint(omega * setup.num_bins * setup.bin_width / (2 * np.pi)).astype(np.int64)
+  if not np.allclose(bins * 2 * np.pi / (setup.num_bins * setup.bin_width), omega, rtol=1e-12):
+    raise AssertionError("internal: the RSD frequencies are not rfft bins")
+  t0 = _rsd_window(setup, wl)[0]
+  weight = wl.spectrum(omega) * np.exp(-2j * np.pi * bins * t0 / setup.num_bins)
+  return RSDPlan(setup.grid, n_z, fft_len, num_rows, setup.num_bins, jnp.asarray(bins, jnp.int32),
+                 jnp.asarray(weight, cdtype), jnp.asarray(flat, jnp.int32),
                  jnp.asarray(ff, jnp.int32), jnp.asarray(row, jnp.int32),
                  jnp.asarray(offset, dtype), jnp.asarray(phase, cdtype),
                  jnp.asarray(deconv, cdtype))
 
 
 def _rsd_wall_spectrum(xi: jax.Array, dtft: jax.Array) -> jax.Array:
-  """``[Nt, H, W]`` time window -> ``[K, 2H, 2W]`` lateral spectra of the wall field per frequency."""
+  """``[Nt, H, W]`` time window -> ``[K, 2H, 2W]`` lateral spectra of the wall field per frequency.
+
+  The DTFT as a ``[K, Nt]`` matrix product (the direct sum's reference path);
+  :func:`_rsd_wall_spectrum_fft` is the same by FFT.
+  """
   h, w = xi.shape[-2:]
   fields = jnp.einsum("kt,thw->khw", dtft, xi.astype(dtft.dtype), precision="highest")
+  return jnp.fft.fft2(fields, s=(2 * h, 2 * w))
+
+
+def _rsd_wall_spectrum_fft(xi: jax.Array, plan: RSDPlan) -> jax.Array:
+  """As :func:`_rsd_wall_spectrum`, the DTFT taken from ``rfft`` bins: ``[Nt, H, W]`` -> ``[K, 2H, 2W]``.
+
+  The frequencies are ``rfft`` bins of the capture's ``T``, so the DTFT of the
+  window is its length-``T`` ``rfft`` at those bins times ``plan.weight`` (2.5x
+  faster than the ``[K, Nt]`` product at 128 x 128 x 512, K = 117).
+  """
+  h, w = xi.shape[-2:]
+  spec = jnp.fft.rfft(jnp.moveaxis(xi, 0, -1), n=plan.num_bins, axis=-1)   # [H, W, T // 2 + 1]
+  fields = jnp.moveaxis(spec[..., plan.bins] * plan.weight.astype(spec.dtype), -1, 0)
   return jnp.fft.fft2(fields, s=(2 * h, 2 * w))
 
 
@@ -178,15 +211,20 @@ def _rsd_nufft_batch(x, plan: RSDPlan, window):
   n_z, m, rows = plan.num_depths, plan.fft_len, plan.num_rows
   centre = n_z // 2
   taps = jnp.arange(_NUFFT_TAPS, dtype=plan.offset.dtype)
-  kern = _es_kernel(taps[:, None] - plan.offset[None, :], jnp)         # [taps, P]
-  row = plan.row[None, :] + jnp.arange(_NUFFT_TAPS, dtype=jnp.int32)[:, None]
-  target = (row * n_f + plan.column[None, :]).reshape(-1)             # [taps * P]
+  kern = _es_kernel(taps[None, :] - plan.offset[:, None], jnp)         # [P, taps]
+  start = jnp.stack([plan.column, plan.row], axis=1)                  # [P, 2] into [4HW, rows]
+  # Each pair adds a window of `taps` consecutive cells of its column: one scatter
+  # of P windows into the column-major grid (contiguous windows), then one
+  # transpose; scattering taps * P single cells was 1.5x slower on CPU.
+  spread = jax.lax.ScatterDimensionNumbers(update_window_dims=(1,), inserted_window_dims=(0,),
+                                           scatter_dims_to_operand_dims=(0, 1))
 
   def one(xi):
-    spec = _rsd_wall_spectrum(xi[t0:t1], plan.dtft).reshape(-1)       # [K * 4HW]
+    spec = _rsd_wall_spectrum_fft(xi[t0:t1], plan).reshape(-1)        # [K * 4HW]
     values = spec[plan.source] * plan.phase                           # [P]
-    grid = jnp.zeros((rows * n_f,), values.dtype).at[target].add(
-        (kern.astype(values.dtype) * values[None, :]).reshape(-1))
+    grid = jax.lax.scatter_add(jnp.zeros((n_f, rows), values.dtype), start,
+                               kern.astype(values.dtype) * values[:, None], spread,
+                               mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS).T   # [rows, 4HW]
     # The lateral inverse FFT and the one along the grid are separable: do the
     # lateral one first and crop to the scan grid, so the grid FFT and the
     # transposes around it touch a quarter of the data.
