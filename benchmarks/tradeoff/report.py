@@ -9,6 +9,12 @@ import math
 
 from benchmarks.tradeoff.configs import CLASSIC, GOAL_HALVING, LABELS
 from benchmarks.tradeoff.pareto import learned_beats_classic, pareto_front, pareto_points, recommend
+from experiments.configs import get_config
+
+
+def _main_job_steps() -> int:
+  """Training steps of the main job's default preset (the README's command 1)."""
+  return int(get_config()["train"]["steps"])
 
 
 def _ms(s: float) -> str:
@@ -58,8 +64,8 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
       " 1-6), 32 x 32 scan grid, 128 bins of 132 ps, 2 m wall; objects at 0.5-1.5 m.",
       f"- Learned configurations: trained by this benchmark, {res['steps']} AdamW steps of batch 4"
       " each (the CPU preset's optimiser with the cosine schedule over those steps, seed 0, the"
-      " main job's batches; the main job trains 300 steps, so `Ours` here is not Table 1's"
-      " unless the budgets match).",
+      f" main job's batches; the main job trains {_main_job_steps()} steps, so `Ours` here is not"
+      " Table 1's unless the budgets match).",
       f"- Time: jitted pipeline `input -> (intensity, depth)`, batch {res['batch']}, per frame ="
       " median call / batch; compile = `.lower().compile()` (tracing, operator construction"
       " cached per Setup, XLA). XLA MiB = `memory_analysis()` temp + argument + output bytes"
