@@ -230,14 +230,12 @@ def _measure(shape_text: str, name: str, repeats: int, threads: int, queue) -> N
 def _measure_jax(shape_text: str, method: str, repeats: int) -> dict:
   """Time ``selective_scan(method=method)`` forward and forward+backward, as ``benchmarks.scan`` does."""
   import jax
-  import jax.numpy as jnp
 
+  from benchmarks.scan import build_variants
   from benchmarks.scan import make_inputs as jax_inputs
-  from nlosjax.ssm import selective_scan
   args, w = jax_inputs(tuple(int(v) for v in shape_text.split("x")))
-  fwd = jax.jit(lambda *a: selective_scan(*a, method=method))
-  both = jax.jit(jax.value_and_grad(lambda *a: jnp.sum(selective_scan(*a, method=method) * w),
-                                    argnums=(0, 1, 2, 3, 4)))
+  variants = build_variants([method], None, w)
+  fwd, both = (jax.jit(variants[(method, ps)]) for ps in ("fwd", "fwd+bwd"))
   return {"fwd": timed(lambda: jax.block_until_ready(fwd(*args)), repeats),
           "both": timed(lambda: jax.block_until_ready(both(*args)), repeats)}
 

@@ -22,11 +22,11 @@ def lct_stages(setup, *, snr: float = 0.1) -> tuple[dict, Any]:
   """
   import jax.numpy as jnp
 
-  from nlosjax.physics.operators import lct_filter, lct_operators
+  from nlosjax.physics.operators import filter_v_axis, lct_filter, lct_operators
   ops = lct_operators(setup, 3.0, oversample=1)
   filt = lct_filter(ops, snr)
   dom = ops.domain
-  lv, h2, w2 = dom.fft_shape
+  _, h2, w2 = dom.fft_shape
   H, W = setup.grid
   t0, t1 = dom.t
 
@@ -34,10 +34,8 @@ def lct_stages(setup, *, snr: float = 0.1) -> tuple[dict, Any]:
     v = jnp.einsum("vt,bthw->bvhw", ops.to_v, x[:, t0:t1], precision="highest")
     return jnp.fft.fft(jnp.fft.rfft(v, n=w2, axis=3), n=h2, axis=2)
 
-  def stage_v(spec):      # v moved last (the filter's layout), as lct_apply
-    spec = jnp.moveaxis(spec, 1, -1)
-    out = jnp.fft.ifft(jnp.fft.fft(spec, n=lv, axis=-1) * filt, axis=-1)[..., :dom.num_u]
-    return jnp.moveaxis(out, -1, 1)
+  def stage_v(spec):
+    return filter_v_axis(spec, filt, dom, axis=1)
 
   def stage_out(spec):
     vol = jnp.fft.irfft(jnp.fft.ifft(spec, axis=2)[:, :, :H], n=w2, axis=3)[..., :W]

@@ -407,7 +407,8 @@ def _blockwise_backward(At, entering, g_last, x, dt, B, C, gy, reverse, K, unrol
   ``[K, Bt, N, Dch]`` states are alive.
   """
   L = x.shape[0]
-  xb, dtb, Bb, Cb, gyb = (_to_blocks(v, K) for v in (x, dt, B, C, gy))
+  chunks = tuple(_chunk(v, K) for v in (x, dt, B, C, gy))          # [nb, K, ...]
+  xb, dtb, Bb, Cb, gyb = (jnp.swapaxes(v, 0, 1) for v in chunks)    # [K, nb, ...]
 
   def adjoint_summary_step(G, inp):
     x_t, dt_t, B_t, C_t, gy_t = inp
@@ -416,14 +417,13 @@ def _blockwise_backward(At, entering, g_last, x, dt, B, C, gy, reverse, K, unrol
   Q, _ = lax.scan(adjoint_summary_step, jnp.zeros_like(entering), (xb, dtb, Bb, Cb, gyb),
                   reverse=not reverse, unroll=unroll)
   G_out, _ = _entering(_block_decay(At, dtb, reverse), Q, g_last, not reverse)
-  del xb, dtb, Bb, Cb, gyb
 
   def one_block(inp):
     h_in, G, *steps = inp
     return _seq_chunk_backward(At, h_in, G, *steps, reverse, unroll)
   # One block at a time: its states and adjoint, [K, Bt, N, Dch], are the largest
   # transients (all blocks at once held [L, Bt, N, Dch]: 111 MB at (64, 512, 32, 16)).
-  G_in, gAt, grads = lax.map(one_block, (entering, G_out) + tuple(_chunk(v, K) for v in (x, dt, B, C, gy)))
+  G_in, gAt, grads = lax.map(one_block, (entering, G_out) + chunks)
   gh0 = G_in[-1] if reverse else G_in[0]
   gx, gdt, gB, gC = (_unchunk(v, L) for v in grads)
   return gh0, jnp.sum(gAt, axis=0), (gx, gdt, gB, gC)

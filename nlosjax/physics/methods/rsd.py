@@ -31,13 +31,20 @@ def _rsd_window(setup: Setup, wavelet: Wavelet) -> tuple[int, int]:
   return (max(0, t0 - half), min(setup.num_bins, t1 + half))
 
 
+def _rsd_frequencies(setup: Setup, cycles: float, sampling_coeff: float,
+                     ratio: float) -> tuple[Wavelet, np.ndarray]:
+  """``(wavelet, omega [K] rad/s)``: the frequencies RSD propagates, ``rfft`` bins of ``setup.num_bins``."""
+  wl = illumination_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
+  omega = wl.frequencies(setup.num_bins, ratio)
+  if omega.size == 0:
+    raise ValueError(f"no frequency of the wavelet spectrum exceeds ratio={ratio}")
+  return wl, omega
+
+
 @_validate.cached_operators(maxsize=16)
 def _rsd_operators(setup: Setup, cycles: float, sampling_coeff: float, ratio: float, dtype):
   """``(dtft [K, Nt], kz [K, 2H, 2W], mask [K, 2H, 2W])``: the wall-field DTFT and axial wavenumbers."""
-  wl = illumination_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
-  omega = wl.frequencies(setup.num_bins, ratio)               # [K] rad/s
-  if omega.size == 0:
-    raise ValueError(f"no frequency of the wavelet spectrum exceeds ratio={ratio}")
+  wl, omega = _rsd_frequencies(setup, cycles, sampling_coeff, ratio)
   t0, t1 = _rsd_window(setup, wl)
   t = np.arange(t0, t1) * setup.bin_width
   dtft = np.exp(-1j * omega[:, None] * t[None, :]) * wl.spectrum(omega)[:, None]   # [K, Nt]
@@ -165,8 +172,7 @@ def _rsd_plan(setup: Setup, cycles: float, sampling_coeff: float, ratio: float, 
   flat = kk * kz[0].size + ff
   if max(flat.max(initial=0), num_rows * kz[0].size) >= 2 ** 31:
     raise ValueError(f"{setup}: RSD problem too large for 32-bit indices; use fewer scan points")
-  wl = illumination_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
-  omega = wl.frequencies(setup.num_bins, ratio)
+  wl, omega = _rsd_frequencies(setup, cycles, sampling_coeff, ratio)
   bins = np.rint(omega * setup.num_bins * setup.bin_width / (2 * np.pi)).astype(np.int64)
   if not np.allclose(bins * 2 * np.pi / (setup.num_bins * setup.bin_width), omega, rtol=1e-12):
     raise AssertionError("internal: the RSD frequencies are not rfft bins")
