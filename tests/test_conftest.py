@@ -1,6 +1,8 @@
 """The suite's own setup: a missing test requirement is named with the install command."""
 
 import importlib.metadata
+import os
+import shutil
 
 import pytest
 
@@ -37,3 +39,26 @@ def test_uninstalled_package_says_how_to_install(monkeypatch):
 
 def test_the_real_install_has_every_test_requirement():
   assert conftest.missing_test_requirements() == []
+
+
+def test_the_compilation_cache_is_a_fresh_folder_unless_switched_off_or_given(tmp_path):
+  environ = {}
+  path = conftest.shared_compilation_cache(environ)
+  try:
+    assert environ["JAX_COMPILATION_CACHE_DIR"] == environ["NLOSJAX_CACHE_DIR"] == path
+    assert environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
+    assert not any(os.scandir(path))          # nothing from an earlier run
+  finally:
+    shutil.rmtree(path)
+  assert conftest.shared_compilation_cache({"NLOSJAX_TEST_CACHE": "0"}) is None
+  given = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path)}
+  assert conftest.shared_compilation_cache(given) is None
+  assert given == {"JAX_COMPILATION_CACHE_DIR": str(tmp_path)}
+
+
+def test_this_run_compiles_through_the_shared_cache():
+  import jax
+  if os.environ.get("NLOSJAX_TEST_CACHE") == "0":
+    pytest.skip("switched off for this run")
+  assert jax.config.jax_compilation_cache_dir == os.environ["JAX_COMPILATION_CACHE_DIR"]
+  assert jax.config.jax_persistent_cache_min_compile_time_secs == 0
