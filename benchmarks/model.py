@@ -1,12 +1,13 @@
 """Benchmark the ST-Mamba network: one training step (forward + backward) per config.
 
-    python -m benchmarks.model [--configs cpu paper] [--frames 3] [--batch 1] [--repeats 1]
+    python -m benchmarks.model [--configs cpu usm paper] [--frames 3] [--batch 1] [--repeats 1]
                                [--time-limit 600] [--out benchmarks/results/model.md]
 
 For every config (``cpu`` = the model ``python -m experiments.train`` trains,
-the ``cpu`` preset's ``Ours`` on its data's Setup; ``paper`` =
-:meth:`ModelConfig.paper`: 16 x 16 x 512 in, 128 x 128 out), in a fresh
-child process:
+the ``cpu`` preset's ``Ours`` on its data's Setup; ``usm`` = the USM baseline
+that preset trains when ``train.variants`` holds ``"usm"``, one frame whatever
+``--frames`` says; ``paper`` = :meth:`ModelConfig.paper`: 16 x 16 x 512 in,
+128 x 128 out), in a fresh child process:
 
 * parameters and FLOPs per frame from :func:`nlosjax.models.model_summary`
   (``jax.eval_shape`` and XLA's cost analysis of the lowered program, plus the
@@ -55,16 +56,18 @@ def _config(name: str, frames: int):
   import dataclasses
 
   from nlosjax.models import ModelConfig
-  if name == "cpu":   # the model the main job trains: the cpu preset's model on its data's Setup
+  if name in ("cpu", "usm"):   # what the cpu preset trains, on its data's Setup
     from experiments import configs
     from nlosjax import train
     from nlosjax.data.dataset import DatasetSpec
     preset = train.with_defaults(configs.get_config("cpu"))
     setup = DatasetSpec.from_config(preset["data"]).setup
+    if name == "usm":                  # USM reconstructs one frame
+      return train.model_config_for(preset, setup, "usm")
     return dataclasses.replace(train.model_config_for(preset, setup, "ours"), frames=frames)
   if name == "paper":
     return ModelConfig.paper(frames=frames)
-  raise ValueError(f"unknown config {name!r}; choose cpu or paper")
+  raise ValueError(f"unknown config {name!r}; choose cpu, usm or paper")
 
 
 def _small_setup(cfg):
@@ -93,10 +96,10 @@ def run_case(name: str, frames: int, batch: int, repeats: int, forward: bool) ->
   import jax
   import jax.numpy as jnp
 
-  from nlosjax.models import STMambaNet, model_summary
+  from nlosjax.models import model_summary
 
   cfg = _config(name, frames)
-  out = {"config": name, "frames": frames, "batch": batch,
+  out = {"config": name, "frames": cfg.frames, "batch": batch,
          "input": cfg.input_shape(batch), "grid": cfg.setup.grid, "bins": cfg.setup.num_bins}
   t = time.perf_counter()
   summary = model_summary(cfg)
@@ -106,8 +109,8 @@ def run_case(name: str, frames: int, batch: int, repeats: int, forward: bool) ->
   small = cfg.with_setup(_small_setup(cfg))
   key = jax.random.key(0)
   xs = jnp.zeros(small.input_shape(1), jnp.float32)
-  params = jax.jit(STMambaNet(small).init)(key, xs)["params"]
-  model = STMambaNet(cfg)
+  params = jax.jit(small.module().init)(key, xs)["params"]
+  model = cfg.module()
   x = jax.random.poisson(jax.random.key(1), 0.05, cfg.input_shape(batch)).astype(jnp.float32)
   expected = jax.eval_shape(model.init, key, x)["params"]
   if jax.tree.structure(expected) != jax.tree.structure(params) or jax.tree.leaves(
@@ -206,6 +209,9 @@ NOTES = """
 - The physics layer is `nlosjax.physics`' phasor-field pipeline (operators from
   `lct_operators`, wavelet from `illumination_wavelet`, oversample 1) applied per feature
   channel at half the time resolution; it gates time and crops depth to a Setup's depth range.
+- `usm` = the learned baseline USM (`nlosjax.models.usm`) as the cpu preset trains it: one
+  frame in, its transient recovery on the full 32 x 32 x 128 grid (branches cut to 2
+  channels); the same loss here (sum of the mean squares of the four outputs).
 - Intensity = max-projection normalised per image; depth = soft-argmax along depth of each
   column normalised by its maximum (temperature 0.05), blended to 0 m where the intensity is
   below 0.1 through a sigmoid of width 0.02: differentiable everywhere.
@@ -262,7 +268,8 @@ def to_markdown(rows, info, cmd, load_before, load_after) -> str:
 
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument("--configs", nargs="+", default=["cpu", "paper"], choices=["cpu", "paper"])
+  p.add_argument("--configs", nargs="+", default=["cpu", "usm", "paper"],
+                 choices=["cpu", "usm", "paper"])
   p.add_argument("--frames", type=int, nargs="+", default=[3])
   p.add_argument("--batch", type=int, default=1)
   p.add_argument("--repeats", type=int, default=1)
