@@ -84,7 +84,7 @@ def get_config() -> dict:
   #   not the middle one alone), on cpu-v3.h5 at 350 steps: Ours 18.01 dB against 17.90 dB
   #   with "middle" (Ours-S 17.92 dB); the learned weights stay near uniform (0.32, 0.37, 0.31).
   #   The measured room is small: Ours-S given the three frames' mean instead of the middle
-  #   frame gains +0.28 dB on this split (benchmarks/results/temporal_probe.md).
+  #   frame gains +0.27 dB on this split (benchmarks/results/temporal_probe.md).
   model = {
       "width": 8, "d_state": 4, "extract_time_stride": 4, "extract_blocks": 1,
       "st_depth": 1, "cross_depth": 1, "spread_min_width": 1, "volume_features": 1,
