@@ -15,10 +15,14 @@ ImportError deep in one module. Here instead:
   compiles the same train step), so one persistent XLA compilation cache, in a
   temporary folder made for this run and removed after it, is shared by every
   worker and every subprocess (environment variables set before the workers
-  start): the second compile of a program is a disk read. A run never reads
-  executables from an earlier run or the user's own cache (``~/.cache/nlosjax``).
-  ``NLOSJAX_TEST_CACHE=0`` turns it off; a ``JAX_COMPILATION_CACHE_DIR`` already
-  set is used as it is (and kept).
+  start): the second compile of a program is a disk read. JAX writes cache
+  entries without renaming them into place, so a size limit is set: that makes
+  JAX lock the folder (with ``filelock``, in the test extra) around every read
+  and write, and no process reads an entry another is still writing. Without
+  ``filelock`` the cache stays off. A run never reads executables from an
+  earlier run or the user's own cache (``~/.cache/nlosjax``); folders left by
+  killed runs are removed by the next run. ``NLOSJAX_TEST_CACHE=0`` turns it
+  off; a ``JAX_COMPILATION_CACHE_DIR`` already set is used as it is (and kept).
 """
 
 from __future__ import annotations
@@ -71,21 +75,59 @@ def pytest_cmdline_main(config: pytest.Config):
 
 
 # Measured on 2 cores: tests/test_train_resume.py 97 s without the cache, 55 s with a cold one.
+CACHE_PREFIX = "nlosjax-test-xla-"
 CACHE_ENV = {"JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
-             "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0"}
+             "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0",
+             # Any limit switches on JAX's file lock; 64 GiB never evicts here.
+             "JAX_COMPILATION_CACHE_MAX_SIZE": str(64 * 2 ** 30)}
+
+
+def _pid_alive(pid: int) -> bool:
+  try:
+    os.kill(pid, 0)
+  except ProcessLookupError:
+    return False
+  except PermissionError:
+    return True
+  return True
+
+
+def remove_stale_caches(parent: str | None = None) -> list[str]:
+  """Delete cache folders of earlier runs whose pytest process is gone; returns their paths."""
+  parent = parent or tempfile.gettempdir()
+  removed = []
+  for entry in os.scandir(parent):
+    if not (entry.name.startswith(CACHE_PREFIX) and entry.is_dir()):
+      continue
+    try:
+      pid = int(open(os.path.join(entry.path, "pid")).read())
+    except (OSError, ValueError):
+      pid = None                       # no pid file: made by an older conftest, or half made
+    if pid is None or not _pid_alive(pid):
+      shutil.rmtree(entry.path, ignore_errors=True)
+      removed.append(entry.path)
+  return removed
 
 
 def shared_compilation_cache(environ) -> str | None:
   """Point JAX (and ``experiments.reconstruct``'s cache) at a fresh folder via ``environ``.
 
   Returns the folder this call made (the caller removes it at the end), or ``None``
-  when the cache is switched off (``NLOSJAX_TEST_CACHE=0``) or the environment
-  already names one.
+  when the cache is switched off (``NLOSJAX_TEST_CACHE=0``), the environment
+  already names one, or ``filelock`` is missing (JAX's lock needs it).
+  ``NLOSJAX_TEST_CACHE_DIR`` names the folder made here, so a test can tell it from
+  one the user gave.
   """
   if environ.get("NLOSJAX_TEST_CACHE", "1") == "0" or environ.get("JAX_COMPILATION_CACHE_DIR"):
     return None
-  path = tempfile.mkdtemp(prefix="nlosjax-test-xla-")
-  environ["JAX_COMPILATION_CACHE_DIR"] = path
+  try:
+    import filelock  # noqa: F401  (JAX imports it to lock the cache)
+  except ImportError:
+    return None
+  path = tempfile.mkdtemp(prefix=CACHE_PREFIX)
+  with open(os.path.join(path, "pid"), "w") as f:
+    f.write(str(os.getpid()))
+  environ["JAX_COMPILATION_CACHE_DIR"] = environ["NLOSJAX_TEST_CACHE_DIR"] = path
   environ["NLOSJAX_CACHE_DIR"] = path        # experiments.reconstruct.enable_compilation_cache
   for key, value in CACHE_ENV.items():
     environ.setdefault(key, value)
@@ -100,6 +142,8 @@ def pytest_configure(config: pytest.Config) -> None:
     raise pytest.UsageError(f"the test extra is not fully installed (missing: "
                             f"{', '.join(missing)}); from the repository root run: {INSTALL}")
   # Before JAX is imported here and before the xdist workers start, so both read it.
+  if os.environ.get("NLOSJAX_TEST_CACHE", "1") != "0":
+    remove_stale_caches()
   config._nlosjax_cache = shared_compilation_cache(os.environ)
 
 

@@ -2,7 +2,10 @@
 
 import importlib.metadata
 import os
+import pathlib
 import shutil
+import subprocess
+import sys
 
 import pytest
 
@@ -41,13 +44,15 @@ def test_the_real_install_has_every_test_requirement():
   assert conftest.missing_test_requirements() == []
 
 
-def test_the_compilation_cache_is_a_fresh_folder_unless_switched_off_or_given(tmp_path):
+def test_the_compilation_cache_is_a_fresh_locked_folder_unless_switched_off_or_given(tmp_path):
   environ = {}
   path = conftest.shared_compilation_cache(environ)
   try:
     assert environ["JAX_COMPILATION_CACHE_DIR"] == environ["NLOSJAX_CACHE_DIR"] == path
+    assert environ["NLOSJAX_TEST_CACHE_DIR"] == path
     assert environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
-    assert not any(os.scandir(path))          # nothing from an earlier run
+    assert int(environ["JAX_COMPILATION_CACHE_MAX_SIZE"]) > 0        # JAX locks the folder
+    assert [e.name for e in os.scandir(path)] == ["pid"]              # nothing from an earlier run
   finally:
     shutil.rmtree(path)
   assert conftest.shared_compilation_cache({"NLOSJAX_TEST_CACHE": "0"}) is None
@@ -56,9 +61,26 @@ def test_the_compilation_cache_is_a_fresh_folder_unless_switched_off_or_given(tm
   assert given == {"JAX_COMPILATION_CACHE_DIR": str(tmp_path)}
 
 
-def test_this_run_compiles_through_the_shared_cache():
+def test_folders_of_killed_runs_are_removed_and_live_ones_kept(tmp_path):
+  dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                        capture_output=True, text=True, check=True).stdout.strip()
+  for name, pid in (("dead", dead), ("live", str(os.getpid())), ("nopid", None)):
+    folder = tmp_path / (conftest.CACHE_PREFIX + name)
+    folder.mkdir()
+    if pid is not None:
+      (folder / "pid").write_text(pid)
+  (tmp_path / "unrelated").mkdir()
+  removed = conftest.remove_stale_caches(str(tmp_path))
+  assert sorted(pathlib.Path(p).name for p in removed) == [conftest.CACHE_PREFIX + "dead",
+                                                           conftest.CACHE_PREFIX + "nopid"]
+  assert sorted(p.name for p in tmp_path.iterdir()) == [conftest.CACHE_PREFIX + "live", "unrelated"]
+
+
+def test_this_run_compiles_through_its_cache():
   import jax
-  if os.environ.get("NLOSJAX_TEST_CACHE") == "0":
-    pytest.skip("switched off for this run")
+  if os.environ.get("NLOSJAX_TEST_CACHE") == "0" or not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+    pytest.skip("no compilation cache in this run")
   assert jax.config.jax_compilation_cache_dir == os.environ["JAX_COMPILATION_CACHE_DIR"]
-  assert jax.config.jax_persistent_cache_min_compile_time_secs == 0
+  if os.environ.get("NLOSJAX_TEST_CACHE_DIR") == os.environ["JAX_COMPILATION_CACHE_DIR"]:
+    assert jax.config.jax_persistent_cache_min_compile_time_secs == 0     # made by conftest
+    assert jax.config.jax_compilation_cache_max_size > 0
