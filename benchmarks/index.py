@@ -92,8 +92,9 @@ def read_entry(path: pathlib.Path) -> Entry:
     date = _first(r"Produced by `[^`]+` on (\S+?)[ .(]", body)
   machine = _first(r"^- (?:Machine|CPU): ([^;\n]+)", body)
   commit = _first(r"^- Commit: (.+)$", body)
+  # Banners are quoted lines at the top, newest first: "> **Still holds at <hash>** (...)".
   return Entry(path.stem, _first(r"^# (.+)$", body), command, date, machine, commit,
-               _first(r"Still holds at ([0-9a-f]+)", text, ""))
+               _first(r"^> \*\*Still holds at ([0-9a-f]{7,40})\*\*", text, ""))
 
 
 def entries(results: pathlib.Path = RESULTS) -> list[Entry]:
