@@ -2,6 +2,7 @@
 
     python -m benchmarks.ablations [--config cpu] [--steps 150] [--seeds 3] [--workdir runs/ablations]
                                    [--only full no_pf ...] [--out benchmarks/results/table2.md]
+                                   [--config.section.key=value ...]
 
 Every row trains Ours (three frames, the main job's model and data) for the
 same ``--steps`` from the same ``--seeds`` training seeds (the config's seed,
@@ -211,12 +212,12 @@ def main(argv=None):
   parser.add_argument("--workdir", default="runs/ablations")
   parser.add_argument("--only", nargs="*", default=None, choices=list(ROWS))
   parser.add_argument("--out", default="benchmarks/results/table2.md")
-  args = parser.parse_args(argv)
+  args, overrides = parser.parse_known_args(argv)
   from tqdm import tqdm
 
-  from experiments.cli import load_config
+  from experiments.cli import apply_overrides, load_config
   from nlosjax.train import with_defaults
-  base = with_defaults(load_config(args.config))
+  base = with_defaults(apply_overrides(load_config(args.config), overrides))
   rows = args.only or list(ROWS)
   workdir = pathlib.Path(args.workdir)
   if args.seeds < 1:
