@@ -147,19 +147,6 @@ def pytest_configure(config: pytest.Config) -> None:
   config._nlosjax_cache = shared_compilation_cache(os.environ)
 
 
-# Modules that take longest on 2 cores (--durations, a fresh clone), run first so that the
-# xdist workers, which take whole modules in collection order (--dist loadfile), do not
-# finish with one long module on one worker while the other waits.
-SLOW_MODULES = ("test_train.py", "test_distributed.py", "test_learning.py", "test_train_resume.py",
-                "test_temporal_probe.py", "test_stability.py", "test_models.py")
-
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list) -> None:
-  """Order modules longest first (``SLOW_MODULES``), the rest as collected; tests keep their order."""
-  rank = {name: i for i, name in enumerate(SLOW_MODULES)}
-  items.sort(key=lambda item: rank.get(item.path.name, len(rank)))   # stable
-
-
 def pytest_unconfigure(config: pytest.Config) -> None:
   path = getattr(config, "_nlosjax_cache", None)
   if path:

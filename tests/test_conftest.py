@@ -85,11 +85,3 @@ def test_this_run_compiles_through_its_cache():
     assert jax.config.jax_persistent_cache_min_compile_time_secs == 0     # made by conftest
     assert jax.config.jax_compilation_cache_max_size > 0
 
-
-def test_the_slow_modules_are_collected_first(request):
-  names = []
-  for item in request.session.items:
-    if not names or names[-1] != item.path.name:
-      names.append(item.path.name)
-  present = [m for m in conftest.SLOW_MODULES if m in names]
-  assert names[:len(present)] == present
