@@ -23,7 +23,8 @@ HERE = pathlib.Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 INDEX = HERE / "README.md"
 
-# What each results file is judged against (from the issue that asked for it); "" = no stated goal.
+# What each results file is judged against (from the issue that asked for it); a file not
+# named here shows "none stated".
 GOALS = {
     "data": "near-linear speed-up with `--workers` (issue 22)",
     "dry_run": "refuses a run above 90 % of device memory",
@@ -104,9 +105,12 @@ def entries(results: pathlib.Path = RESULTS) -> list[Entry]:
   return [read_entry(p) for p in sorted(results.glob("*.md"))]
 
 
-def companions(results: pathlib.Path, stem: str) -> list[str]:
-  """Other files of ``results`` whose names start with ``stem`` (figures, JSON), not other tables."""
-  tables = {p.stem for p in results.glob("*.md")}
+def companions(results: pathlib.Path, stem: str, tables: set[str] | None = None) -> list[str]:
+  """Other files of ``results`` whose names start with ``stem`` (figures, JSON), not other tables.
+
+  ``tables``: the stems of every results table (read from ``results`` when not given).
+  """
+  tables = {p.stem for p in results.glob("*.md")} if tables is None else tables
   out = []
   for p in sorted(results.iterdir()):
     if p.suffix == ".md" or not p.name.startswith(stem):
@@ -123,12 +127,14 @@ def render(results: pathlib.Path = RESULTS) -> str:
   """The index's Markdown text."""
   lines = [HEADER, "| results file | what | command | date (UTC) | machine | commit | "
            "latest check | goal | companions |", "|---|---|---|---|---|---|---|---|---|"]
-  for e in entries(results):
+  found = entries(results)
+  tables = {e.name for e in found}
+  for e in found:
     cells = [f"[{e.name}.md](results/{e.name}.md)", e.title.replace("|", "\\|"),
              f"`{e.command}`".replace("|", "\\|"), e.date, e.machine, e.commit,
              f"still holds at {e.still_holds}" if e.still_holds else "",
              GOALS.get(e.name, "none stated"),
-             ", ".join(companions(results, e.name))]
+             ", ".join(companions(results, e.name, tables))]
     lines.append("| " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
 
