@@ -1,32 +1,47 @@
-"""Simulate a dynamic NLOS dataset into one HDF5 file.
+"""Simulate a dynamic NLOS dataset into one HDF5 file: the one ``python -m experiments.train`` makes.
 
-    python -m experiments.make_dataset [--config cpu|paper] [--out FILE] [--overwrite]
-        [--sequences N | --train N --val K --test M] [--frames F] [--seed S] [--workers W]
-        [--clean | --no-clean] [--albedo] [--quiet]
+    python -m experiments.make_dataset [--config NAME|FILE.py] [--config.section.key=value ...]
+        [--out FILE] [--overwrite] [--sequences N | --train N --val K --test M] [--frames F]
+        [--seed S] [--workers W] [--clean | --no-clean] [--albedo] [--quiet]
 
-Reads the ``data`` section of the preset (``experiments/configs``), applies the
-flags, and calls :func:`nlosjax.data.dataset.write_dataset` (progress bar,
-crash-safe: it writes ``FILE.partial`` and renames it when done; rerunning
-after a crash resumes it). An existing ``FILE`` is kept unless ``--overwrite``.
-The layout is documented in the README (section "Dynamic NLOS dataset").
+Reads the config as ``python -m experiments.train`` does (:mod:`experiments.cli`:
+a preset of ``experiments/configs`` or a ``.py`` file, then the
+``--config.section.key=value`` overrides; an unknown key or section exits with
+the known ones before anything is simulated), applies the flags below, and
+calls :func:`nlosjax.data.dataset.write_dataset` with
+``DatasetSpec.from_config(config["data"])`` at ``config["data"]["path"]``
+(progress bar, crash-safe: it writes ``FILE.partial`` and renames it when done;
+rerunning after a crash resumes it). So with the same ``--config`` and
+overrides, e.g. ``--config.data.renderer=lct --config.data.retroreflective=0.0``,
+it writes the file that train would make for itself. An existing ``FILE`` is
+kept unless ``--overwrite``. The layout is documented in the README (section
+"Dynamic NLOS dataset").
+
+The flags are shorthands of config keys: ``--out`` of ``data.path``, ``--frames``
+of ``data.frames``, ``--seed`` of ``data.seed``, ``--train/--val/--test`` of
+``data.num_sequences.{train,val,test}``, ``--clean/--no-clean`` of
+``data.store_clean``, ``--albedo`` of ``data.store_albedo`` and ``--workers``
+of ``train.data_workers`` (default: the config's, else 1); ``--sequences N``
+splits N in the config's ``num_sequences`` proportion (``--train/--val/--test``
+then replace single counts). A flag and an override of the same key exit
+(give one of them).
 """
 
 from __future__ import annotations
 
-import argparse
 import pathlib
 import sys
 import time
 
-from experiments import configs
+from experiments import cli, configs
 from nlosjax.data import dataset
 
 
 def _split_counts(total: int, train: int, val: int, test: int) -> tuple[int, int, int]:
-  """Split ``total`` sequences in the preset's train:val:test proportion.
+  """Split ``total`` sequences in the config's train:val:test proportion.
 
   At least 1 test sequence from 2 sequences on, at least 1 validation
-  sequence from 4 on (where the preset has the split), at least 1 train.
+  sequence from 4 on (where the config has the split), at least 1 train.
   """
   if total < 1:
     raise ValueError(f"--sequences must be >= 1, got {total}")
@@ -38,61 +53,83 @@ def _split_counts(total: int, train: int, val: int, test: int) -> tuple[int, int
   return total - n_test - n_val, n_val, n_test
 
 
-def build_spec(args) -> tuple[dataset.DatasetSpec, pathlib.Path]:
-  """The DatasetSpec and output path from parsed arguments."""
-  data = configs.get_config(args.config)["data"]
+#: Flag (argparse dest) -> the config key it is a shorthand of.
+SHORTHANDS = {
+    "out": ("data", "path"), "frames": ("data", "frames"), "seed": ("data", "seed"),
+    "train": ("data", "num_sequences", "train"), "val": ("data", "num_sequences", "val"),
+    "test": ("data", "num_sequences", "test"), "clean": ("data", "store_clean"),
+    "albedo": ("data", "store_albedo"), "workers": ("train", "data_workers"),
+}
+
+
+def apply_flags(args, config: dict, overrides=()) -> dict:
+  """Write the shorthand flags given in ``args`` into ``config`` (in place; :data:`SHORTHANDS`).
+
+  Raises:
+    ValueError: a flag and one of ``overrides`` set the same key, or a bad ``--sequences``.
+  """
+  touched = [cli.override_key(arg)[0] for arg in overrides]
+  data = config.setdefault("data", {})
   counts = dict(data.get("num_sequences", {}))
-  train, val, test = counts.get("train", 0), counts.get("val", 0), counts.get("test", 0)
   if args.sequences is not None:
-    train, val, test = _split_counts(args.sequences, train, val, test)
-  if args.train is not None:
-    train = args.train
-  if args.val is not None:
-    val = args.val
-  if args.test is not None:
-    test = args.test
-  overrides = {"num_train": train, "num_val": val, "num_test": test}
-  if args.frames is not None:
-    overrides["frames"] = args.frames
-  if args.seed is not None:
-    overrides["seed"] = args.seed
-  if args.clean is not None:
-    overrides["store_clean"] = args.clean
-  if args.albedo:
-    overrides["store_albedo"] = True
-  spec = dataset.DatasetSpec.from_config(data, **overrides)
-  out = pathlib.Path(args.out or data.get("path") or f"runs/data/{args.config}.h5")
+    train, val, test = _split_counts(args.sequences, counts.get("train", 0), counts.get("val", 0),
+                                     counts.get("test", 0))
+    counts.update(train=train, val=val, test=test)
+  for dest, key in SHORTHANDS.items():
+    value = getattr(args, dest)
+    if value is None or (dest == "albedo" and not value):
+      continue
+    for other in touched:
+      n = min(len(other), len(key))
+      if other[:n] == key[:n]:
+        flag = "--" + dest if dest != "clean" else ("--clean" if value else "--no-clean")
+        raise ValueError(f"{flag} and --config.{'.'.join(other)} both set {'.'.join(key)}; give one of them")
+    if key[1] == "num_sequences":
+      counts[key[2]] = value
+    else:
+      config.setdefault(key[0], {})[key[1]] = value
+  if counts:
+    data["num_sequences"] = counts
+  return config
+
+
+def build_spec(config: dict, name: str = configs.DEFAULT) -> tuple[dataset.DatasetSpec, pathlib.Path]:
+  """The DatasetSpec and output path of ``config`` (after :func:`apply_flags`), as ``experiments.train`` builds them.
+
+  ``name``: the ``--config`` argument, naming the file where the config has no ``data.path``.
+  """
+  data = config["data"]
+  spec = dataset.DatasetSpec.from_config(data)
+  out = pathlib.Path(data.get("path") or f"runs/data/{pathlib.Path(name).stem}.h5")
   return spec, out
 
 
 def main(argv=None) -> int:
-  parser = argparse.ArgumentParser(description=__doc__,
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
-  parser.add_argument("--config", default=configs.DEFAULT, choices=configs.PRESETS,
-                      help="preset whose data section to use (default: %(default)s)")
-  parser.add_argument("--out", default=None, help="output HDF5 file (default: the preset's data.path)")
+  parser = cli.config_parser(__doc__)
+  parser.add_argument("--out", default=None, help="output HDF5 file (data.path; default: the config's)")
   parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
   parser.add_argument("--sequences", "--num-sequences", type=int, default=None,
-                      help="total sequences, split train:val:test as in the preset")
-  parser.add_argument("--train", type=int, default=None, help="training sequences")
+                      help="total sequences, split train:val:test as in the config's data.num_sequences")
+  parser.add_argument("--train", type=int, default=None, help="training sequences (data.num_sequences.train)")
   parser.add_argument("--val", type=int, default=None,
-                      help="validation sequences (every choice is made on them)")
-  parser.add_argument("--test", type=int, default=None, help="test sequences")
-  parser.add_argument("--frames", type=int, default=None, help="frames per sequence")
-  parser.add_argument("--seed", type=int, default=None, help="base seed")
-  parser.add_argument("--workers", type=int, default=1,
-                      help="processes simulating sequences in parallel (default: 1)")
+                      help="validation sequences, every choice is made on them (data.num_sequences.val)")
+  parser.add_argument("--test", type=int, default=None, help="test sequences (data.num_sequences.test)")
+  parser.add_argument("--frames", type=int, default=None, help="frames per sequence (data.frames)")
+  parser.add_argument("--seed", type=int, default=None, help="base seed (data.seed)")
+  parser.add_argument("--workers", type=int, default=None,
+                      help="processes simulating sequences in parallel (train.data_workers; default: the"
+                           " config's, else 1)")
   clean = parser.add_mutually_exclusive_group()
   clean.add_argument("--clean", dest="clean", action="store_true", default=None,
-                     help="store the noise-free transients")
+                     help="store the noise-free transients (data.store_clean=True)")
   clean.add_argument("--no-clean", dest="clean", action="store_false",
-                     help="do not store the noise-free transients")
-  parser.add_argument("--albedo", action="store_true", help="also store the albedo volumes")
+                     help="do not store the noise-free transients (data.store_clean=False)")
+  parser.add_argument("--albedo", action="store_true", help="also store the albedo volumes (data.store_albedo)")
   parser.add_argument("--quiet", action="store_true", help="no progress bar")
-  args = parser.parse_args(argv)
+  args, config, overrides = cli.parse_config(parser, argv)
 
   try:
-    spec, out = build_spec(args)
+    spec, out = build_spec(apply_flags(args, config, overrides), args.config)
   except ValueError as e:
     parser.error(str(e))
   if out.exists() and not args.overwrite:
@@ -104,7 +141,8 @@ def main(argv=None) -> int:
         f" grid {s.grid[0]}x{s.grid[1]}, {s.num_bins} bins of {s.bin_width * 1e12:.0f} ps,"
         f" wall {s.wall_size} m; clean {'on' if spec.store_clean else 'off'} -> {out}")
   t0 = time.perf_counter()
-  result = dataset.write_dataset(out, spec, overwrite=args.overwrite, workers=args.workers,
+  workers = int(config.get("train", {}).get("data_workers") or 1)
+  result = dataset.write_dataset(out, spec, overwrite=args.overwrite, workers=workers,
                                  progress=not args.quiet)
   dt = time.perf_counter() - t0
   resumed = f", {result.resumed} kept from an interrupted run" if result.resumed else ""

@@ -5,6 +5,7 @@ Usage::
   python -m experiments.train                               # CPU preset, runs/default
   python -m experiments.train --config paper --workdir runs/paper   # paper scale (GPU)
   python -m experiments.train --config.train.steps=50 --config.train.seed=1
+  python -m experiments.train --config.data.renderer=lct --config.data.retroreflective=0.0
   python -m experiments.train --seeds 3 --workdir runs/seeds3   # Table 1 over 3 training seeds
   python -m experiments.train --config paper --dry-run      # memory and time, nothing trained
   # several hosts (or processes): the same command on each, process ids 0 .. N-1
@@ -25,16 +26,19 @@ FLOPs and an estimated time per step and for the run (measured at a reduced
 size, :mod:`nlosjax.plan`), and exits without generating data. With several
 processes each one reads only its rows of every global batch; process 0 makes
 the dataset (on a file system the others see), writes the logs and evaluates.
+
+``--config`` and the ``--config.section.key=value`` overrides are parsed by
+:mod:`experiments.cli`, as in ``python -m experiments.make_dataset``: with the
+same ``--config`` and ``--config.data.*`` overrides it writes the dataset file
+this command would make for itself. An unknown key or section exits, listing
+the known ones, before any data is made or model trained.
 """
 
-import argparse
-
-from experiments.cli import apply_overrides, load_config
+from experiments.cli import config_parser, parse_config
 
 
 def main(argv=None):
-  parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  parser.add_argument("--config", default="cpu", help="preset name (cpu, paper) or a .py file")
+  parser = config_parser(__doc__.split("\n\n")[0])
   parser.add_argument("--workdir", default="runs/default", help="output folder")
   parser.add_argument("--seeds", type=int, default=None,
                       help="training seeds per variant (default: the config's train.seeds, 1); "
@@ -47,8 +51,7 @@ def main(argv=None):
                       help="host:port of process 0 for multi-process training (jax.distributed)")
   parser.add_argument("--num-processes", type=int, default=1, help="processes in all (default 1)")
   parser.add_argument("--process-id", type=int, default=0, help="this process, 0 .. N-1")
-  args, overrides = parser.parse_known_args(argv)
-  config = apply_overrides(load_config(args.config), overrides)
+  args, config, _ = parse_config(parser, argv)
   if args.seeds is not None:
     if args.seeds < 1:
       parser.error(f"--seeds must be >= 1, got {args.seeds}")

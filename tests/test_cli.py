@@ -1,0 +1,138 @@
+"""One command-line habit (issue 36): ``experiments.train`` and ``experiments.make_dataset`` share ``experiments.cli``.
+
+Parse-only: generation and training are replaced by recorders, so nothing is simulated or compiled.
+"""
+
+import pathlib
+import types
+
+import pytest
+
+from experiments import cli, independent_set, make_dataset
+from experiments import train as train_cli
+from nlosjax import main_job
+from nlosjax import train as T
+from nlosjax.data import dataset as D
+
+
+@pytest.fixture
+def record(monkeypatch):
+  """Run either command with its work replaced: ``{"train": config, "write": (path, spec, workers)}``."""
+  seen = {}
+
+  def write(path, spec, *, workers=1, **kw):
+    seen["write"] = (pathlib.Path(path), spec, workers)
+    pathlib.Path(path).write_bytes(b"")
+    return types.SimpleNamespace(generated=spec.num_sequences, resumed=0)
+
+  monkeypatch.setattr(D, "write_dataset", write)
+  monkeypatch.setattr(main_job, "train_and_evaluate", lambda config, workdir, **kw: seen.update(train=config))
+  monkeypatch.setattr(independent_set, "ensure_independent_set", lambda path, *a: path)
+  return seen
+
+
+def train_dataset(config, record):
+  """``(path, spec, workers)`` of the dataset ``experiments.train``'s main job makes for ``config``."""
+  path = pathlib.Path(config["data"]["path"])
+  path.unlink(missing_ok=True)
+  T.ensure_dataset(T.with_defaults(config), path, log=lambda s: None)
+  return record.pop("write")
+
+
+@pytest.mark.parametrize("preset, overrides", [
+    ("cpu", ["--config.data.renderer=lct", "--config.data.retroreflective=0.0", "--config.data.frames=4"]),
+    ("paper", ["--config.data.photons=(5.0, 200.0)", "--config.data.scene.max_tilt_deg=20.0",
+               "--config.data.num_sequences.val=2", "--config.train.data_workers=3"]),
+])
+def test_make_dataset_takes_trains_overrides_and_makes_trains_file(record, tmp_path, preset, overrides):
+  overrides = overrides + [f"--config.data.path={tmp_path / 'data.h5'}"]
+  train_cli.main(["--config", preset, "--workdir", str(tmp_path / "run"), *overrides])
+  config = record["train"]
+  assert config["data"]["path"] == str(tmp_path / "data.h5")
+  assert make_dataset.main(["--config", preset, "--quiet", *overrides]) == 0
+  made = record.pop("write")
+  assert made == train_dataset(config, record)
+  path, spec, workers = made
+  assert path == tmp_path / "data.h5"
+  assert spec == D.DatasetSpec.from_config(config["data"])
+  if preset == "cpu":
+    assert (spec.renderer, spec.retroreflective, spec.frames) == ("lct", 0.0, 4)
+  else:
+    assert (spec.photons, spec.num_val, workers) == ((5.0, 200.0), 2, 3)
+
+
+def test_make_dataset_flags_are_shorthands_of_config_keys(record, tmp_path, capsys):
+  out = tmp_path / "a.h5"
+  flags = ["--out", str(out), "--frames", "3", "--seed", "5", "--train", "2", "--val", "1", "--test", "1",
+           "--no-clean", "--albedo", "--workers", "2", "--quiet"]
+  assert make_dataset.main(flags) == 0
+  by_flags = record["write"]
+  out.unlink()
+  keys = [f"--config.data.path={out}", "--config.data.frames=3", "--config.data.seed=5",
+          "--config.data.num_sequences={'train': 2, 'val': 1, 'test': 1}", "--config.data.store_clean=False",
+          "--config.data.store_albedo=True", "--config.train.data_workers=2"]
+  assert make_dataset.main([*keys, "--quiet"]) == 0
+  assert record["write"] == by_flags
+  assert (by_flags[1].frames, by_flags[1].num_sequences, by_flags[1].store_clean) == (3, 4, False)
+  # --sequences splits in the (overridden) config's proportion.
+  out.unlink()
+  assert make_dataset.main(["--out", str(out), "--sequences", "4", "--config.data.num_sequences.val=0",
+                            "--quiet"]) == 0
+  assert (record["write"][1].num_train, record["write"][1].num_val, record["write"][1].num_test) == (3, 0, 1)
+  # A flag and an override of the same key: say so, do nothing.
+  del record["write"]
+  for argv, match in ((["--frames", "3", "--config.data.frames=4"], "--frames and --config.data.frames"),
+                      (["--train", "3", "--config.data.num_sequences={'train': 1}"], "data.num_sequences.train"),
+                      (["--no-clean", "--config.data.store_clean=True"], "--no-clean and")):
+    with pytest.raises(SystemExit) as e:
+      make_dataset.main(["--out", str(out), *argv])
+    assert e.value.code == 2 and match in capsys.readouterr().err
+  assert "write" not in record
+
+
+@pytest.mark.parametrize("command", [train_cli.main, make_dataset.main], ids=["train", "make_dataset"])
+@pytest.mark.parametrize("argv, match", [
+    (["--config.data.renderr=lct"],
+     r"--config\.data\.renderr: section data has no key 'renderr' \(did you mean 'renderer'\?\); "
+     r"known: ambient, .*grid, .*renderer, retroreflective, scene"),
+    (["--config.nosuch.x=1"], r"no section 'nosuch'; known: data, independent, model, train, usm"),
+    (["--config.nosuch=1"], r"no section 'nosuch'; known: data, independent, model, train, usm"),
+    (["--config.train.stpes=5"], r"section train has no key 'stpes' \(did you mean 'steps'\?\); known: .*data_workers"),
+    (["--config.model.widht=5"], r"section model has no key 'widht' \(did you mean 'width'\?\)"),
+    (["--config.data.scene.colour=1"], r"section data.scene has no key 'colour'; known: .*max_tilt_deg"),
+    (["--config.usm.modle.x=1"], r"section usm has no sub-section 'modle' \(did you mean 'model'\?\)"),
+    (["--config.data.grid.x=1"], r"data\.grid is a value \(32\), not a section"),
+    (["--config.data.frames", "4"], r"unrecognised argument '--config\.data\.frames'"),
+    (["--config", "gpu"], r"config must be one of"),
+])
+def test_both_commands_reject_unknown_keys_before_any_work(record, tmp_path, command, argv, match):
+  with pytest.raises(SystemExit, match=match) as e:
+    command(["--workdir" if command is train_cli.main else "--out", str(tmp_path / "x"), *argv])
+  assert e.value.code not in (0, None)
+  assert not record and not list(tmp_path.iterdir())
+
+
+def test_keys_the_consumers_read_are_known_where_the_config_lacks_them():
+  config = cli.apply_overrides(cli.load_config("cpu"), [
+      "--config.data.falloff=retroreflective", "--config.data.noise_sampler=jax",
+      "--config.usm.optim.learning_rate=3e-4", "--config.train.devices=2", "--config.model.remat=True",
+      "--config.data.renderer=lct", "--config.data.retroreflective=0.0"])
+  assert config["usm"]["optim"] == {"learning_rate": 3e-4}
+  assert config["train"]["devices"] == 2 and config["model"]["remat"] is True
+  assert D.DatasetSpec.from_config(config["data"]).falloff == "retroreflective"
+  T.with_defaults(config)
+  T.training_recipe(config, "usm")
+  # The paper preset has no independent set: one is given whole, never half made.
+  with pytest.raises(SystemExit, match="no section 'independent'"):
+    cli.apply_overrides(cli.load_config("paper"), ["--config.independent.seed=3"])
+  paper = cli.apply_overrides(cli.load_config("paper"), ["--config.independent={'path': 'x.h5'}"])
+  assert paper["independent"] == {"path": "x.h5"}
+
+
+def test_help_of_both_commands_documents_the_overrides(capsys):
+  for command in (train_cli.main, make_dataset.main):
+    with pytest.raises(SystemExit) as e:
+      command(["--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert "--config.SECTION.KEY=VALUE" in text and "preset name (cpu, paper, real)" in text
