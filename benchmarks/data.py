@@ -63,7 +63,7 @@ def _machine() -> list[str]:
           f"- JAX backend: {jax.default_backend()} ({jax.devices()[0]})",
           f"- Versions: Python {platform.python_version()}, jax {jax.__version__}, numpy"
           f" {np.__version__}, h5py {h5py.__version__} (HDF5 {h5py.version.hdf5_version})",
-          f"- Commit: {_machine_facts.git_commit()}"]
+          f"- Commit: {_machine_facts.git_commit()}", _machine_facts.code_line()]
 
 
 def _load_rate(path, stride, in_memory, repeats, ends="valid", target="clean"):

@@ -1,14 +1,20 @@
 """Write ``benchmarks/README.md``, the index of ``benchmarks/results/``, from the results files.
 
-    python -m benchmarks.index            # rewrite benchmarks/README.md
-    python -m benchmarks.index --check    # exit 1 if it differs from what the files say
+    python -m benchmarks.index             # rewrite benchmarks/README.md, print each file's state
+    python -m benchmarks.index --check     # exit 1 if it differs from what the files say
+    python -m benchmarks.index --backfill  # give files without a code digest the one of their commit
 
 Each row is read from one results file's header: its title, the command that
-wrote it ("Produced by `...`"), its date, machine and commit, and the newest
-"Still holds at <hash>" banner. Nothing here is typed by hand but the goal
-each benchmark is judged against (``GOALS``), so the index cannot drift from
-the files it points to; ``tests/test_benchmarks_index.py`` checks that the committed
-index is this module's output. Numbers live in the results files themselves.
+wrote it ("Produced by `...`"), its date, machine and commit, and its code
+digest (``- Code: `...```, written by ``experiments.provenance.code_line``: a
+SHA-256 over the project modules the command may run, with their list). The
+index recomputes that digest on today's tree and shows the file as **current**
+(same code) or **stale** (with the first commit after the file's own that
+changed one of those modules, and which ones). Nothing here is typed by hand
+but the goal each benchmark is judged against (``GOALS``), so the index cannot
+drift from the files it points to; ``tests/test_benchmarks_index.py`` checks
+that the committed index is this module's output. Numbers live in the results
+files themselves.
 """
 
 from __future__ import annotations
@@ -17,7 +23,10 @@ import argparse
 import dataclasses
 import pathlib
 import re
+import subprocess
 import sys
+
+from experiments import provenance
 
 HERE = pathlib.Path(__file__).resolve().parent
 RESULTS = HERE / "results"
@@ -51,8 +60,11 @@ Each benchmark measures its candidates and what they are judged against (FFT flo
 NumPy/SciPy twins, the full model) side by side in one run and prints ratios, since absolute
 times on a shared machine move between runs. Each results file in `results/` is written whole
 by the command named in its first lines ("Produced by `...`"), with the date, machine and
-commit; a `Still holds at <hash>` banner is a later check that the code it measures did not
-change what it reports, not a rerun. The numbers are in the files.
+commit, and a digest of the project modules that command may run. The "state" column recomputes
+that digest on the tree this index was written from: **current** means the code is the same,
+**stale since <commit>** names the first later commit that changed one of those modules (and
+which ones). A stale file is regenerated with its command; until then the README marks the
+numbers it quotes from it as stale. The numbers are in the files.
 `pip install -e ".[bench]"` installs PyTorch and mambapy, needed only for
 `benchmarks/scan_torch.py`. Imports run downward only: `nlosjax` <- `experiments` <-
 `benchmarks` (provenance and the NumPy twins live in `experiments/`).
@@ -71,7 +83,8 @@ class Entry:
   date: str
   machine: str
   commit: str
-  still_holds: str    # newest "Still holds at <hash>" banner, or ""
+  digest: str = ""                  # the "- Code: `...`" digest, or "" where the file has none
+  modules: tuple[str, ...] = ()     # the modules that digest covers
 
 
 def _first(pattern: str, text: str, default: str = "?") -> str:
@@ -95,9 +108,136 @@ def read_entry(path: pathlib.Path) -> Entry:
     date = _first(r"Produced by `[^`]+` on (\S+?)[ .(]", body)
   machine = _first(r"^- (?:Machine|CPU): ([^;\n]+)", body)
   commit = _first(r"^- Commit: (.+)$", body)
-  # Banners are quoted lines at the top, newest first: "> **Still holds at <hash>** (...)".
+  code = provenance.CODE_LINE.search(body)
   return Entry(path.stem, _first(r"^# (.+)$", body), command, date, machine, commit,
-               _first(r"^> \*\*Still holds at ([0-9a-f]{7,40})\*\*", text, ""))
+               code.group(1) if code else "", tuple(code.group(2).split()) if code else ())
+
+
+def _git(*args: str) -> str | None:
+  """``git args`` in the repository; its stripped output, or None where git fails."""
+  try:
+    return subprocess.run(["git", *args], cwd=provenance.ROOT, check=True, capture_output=True,
+                          text=True).stdout.strip()
+  except (OSError, subprocess.CalledProcessError):
+    return None
+
+
+class _GitFiles:
+  """Files at commits, read through one ``git cat-file --batch`` process (None where absent)."""
+
+  def __init__(self):
+    self._proc = None
+    self._cache: dict[str, str | None] = {}
+
+  def __call__(self, commit: str, path: str) -> str | None:
+    key = f"{commit}:{path}"
+    if key not in self._cache:
+      if self._proc is None:
+        self._proc = subprocess.Popen(["git", "cat-file", "--batch"], cwd=provenance.ROOT,
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+      self._proc.stdin.write(key.encode() + b"\n")
+      self._proc.stdin.flush()
+      header = self._proc.stdout.readline().split()
+      if len(header) == 3:
+        data = self._proc.stdout.read(int(header[2]))
+        self._proc.stdout.read(1)
+        self._cache[key] = data.decode()
+      else:
+        self._cache[key] = None                    # "<key> missing"
+    return self._cache[key]
+
+  def close(self):
+    if self._proc is not None:
+      self._proc.stdin.close()
+      self._proc.wait()
+      self._proc = None
+
+
+def _same_code(a: str | None, b: str | None, path: str) -> bool:
+  """Whether two versions of a module hold the same code (comments and docstrings aside)."""
+  if a is None or b is None:
+    return a is b
+  try:
+    return provenance._behaviour(a, path) == provenance._behaviour(b, path)
+  except SyntaxError:
+    return a == b
+
+
+def state(entry: Entry, files=None) -> str:
+  """``"current"``, ``"stale since <commit> (<modules>)"``, ``"stale: ..."``, or ``"no code digest"``.
+
+  Current: the digest of ``entry.modules`` as they are on disk now equals the recorded one.
+  Stale: otherwise; where git can tell, the first commit after the file's own whose code
+  (not comments or docstrings) differs in one of those modules, and the modules whose code
+  differs today from the file's commit; "uncommitted edits" where no commit changed them.
+  """
+  if not entry.digest:
+    return "no code digest"
+  files = provenance.project_files() if files is None else files
+  missing = [m for m in entry.modules if m not in files]
+  if not missing and provenance.code_digest(entry.modules) == entry.digest:
+    return "current"
+  commit = entry.commit.split()[0]
+  log = _git("log", "--reverse", "--format=@%h", "--name-only", f"{commit}..HEAD", "--", *entry.modules)
+  if log is None:
+    return "stale (git cannot say since when)"
+  touched: list[tuple[str, list[str]]] = []       # (commit, the modules it touched), oldest first
+  for line in log.split():
+    if line.startswith("@"):
+      touched.append((line[1:], []))
+    elif touched:
+      touched[-1][1].append(line)
+  show = _GitFiles()
+  try:
+    first = next((c for c, paths in touched
+                  if any(not _same_code(show(f"{c}^", m), show(c, m), m) for m in paths)), None)
+    changed = [m for m in entry.modules if m in missing
+               or not _same_code(show(commit, m), (provenance.ROOT / m).read_text(), m)]
+  finally:
+    show.close()
+  what = ", ".join(changed[:3]) + (f" and {len(changed) - 3} more" if len(changed) > 3 else "")
+  where = f"since {first}" if first else "since uncommitted edits"
+  return f"stale {where} ({what})" if what else f"stale {where}"
+
+
+def backfill(path: pathlib.Path) -> bool:
+  """Give a results file without a code line the digest of the code at its recorded commit.
+
+  The modules are the static import closure of the command's entry module (and of what it
+  runs in a subprocess) at that commit, read with git; the line says it was backfilled. Also
+  drops the hand-written "Still holds"/"Stale at" banners that this digest replaces (git
+  keeps them). Returns whether the file changed.
+
+  Raises:
+    ValueError: the file names no commit git knows, or no ``python -m`` command.
+  """
+  text = path.read_text()
+  lines = text.splitlines(keepends=True)
+  produced = next(i for i, line in enumerate(lines) if line.startswith("Produced by"))
+  head = [line for line in lines[:produced] if not line.startswith(">")]
+  while len(head) >= 2 and head[-1].strip() == "" and head[-2].strip() == "":
+    head.pop()
+  lines = head + lines[produced:]
+  entry = read_entry(path)
+  if not entry.digest:
+    commit = entry.commit.split()[0]
+    listing = _git("ls-tree", "-r", "--name-only", commit)
+    m = re.match(r"python -m (\S+)", entry.command)
+    if listing is None or m is None:
+      raise ValueError(f"{path.name}: cannot backfill (commit {commit!r}, command {entry.command!r})")
+    files = {f for f in listing.splitlines() if f.endswith(".py")}
+    read = lambda p: _git("show", f"{commit}:{p}") + "\n"
+    roots = [m.group(1), *provenance.SUBPROCESS_ROOTS.get(m.group(1), ())]
+    modules = provenance.code_modules(roots, files, read)
+    note = (f", backfilled from commit {commit} by `python -m benchmarks.index --backfill`"
+            + ("; the run had uncommitted edits the digest cannot see" if "+changes" in entry.commit else ""))
+    line = provenance.code_line(modules, provenance.code_digest(modules, read), note) + "\n"
+    at = next(i for i, l in enumerate(lines) if l.startswith("- Commit:"))
+    lines.insert(at + 1, line)
+  new = "".join(lines)
+  if new != text:
+    path.write_text(new)
+  return new != text
 
 
 def entries(results: pathlib.Path = RESULTS) -> list[Entry]:
@@ -126,13 +266,14 @@ def companions(results: pathlib.Path, stem: str, tables: set[str] | None = None)
 def render(results: pathlib.Path = RESULTS) -> str:
   """The index's Markdown text."""
   lines = [HEADER, "| results file | what | command | date (UTC) | machine | commit | "
-           "latest check | goal | companions |", "|---|---|---|---|---|---|---|---|---|"]
+           "state | goal | companions |", "|---|---|---|---|---|---|---|---|---|"]
   found = entries(results)
   tables = {e.name for e in found}
+  files = provenance.project_files()
   for e in found:
     cells = [f"[{e.name}.md](results/{e.name}.md)", e.title.replace("|", "\\|"),
              f"`{e.command}`".replace("|", "\\|"), e.date, e.machine, e.commit,
-             f"still holds at {e.still_holds}" if e.still_holds else "",
+             f"**{st}**" if (st := state(e, files)) == "current" else st,
              GOALS.get(e.name, "none stated"),
              ", ".join(companions(results, e.name, tables))]
     lines.append("| " + " | ".join(cells) + " |")
@@ -141,17 +282,36 @@ def render(results: pathlib.Path = RESULTS) -> str:
 
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument("--check", action="store_true", help="exit 1 if benchmarks/README.md is stale")
+  p.add_argument("--check", action="store_true", help="exit 1 if benchmarks/README.md is out of date")
+  p.add_argument("--backfill", action="store_true",
+                 help="add the code digest of their recorded commit to files that have none (and drop the "
+                      "hand-written 'Still holds' banners it replaces)")
   args = p.parse_args(argv)
+  if args.backfill:
+    for path in sorted(RESULTS.glob("*.md")):
+      if backfill(path):
+        print(f"backfilled {path.relative_to(provenance.ROOT)}")
   text = render()
   if args.check:
-    if INDEX.read_text() != text:
+    if comparable(INDEX.read_text()) != comparable(text):
       print("benchmarks/README.md is out of date: run python -m benchmarks.index", file=sys.stderr)
       return 1
     return 0
   INDEX.write_text(text)
   print(f"wrote {INDEX}")
+  for e in entries():
+    print(f"  {e.name}: {state(e)}")
   return 0
+
+
+def comparable(index_text: str) -> str:
+  """The index with each stale file's "since <commit> (...)" dropped.
+
+  A commit that changes code a results file depends on cannot name its own hash in the
+  index it commits: before it, the file reads "stale: uncommitted edits"; after, "stale
+  since <that commit>". Both are stale, and the committed index is compared on that.
+  """
+  return re.sub(r"\| stale[^|]*\|", "| stale |", index_text)
 
 
 if __name__ == "__main__":

@@ -231,6 +231,7 @@ def to_markdown(rows, info, cmd, load_before, load_after) -> str:
       "",
       f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
       f"- Commit: {_machine_facts.git_commit()}",
+      _machine_facts.code_line(),
       f"- Machine: {info['cpu']}; {info['cores']} usable cores; memory {info['mem_gib']:.1f} GiB;"
       f" JAX backend {info['backend']} ({info['device']})",
       f"- Versions: {info['versions']}",

@@ -465,6 +465,7 @@ def machine_info(jax_status: str) -> list[str]:
   return [
       f"- Date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}",
       f"- Commit: {_machine_facts.git_commit()}",
+      _machine_facts.code_line(),
       f"- CPU: {_machine_facts.cpu_model()}; {cores} usable cores ({os.cpu_count()} logical);"
       f" memory {_machine_facts.memory_text()}",
       f"- Versions: {', '.join(versions)}",

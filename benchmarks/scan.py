@@ -159,6 +159,7 @@ def render(results, info, cmd, repeats, chunk_size, load_start, load_end) -> str
       f"Produced by `{cmd}`.", "",
       f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
       f"- Commit: {_machine_facts.git_commit()}",
+      _machine_facts.code_line(),
       f"- Machine: {info['cpu']}; {info['usable']} usable cores ({info['logical']} logical); "
       f"backend {info['backend']} {info['device']}",
       f"- Versions: Python {info['python']}, jax {info['jax']}, jaxlib {info['jaxlib']}, "

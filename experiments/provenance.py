@@ -4,12 +4,24 @@ One place for the ``/proc`` reading that every results file's header needs:
 the benchmarks (``benchmarks/*.py``) and the experiments that write results
 (``experiments.real_undersampling``) import it from here, so arrows run
 downward (``nlosjax`` <- ``experiments`` <- ``benchmarks``).
+
+Each header also carries a ``- Code:`` line: a digest of the project's modules that
+the command may run (:func:`code_line`), with their list, so ``python -m benchmarks.index``
+can recompute the digest on today's tree and say whether the file is current or stale,
+instead of a person writing "still holds" banners by hand.
 """
 
 from __future__ import annotations
 
+import ast
+import functools
+import hashlib
 import os
+import pathlib
 import platform
+import re
+import sys
+from collections.abc import Callable, Collection, Iterable
 
 
 def _proc_field(path: str, key: str) -> str | None:
@@ -84,7 +96,7 @@ def git_commit(repo=None) -> str:
 
 
 def provenance(command: str) -> list[str]:
-  """Markdown lines every results file starts with: command, date, machine, commit."""
+  """Markdown lines every results file starts with: command, date, machine, commit, code digest."""
   import datetime
 
   import jax
@@ -94,4 +106,153 @@ def provenance(command: str) -> list[str]:
           f"JAX backend {jax.default_backend()} ({jax.devices()[0].device_kind}); "
           f"Python {platform.python_version()}, jax {jax.__version__}",
           f"- Commit: {git_commit()}",
+          code_line(),
           f"- Load average (1, 5, 15 min) when written: {load_average(', ')}"]
+
+
+# --- What a results file's numbers depend on: the project's code, by content -----------------
+
+PACKAGES = ("nlosjax", "experiments", "benchmarks")
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+# Commands that run other project entry points in a subprocess (their imports are not ours).
+SUBPROCESS_ROOTS = {"benchmarks.main_job": ("experiments.train",)}
+# Modules every writer imports that write a header, not a number: a change to them leaves
+# every results file's numbers as they were, so they are not part of any digest.
+NOT_CODE = frozenset({"experiments/provenance.py"})
+CODE_LINE = re.compile(r"^- Code: `([0-9a-f]{12,64})`.*<!-- modules: ([^>]*?) -->\s*$", re.MULTILINE)
+
+
+def _module_file(name: str, files: Collection[str]) -> str | None:
+  """Repository-relative path of project module ``name`` (``"a/b.py"`` or ``"a/b/__init__.py"``), or None."""
+  parts = name.split(".")
+  if parts[0] not in PACKAGES:
+    return None
+  base = "/".join(parts)
+  for candidate in (base + ".py", base + "/__init__.py"):
+    if candidate in files:
+      return candidate
+  return None
+
+
+def _imported_names(path: str, source: str, files: Collection[str]) -> set[str]:
+  """Every module name ``path``'s code may import, at any depth (function-level imports too).
+
+  ``from a import b`` yields both ``a`` and ``a.b`` (``b`` may be a submodule); relative
+  imports are resolved against ``path``'s package. A module that calls
+  ``importlib.import_module`` with a name made at run time (the config registry picks a
+  preset by name) may import any module of its own package, so all of them count. Names that are not project modules are
+  filtered out later.
+  """
+  is_init = path.endswith("/__init__.py")
+  module = path[:-len("/__init__.py")].replace("/", ".") if is_init else path[:-3].replace("/", ".")
+  package = module if is_init else module.rsplit(".", 1)[0]
+  names = set()
+  for node in ast.walk(ast.parse(source, filename=path)):
+    if isinstance(node, ast.Import):
+      for alias in node.names:
+        parts = alias.name.split(".")
+        names.update(".".join(parts[:i]) for i in range(1, len(parts) + 1))
+    elif isinstance(node, ast.ImportFrom):
+      if node.level:
+        base = package.split(".")
+        base = base[:len(base) - node.level + 1]
+        mod = ".".join(base + ([node.module] if node.module else []))
+      else:
+        mod = node.module or ""
+      parts = mod.split(".")
+      names.update(".".join(parts[:i]) for i in range(1, len(parts) + 1))
+      names.update(f"{mod}.{alias.name}" for alias in node.names)
+    elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+          and node.func.attr == "import_module" and node.args):
+      arg = node.args[0]
+      if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+        names.add(arg.value)
+      else:                                        # a name made at run time: any module beside it
+        folder = package.replace(".", "/") + "/"
+        names.update(f[:-3].replace("/", ".") for f in files
+                     if f.startswith(folder) and "/" not in f[len(folder):] and f.endswith(".py"))
+  return names
+
+
+def project_files(root: pathlib.Path = ROOT) -> set[str]:
+  """The ``.py`` files of the project's packages in the working tree, repository-relative."""
+  return {p.relative_to(root).as_posix() for pkg in PACKAGES for p in (root / pkg).rglob("*.py")}
+
+
+def code_modules(roots: Iterable[str], files: Collection[str] | None = None,
+                 read: Callable[[str], str] | None = None) -> list[str]:
+  """The project files that ``roots`` (module names) import, transitively, sorted.
+
+  A static closure over the import statements (including those inside functions, so a lazy
+  import counts), with each module's enclosing packages' ``__init__.py``. It is a superset
+  of what one run loads, so a results file is called stale whenever code it may have run
+  changed. ``files``/``read`` default to this working tree; pass others to read a commit.
+  :data:`NOT_CODE` is left out.
+  """
+  files = project_files() if files is None else files
+  read = read or (lambda p: (ROOT / p).read_text())
+  todo = list(roots)
+  seen: set[str] = set()
+  while todo:
+    name = todo.pop()
+    parts = name.split(".")
+    for i in range(1, len(parts) + 1):            # importing a.b.c runs a and a.b first
+      path = _module_file(".".join(parts[:i]), files)
+      if path is None or path in seen:
+        continue
+      seen.add(path)
+      todo.extend(_imported_names(path, read(path), files))
+  return sorted(seen - NOT_CODE)
+
+
+@functools.lru_cache(maxsize=4096)
+def _behaviour(source: str, path: str = "<module>") -> str:
+  """``source``'s syntax tree without docstrings, as text: comments, layout and docs do not count."""
+  tree = ast.parse(source, filename=path)
+  for node in ast.walk(tree):
+    body = getattr(node, "body", None)
+    if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+        and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+        and isinstance(body[0].value.value, str)):
+      node.body = body[1:] or [ast.Pass()]
+  return ast.dump(tree, annotate_fields=False)
+
+
+def code_digest(paths: Iterable[str], read: Callable[[str], str] | None = None) -> str:
+  """12 hex digits of the SHA-256 of the modules' paths and code (in sorted path order).
+
+  The code is each module's syntax tree without docstrings (:func:`_behaviour`), so an edit
+  to a comment, a docstring or the layout leaves the digest as it was; any other edit,
+  behaviour-keeping or not, changes it.
+  """
+  read = read or (lambda p: (ROOT / p).read_text())
+  h = hashlib.sha256()
+  for p in sorted(paths):
+    h.update(p.encode() + b"\0" + _behaviour(read(p), p).encode() + b"\0")
+  return h.hexdigest()[:12]
+
+
+def command_roots(extra: Iterable[str] = ()) -> list[str]:
+  """This process's project modules: ``__main__``'s, every loaded one, ``extra`` and their subprocesses'."""
+  roots = set(extra)
+  main = getattr(sys.modules.get("__main__"), "__spec__", None)
+  if main is not None and main.name:
+    roots.add(main.name[:-len(".__main__")] if main.name.endswith(".__main__") else main.name)
+  roots.update(name for name in list(sys.modules) if name.split(".")[0] in PACKAGES)
+  for r in list(roots):
+    roots.update(SUBPROCESS_ROOTS.get(r, ()))
+  return sorted(roots)
+
+
+def code_line(paths: Iterable[str] | None = None, digest: str | None = None, note: str = "") -> str:
+  """The results header line ``- Code: `digest` ...`` that ``python -m benchmarks.index`` rechecks.
+
+  ``paths`` default to :func:`code_modules` of :func:`command_roots` (this process);
+  the list rides along in an HTML comment, so the rendered file shows one short line.
+  """
+  paths = code_modules(command_roots()) if paths is None else sorted(paths)
+  digest = digest or code_digest(paths)
+  return (f"- Code: `{digest}` = SHA-256 of the {len(paths)} project modules this command may run "
+          f"(their static import closure; code only, not comments or docstrings){note}; "
+          f"`python -m benchmarks.index` recomputes it to say whether this file is current "
+          f"<!-- modules: {' '.join(paths)} -->")

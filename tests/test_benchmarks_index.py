@@ -1,39 +1,84 @@
-"""``benchmarks/README.md`` is generated from the results files' headers and is up to date."""
+"""``benchmarks/README.md`` is generated from the results files' headers, and each file says whether it is current."""
 
 import pytest
 
 from benchmarks import index
+from experiments import provenance
 
 
 def test_the_committed_index_is_what_the_results_files_say():
-  assert index.INDEX.read_text() == index.render(), (
+  assert index.comparable(index.INDEX.read_text()) == index.comparable(index.render()), (
       "benchmarks/README.md is out of date: run python -m benchmarks.index")
 
 
-def test_every_results_file_names_its_command_date_machine_and_commit():
+def test_every_results_file_names_its_command_date_machine_commit_and_code_digest():
   for e in index.entries():
     assert e.command.startswith("python -m "), e
     assert e.date[:4].isdigit() and e.machine != "?" and e.commit != "?", e
+    assert len(e.digest) == 12 and e.modules, f"{e.name}.md has no code digest (python -m benchmarks.index --backfill)"
+  for path in index.RESULTS.glob("*.md"):
+    assert "Still holds at" not in path.read_text(), f"{path.name}: the digest replaces hand-written banners"
 
 
 def test_a_header_is_read_as_written_and_a_file_without_a_command_is_refused(tmp_path):
+  line = provenance.code_line(["nlosjax/a.py", "nlosjax/__init__.py"], "0123456789ab")
   (tmp_path / "thing.md").write_text(
-      "# A thing\n\n> **Still holds at abc1234** (checked)\n\n"
-      "Produced by `python -m benchmarks.thing --fast`.\n\n- Date: 2026-01-02T03:04:05+00:00\n"
-      "- Machine: Some CPU; 2 usable cores\n- Commit: 0123456789ab +changes\n")
+      "# A thing\n\nProduced by `python -m benchmarks.thing --fast`.\n\n- Date: 2026-01-02T03:04:05+00:00\n"
+      f"- Machine: Some CPU; 2 usable cores\n- Commit: 0123456789ab +changes\n{line}\n")
   (tmp_path / "thing.json").write_text("{}")
   (tmp_path / "plain.md").write_text("# Plain\n\nProduced by `python -m p`.\n\n- Date: 2026-01-01\n"
-                                     "- Machine: M\n- Commit: 1\n\nStill holds at default settings.\n")
+                                     "- Machine: M\n- Commit: 1\n")
   (tmp_path / "thing_more.md").write_text("# More\n\nProduced by `python -m x` on 2026-02-03 (5 s).\n"
                                           "- CPU: Other CPU; 4 cores\n")
   (tmp_path / "thing_more.png").write_bytes(b"")
   plain, a, b = index.entries(tmp_path)
-  assert plain.still_holds == ""                  # prose in the body is not a banner
-  assert a == index.Entry("thing", "A thing", "python -m benchmarks.thing --fast",
-                          "2026-01-02T03:04:05+00:00", "Some CPU", "0123456789ab +changes", "abc1234")
+  assert (plain.digest, plain.modules) == ("", ())
+  assert index.state(plain) == "no code digest"
+  assert a == index.Entry("thing", "A thing", "python -m benchmarks.thing --fast", "2026-01-02T03:04:05+00:00",
+                          "Some CPU", "0123456789ab +changes", "0123456789ab",
+                          ("nlosjax/__init__.py", "nlosjax/a.py"))
   assert (b.date, b.machine, b.commit) == ("2026-02-03", "Other CPU", "?")
   assert index.companions(tmp_path, "thing") == ["thing.json"]       # thing_more.png is the other's
   assert index.companions(tmp_path, "thing_more") == ["thing_more.png"]
   (tmp_path / "bad.md").write_text("# No command\n")
   with pytest.raises(ValueError, match="Produced by"):
     index.entries(tmp_path)
+
+
+def test_the_digest_sees_code_but_not_comments_docstrings_or_layout():
+  files = {"nlosjax/a.py": '"""Doc."""\nX = 1\n\ndef f(x):\n  """Doc."""\n  return x + X\n'}
+  read = files.__getitem__
+  d0 = provenance.code_digest(files, read)
+  files["nlosjax/a.py"] = '"""Other doc."""\n# a comment\nX = 1\n\n\ndef f(x):\n    """More."""\n    return x + X  # c\n'
+  assert provenance.code_digest(files, read) == d0
+  files["nlosjax/a.py"] = '"""Doc."""\nX = 2\n\ndef f(x):\n  return x + X\n'
+  assert provenance.code_digest(files, read) != d0
+
+
+def test_the_module_closure_follows_every_import_and_nothing_outside_the_project():
+  files = {
+      "nlosjax/__init__.py": "",
+      "nlosjax/a.py": "import numpy\nfrom nlosjax import b\n",
+      "nlosjax/b.py": "def f():\n  from .sub import c   # a lazy, relative import\n  return c\n",
+      "nlosjax/sub/__init__.py": "",
+      "nlosjax/sub/c.py": "import importlib\nimportlib.import_module(f'{__name__}.x')\n",
+      "nlosjax/sub/d.py": "",
+      "nlosjax/unused.py": "",
+      "experiments/__init__.py": "",
+      "experiments/provenance.py": "",            # writes headers, not numbers: never part of a digest
+      "benchmarks/thing.py": "from experiments import provenance\nimport nlosjax.a\n",
+  }
+  got = provenance.code_modules(["benchmarks.thing"], files, files.__getitem__)
+  assert got == ["benchmarks/thing.py", "experiments/__init__.py", "nlosjax/__init__.py", "nlosjax/a.py",
+                 "nlosjax/b.py", "nlosjax/sub/__init__.py", "nlosjax/sub/c.py", "nlosjax/sub/d.py"]
+
+
+def test_a_file_is_current_while_its_code_is_unchanged_and_stale_after():
+  modules = provenance.code_modules(["benchmarks.scan"])
+  now = index.Entry("scan", "t", "python -m benchmarks.scan", "d", "m", "HEAD", provenance.code_digest(modules),
+                    tuple(modules))
+  assert index.state(now) == "current"
+  old = index.Entry(**{**now.__dict__, "digest": "000000000000"})
+  assert index.state(old).startswith("stale")
+  line = provenance.code_line(modules)
+  assert provenance.CODE_LINE.search(line).group(1) == now.digest

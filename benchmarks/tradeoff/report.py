@@ -44,7 +44,7 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
   front_names = [p["name"] for p, f in zip(default, front) if f]
   rec = recommend(default)
   beats = learned_beats_classic(default)
-  from experiments.provenance import git_commit
+  from experiments.provenance import code_line, git_commit
   by_name = {r["name"]: r for r in rows}
   out = [
       "# Speed and accuracy of every reconstruction knob",
@@ -52,6 +52,7 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
       f"Produced by `{cmd}` on {datetime.date.today().isoformat()} ({res['wall_s']:.0f} s).",
       "",
       f"- Commit: {git_commit()}",
+      code_line(),
       f"- Machine: {machine}. Load average (1, 5, 15 min) before: {loads[0]}; after: {loads[1]}."
       + _load_remark(loads[0]) +
       f" Every time in this file comes from one phase in which all"
