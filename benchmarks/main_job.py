@@ -6,10 +6,18 @@ Clones the committed HEAD into a temporary folder (so untracked files, git-ignor
 runs and datasets do not help it), makes a fresh virtual environment with this
 Python, and runs the README's command 1 there exactly as a newcomer does,
 ``pip install -e . && python -m experiments.train``, timing the install and the
-main job separately. Writes the results file whole: provenance, the two times
-against the 20-minute budget (the budget is for the main job on 2 cores), the
-load average before and after (the promise is for a quiet machine: run nothing
-beside it), and the headline rows of the main job's ``table.md``.
+main job separately.
+
+The 20-minute budget must hold on every CPU model the project's machines have
+(``CPU_MODELS``: an AMD EPYC and a slower Intel Xeon so far), so the measurement is
+kept per CPU model in ``main_job.json``: a run replaces its own model's row and
+keeps the others. The results file is written whole from that JSON: provenance,
+one row per CPU model (its commit, date, install and job times, load before and
+after: the promise is for a quiet machine, so run nothing beside it), the verdict
+for each model and for all of them together (a model never measured fails the
+verdict), and the headline rows of this run's ``table.md``. CI (``.ci/run``) runs
+the main job too, but only fails on a failure, a missing table or a hang: time is
+this file's claim, not a test's.
 
 ``python -m benchmarks.table1`` quotes this file's time and commit in
 ``table1.md``. Needs ``git`` and network access to the package index; refuses
@@ -30,6 +38,9 @@ import tempfile
 import time
 
 BUDGET_S = 1200
+# The CPU models this project's machines come in (``/proc/cpuinfo``'s model name, matched by
+# prefix); the budget must hold on each.
+CPU_MODELS = ("AMD EPYC", "Intel(R) Xeon(R)")
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 COMMAND = "pip install -e . && python -m experiments.train"
 
@@ -45,10 +56,50 @@ def _run(cmd: str, cwd: pathlib.Path, env: dict, log: pathlib.Path) -> float:
   return took
 
 
-def read_time(path=ROOT / "benchmarks" / "results" / "main_job.json") -> dict | None:
-  """The last measurement (``main_job.json``) or None where it was never made."""
+def read_times(path=ROOT / "benchmarks" / "results" / "main_job.json") -> dict[str, dict]:
+  """The measurements so far, by CPU model name (``{}`` where none was made).
+
+  A file from before the per-model layout (one flat measurement) reads as that one row.
+  """
   path = pathlib.Path(path)
-  return json.loads(path.read_text()) if path.exists() else None
+  if not path.exists():
+    return {}
+  data = json.loads(path.read_text())
+  if "runs" in data:
+    return data["runs"]
+  return {data.get("cpu", "AMD EPYC"): data}
+
+
+def read_time(path=ROOT / "benchmarks" / "results" / "main_job.json") -> dict | None:
+  """The slowest measurement over the CPU models (``main_job.json``), or None where none was made."""
+  times = read_times(path)
+  if not times:
+    return None
+  cpu, t = max(times.items(), key=lambda kv: kv[1]["main_job_s"])
+  return {**t, "cpu": cpu}
+
+
+def model_of(cpu: str) -> str:
+  """The entry of ``CPU_MODELS`` that ``cpu`` (a model name) belongs to, else ``cpu`` itself."""
+  return next((m for m in CPU_MODELS if cpu.startswith(m)), cpu)
+
+
+def verdicts(times: dict[str, dict], budget_s: float = BUDGET_S) -> tuple[list[str], bool]:
+  """Table rows (one per known or measured CPU model) and whether every model meets the budget."""
+  rows, ok = [], True
+  for model in dict.fromkeys([*CPU_MODELS, *(model_of(c) for c in times)]):
+    mine = {c: t for c, t in times.items() if model_of(c) == model}
+    if not mine:
+      rows.append(f"| {model} | not measured yet | | | | | **not shown** |")
+      ok = False
+      continue
+    for cpu, t in mine.items():
+      within = t["main_job_s"] <= budget_s
+      ok &= within
+      rows.append(f"| {cpu} | {t['commit']} | {t['date'][:10]} | {t['install_s']:.0f} s | "
+                  f"{t['main_job_s']:.0f} s = {t['main_job_s'] / 60:.1f} min | {t['load_before']} / "
+                  f"{t['load_after']} | {'within' if within else '**OVER**'} |")
+  return rows, ok
 
 
 def main(argv=None):
@@ -56,7 +107,7 @@ def main(argv=None):
   parser.add_argument("--out", default="benchmarks/results/main_job.md")
   parser.add_argument("--keep", default=None, help="clone into DIR and keep it (default: a temporary folder)")
   args = parser.parse_args(argv)
-  from experiments.provenance import git_commit, load_average, provenance
+  from experiments.provenance import cpu_model, git_commit, load_average, provenance
   commit = git_commit()
   if "+changes" in commit:
     raise SystemExit("uncommitted edits to tracked code: commit them first (the clone would not have them)")
@@ -81,24 +132,27 @@ def main(argv=None):
   job_s = _run("python -m experiments.train", clone, env, log)
   table = (clone / "runs" / "default" / "results" / "table.md").read_text()
   load_after = load_average(", ")
-  verdict = "within" if job_s <= BUDGET_S else "OVER"
-  lines = ["# The main job from a fresh clone", ""] + facts + [
-      f"- Load average before the clone: {load_before}; after the job: {load_after}", "",
-      f"README command 1, `{COMMAND}`, in a fresh clone of the commit above and a fresh virtual "
-      "environment (the install resolves the newest versions `pyproject.toml` allows):", "",
-      "| step | wall time |", "|---|---|",
-      f"| `pip install -e .` (downloads included) | {install_s:.0f} s |",
-      f"| `python -m experiments.train` (data, training, evaluation) | {job_s:.0f} s = {job_s / 60:.1f} min |",
-      "",
-      f"The main job is **{verdict}** its budget of {BUDGET_S} s (20 min on 2 cores).", "",
-      "## The main job's table (`runs/default/results/table.md`, 1 training seed)", "", table]
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
+  times = read_times(out.with_suffix(".json"))
+  times[cpu_model()] = {"commit": commit, "date": date, "install_s": round(install_s, 1),
+                        "main_job_s": round(job_s, 1), "budget_s": BUDGET_S, "load_before": load_before,
+                        "load_after": load_after}
+  rows, ok = verdicts(times)
+  lines = ["# The main job from a fresh clone, on each CPU model", ""] + facts + [
+      f"- Load average before the clone: {load_before}; after the job: {load_after}", "",
+      f"README command 1, `{COMMAND}`, in a fresh clone of the commit named in each row and a fresh "
+      "virtual environment (the install, downloads included, resolves the newest versions "
+      "`pyproject.toml` allows). Each CPU model's row is its latest run of this command; a row "
+      "at an older commit than the one above measured older code.", "",
+      "| CPU | commit | date | `pip install -e .` | `python -m experiments.train` | load before / after | "
+      f"budget {BUDGET_S} s |", "|---|---|---|---|---|---|---|", *rows, "",
+      f"The main job is **{'within' if ok else 'not shown to be within'}** its budget of {BUDGET_S} s "
+      f"(20 min on 2 cores) on every CPU model ({', '.join(CPU_MODELS)}).", "",
+      f"## The main job's table from this run ({cpu_model()}; `runs/default/results/table.md`, 1 training seed)",
+      "", table]
   out.write_text("\n".join(lines))
-  out.with_suffix(".json").write_text(json.dumps(
-      {"commit": commit, "date": date, "install_s": round(install_s, 1),
-       "main_job_s": round(job_s, 1), "budget_s": BUDGET_S, "load_before": load_before,
-       "load_after": load_after}, indent=2) + "\n")
+  out.with_suffix(".json").write_text(json.dumps({"budget_s": BUDGET_S, "runs": times}, indent=2) + "\n")
   if tmp is not None:
     tmp.cleanup()
   print(out.read_text())

@@ -30,7 +30,8 @@ def _main_job_line() -> str:
   t = read_time()
   if t is None:
     return "- The main job from a fresh clone: not measured (`python -m benchmarks.main_job`)"
-  return (f"- The main job (README command 1, 1 seed) from a fresh clone: {t['main_job_s']:.0f} s "
+  return (f"- The main job (README command 1, 1 seed) from a fresh clone, slowest CPU model measured "
+          f"({t['cpu']}): {t['main_job_s']:.0f} s "
           f"= {t['main_job_s'] / 60:.1f} min of its {t['budget_s'] // 60}-minute budget, at commit "
           f"{t['commit']} on {t['date'][:10]}, load {t['load_before']} before "
           "(`python -m benchmarks.main_job`, `benchmarks/results/main_job.md`)")

@@ -26,8 +26,12 @@ def test_ci_runs_the_readme_test_command_in_a_fresh_environment():
   assert any(l.startswith("python3 -m venv") for l in ci)
   venv = next(i for i, l in enumerate(ci) if l.startswith("python3 -m venv"))
   assert ci.index(install) > venv and ci.index(test) > ci.index(install)
-  # The main job too (under CI), in the same environment, after the tests.
-  assert ci.index(quick_start_commands()[0]) > ci.index(test)
+  # The main job too (under CI), in the same environment, after the tests: its install, then
+  # .ci/main_job, which runs its command under a hang guard.
+  install_job, job = quick_start_commands()[0].split(" && ")
+  assert ci.index(f"{install_job} && bash .ci/main_job") > ci.index(test)
+  assert any(l.startswith("timeout ") and l.endswith(job)
+             for l in (ROOT / ".ci" / "main_job").read_text().splitlines())
 
 
 
