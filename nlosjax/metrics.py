@@ -41,9 +41,13 @@ Conventions:
   When an argument is concrete (not a JAX tracer) it is also checked, before
   anything compiles, for NaN (``pred``, ``target``), for values other than
   0/1 and for images with no masked pixel (``mask``). Under ``jit`` these
-  value checks cannot run: NaN then propagates to the output, and an image
-  whose mask selects no pixel scores as if it had no error (MSE 0: RMSE and
-  MAD 0, PSNR the 100 dB cap, SSIM 1).
+  value checks cannot run: NaN then propagates to the output (the score of
+  an image holding a NaN is NaN; with a mask, RMSE, MAD and PSNR leave out a
+  NaN at a pixel outside the mask, SSIM does not), and an image whose mask
+  selects no pixel scores as if it had no error (MSE 0: RMSE and MAD 0, PSNR
+  the 100 dB cap, SSIM 1). ``inf`` is not rejected, eagerly or under
+  ``jit``: it gives a non-finite score (RMSE and MAD ``inf``, PSNR ``-inf``,
+  SSIM NaN; RMSE, MAD and PSNR only where the mask selects it).
 
 Surfaces (one definition for every method, learned or classic):
 
@@ -66,6 +70,11 @@ Surfaces (one definition for every method, learned or classic):
   ``mad_object``; one with nothing reconstructed as surface has NaN
   ``precision``; ``f1`` is NaN only when both are empty. Tables average these
   with NaN skipped and report how many frames each mean covers.
+* NaN in either depth map (possible under ``jit`` only; a concrete one
+  raises) makes all five scores of that image NaN: ``NaN >= min_depth`` and
+  ``NaN > 0`` are false, so without this a NaN pixel would silently count as
+  background. ``+inf`` is a depth like any other (surface; an ``inf`` error
+  where it is scored).
 """
 
 from __future__ import annotations
@@ -200,18 +209,21 @@ def _psnr(pred, target, mask, data_range):
   return 10.0 * jnp.log10(range_sq / jnp.maximum(mse, range_sq * _PSNR_MSE_FLOOR))
 
 
+def _sqrt_guarded(mse):
+  """``sqrt(mse)`` of a mean square: exactly 0 at 0 with a zero (finite) gradient there.
+
+  A where-guard, and not a plain ``mse > 0`` fallback to 0: NaN is not ``> 0``,
+  so such a fallback would turn NaN into 0. Here NaN stays NaN, ``inf`` gives
+  ``inf`` and a negative value NaN, as ``sqrt`` does; only 0 is special-cased.
+  """
+  positive = mse > 0
+  root = jnp.sqrt(jnp.where(positive, mse, 1.0))       # no sqrt'(0) = inf in the gradient
+  return jnp.where(positive, root, jnp.where(mse == 0, 0.0, jnp.nan))
+
+
 @jax.jit
 def _rmse(pred, target, mask):
-  mse = _mse(pred, target, mask)
-  positive = mse > 0
-  # where-guard: exact 0 at zero error, with a zero (finite) gradient there.
-  return jnp.where(positive, jnp.sqrt(jnp.where(positive, mse, 1.0)), 0.0)
-
-
-def _sqrt_guarded(mse):
-  """``sqrt(mse)``, exactly 0 at 0 with a zero (finite) gradient there (where-guard); NaN stays NaN."""
-  positive = mse > 0
-  return jnp.where(positive, jnp.sqrt(jnp.where(positive, mse, 1.0)), mse)
+  return _sqrt_guarded(_mse(pred, target, mask))
 
 
 @jax.jit
@@ -395,7 +407,9 @@ def rmse(pred, target, *, mask=None):
   ``RMSE = sqrt(mean((pred - target)**2))`` over ``H, W`` (over the pixels
   where ``mask`` is true when a mask is given); metres for depth maps. The
   square root is guarded: zero error gives exactly 0 with a zero (finite)
-  gradient, not NaN.
+  gradient, not NaN. The guard does not touch NaN: under ``jit`` (where the
+  NaN check cannot run) an image holding a NaN scores NaN, and one holding
+  ``inf`` scores ``inf``.
 
   Args:
     pred: ``[..., H, W]`` real array (intensity image, or depth map in
@@ -407,7 +421,8 @@ def rmse(pred, target, *, mask=None):
       scores 0.
 
   Returns:
-    ``[...]`` float32 array, >= 0, same units as the inputs.
+    ``[...]`` float32 array, >= 0 (NaN for a traced input holding NaN), same
+    units as the inputs.
 
   Raises:
     ValueError: shapes differ, rank < 2, NaN in a concrete input, a concrete
@@ -473,9 +488,11 @@ def _surface_scores(pred, target, min_depth):
   fn = jnp.sum(truth & ~found, axis=axes, dtype=pred.dtype)
   fp = jnp.sum(~truth & found, axis=axes, dtype=pred.dtype)
   n_true = tp + fn
+  # Comparisons map NaN to False (background): flag such images and return NaN for them.
+  has_nan = jnp.any(jnp.isnan(pred) | jnp.isnan(target), axis=axes)
 
-  def ratio(num, den):
-    return jnp.where(den > 0, num / jnp.maximum(den, 1), nan)
+  def ratio(num, den):      # den counts pixels: never NaN itself
+    return jnp.where((den > 0) & ~has_nan, num / jnp.maximum(den, 1), nan)
 
   err = jnp.where(truth, pred - target, 0)
   mse = ratio(jnp.sum(jnp.square(err), axis=axes), n_true)
@@ -501,7 +518,8 @@ def surface_scores(pred_depth, target_depth, *, min_depth: float = SURFACE_MIN_D
     ``{name: [...] float32}`` for the names in :data:`OBJECT_METRICS`:
     ``rmse_object``, ``mad_object`` (metres, over true surface pixels),
     ``recall``, ``precision``, ``f1`` (in [0, 1]). NaN where the score's
-    denominator is empty (module docstring).
+    denominator is empty, and every score NaN for an image holding a NaN
+    (traced input; module docstring).
 
   Raises:
     ValueError: shapes differ, rank < 2, NaN in a concrete input, ``min_depth`` <= 0.

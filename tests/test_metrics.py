@@ -294,6 +294,37 @@ def test_rmse_gradient_away_from_zero():
   np.testing.assert_allclose(g, (p - t) / (p.size * r), rtol=1e-4, atol=1e-7)
 
 
+def test_rmse_propagates_nan_under_jit_and_stays_zero_with_finite_gradient_at_zero_error():
+  """Issue 36: the sqrt guard fell back to 0 where the mean square was not > 0, and NaN is not."""
+  target = jnp.asarray(_structured(6, 7)[0], jnp.float32)
+  pred = target.at[2, 3].set(jnp.nan)
+  jitted = jax.jit(metrics.rmse)
+  assert np.isnan(float(jitted(pred, target))) and np.isnan(float(jitted(target, pred)))
+  # Eagerly the NaN is refused before anything runs (documented); the computation itself, run op
+  # by op, propagates it as the compiled one does.
+  with pytest.raises(ValueError, match="pred contains NaN"):
+    metrics.rmse(pred, target)
+  with jax.disable_jit():
+    assert np.isnan(float(metrics._rmse(pred, target, None)))
+  # Only the image holding the NaN: its neighbours in the batch keep their values.
+  batch = jnp.stack([pred, target + 0.5, target])
+  got = np.asarray(jitted(batch, jnp.broadcast_to(target, batch.shape)))
+  assert np.isnan(got[0]) and got[1] == pytest.approx(0.5) and got[2] == 0.0
+  assert float(jitted(target.at[0, 0].set(jnp.inf), target)) == np.inf
+  # A NaN outside the mask is not part of the metric.
+  mask = jnp.ones(target.shape, bool).at[2, 3].set(False)
+  assert float(jax.jit(lambda a, b, m: metrics.rmse(a, b, mask=m))(pred, target, mask)) == 0.0
+  # Zero error: exactly 0 and a zero (finite) gradient, eagerly and under jit.
+  for fn in (metrics.rmse, jitted):
+    value, grad = jax.value_and_grad(lambda p, fn=fn: fn(p, target))(target)
+    assert float(value) == 0.0
+    np.testing.assert_array_equal(grad, 0.0)
+  # The guard itself: sqrt everywhere but at 0, where value and gradient are 0.
+  ms = jnp.array([0.0, 4.0, jnp.nan, jnp.inf], jnp.float32)
+  np.testing.assert_array_equal(metrics._sqrt_guarded(ms), [0.0, 2.0, np.nan, np.inf])
+  np.testing.assert_array_equal(jax.vmap(jax.grad(metrics._sqrt_guarded))(ms[:2]), [0.0, 0.25])
+
+
 # --------------------------------------------------------------------------
 # Validation.
 
@@ -409,6 +440,24 @@ def test_surface_scores_match_a_pixel_loop_batched_and_jitted():
             "rmse_object": np.sqrt(sq / n) if n else np.nan, "mad_object": ab / n if n else np.nan}
     for k, v in want.items():
       np.testing.assert_allclose(got[k][i, j], v, rtol=1e-5, err_msg=f"{k} [{i}, {j}]")
+
+
+def test_surface_scores_of_an_image_holding_nan_are_nan_under_jit():
+  """NaN >= min_depth and NaN > 0 are false: without the guard a NaN pixel counted as background
+  and every score stayed finite (recall 8/9 where it should be NaN)."""
+  scores = jax.jit(metrics.surface_scores)
+  good = np.stack([PRED_DEPTH, GT_DEPTH]).astype(np.float32)      # [pred, target] of one image
+  for which, (y, x) in ((0, (2, 0)), (0, (0, 1)), (1, (2, 0)), (1, (0, 1))):   # background, surface
+    bad = good.copy()
+    bad[which, y, x] = np.nan
+    # A batch of two: the NaN image, and the clean one whose scores are unchanged.
+    got = scores(np.stack([bad[0], good[0]]), np.stack([bad[1], good[1]]))
+    assert set(got) == set(metrics.OBJECT_METRICS)
+    for name in metrics.OBJECT_METRICS:
+      assert np.isnan(got[name][0]), (name, which, y, x)
+      assert float(got[name][1]) == pytest.approx(float(metrics.surface_scores(*good)[name]))
+      single = jax.jit(getattr(metrics, name))(bad[0], bad[1])
+      assert np.isnan(single), name
 
 
 def test_surface_scores_reject_bad_input():

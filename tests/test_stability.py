@@ -34,7 +34,11 @@ The extremes, and the reference each is held to:
 * every loss at zero error: the guard value, exactly zero and finite gradients
   (each term alone, float32 and bfloat16), finite second derivatives; through
   the network, a training step (of Ours-S) on an empty scene (every term at zero
-  error but depth) has exactly zero gradients.
+  error but depth) has exactly zero gradients;
+* bad values (NaN, +inf, a negative count) under ``physics.checks.checked`` (issue 36):
+  every classic method, through ``reconstruct`` and its own function, raises ``ValueError``
+  naming the problem; every public metric, which has no compiled check, scores NaN for an
+  image holding a NaN, and inf and negative values by its definition (float64 NumPy).
 
 Already covered elsewhere (not repeated): every method on zero / one-photon /
 1e9 inputs and a 1-bin range is finite (``test_physics``
@@ -52,12 +56,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from skimage.metrics import structural_similarity
 
 from experiments import configs
-from nlosjax import losses, physics, train
+from nlosjax import losses, metrics, physics, train
 from nlosjax.data import dataset as D
 from nlosjax.models import ModelConfig, STMambaNet
-from nlosjax.physics import Setup, reconstruct, render_points
+from nlosjax.physics import Setup, checks, reconstruct, render_points
 from tests.xla_options import xla_optimizations
 
 
@@ -663,3 +668,108 @@ def test_operators_built_first_inside_a_user_jit_do_not_leak_tracers():
   inside = jax.jit(lambda a: physics.render(a, setup))(albedo)
   np.testing.assert_allclose(np.asarray(physics.render(albedo, setup)), np.asarray(inside), rtol=1e-5,
                              atol=1e-6 * float(np.max(inside)))
+
+
+# ============================================== bad values under jit, checks on (issue 36)
+# What NaN, +inf and a negative value do to every public metric and every classic method under a
+# compiled call with the library's input checks on (``physics.checks.checked``). The methods check
+# their counts: each bad value raises ValueError naming the problem. The metrics have no compiled
+# check (their NaN check is eager only), and their documented behaviour under jit is propagation:
+# an image holding a NaN scores NaN, an inf gives a non-finite score wherever it enters an error,
+# and a negative value (a real number like any other to a metric) gives the definition's value.
+# Regression: rmse, and the five object scores, turned a NaN into a finite number (0, or the
+# score of the image with that pixel counted as background).
+BAD_SETUP = Setup(1.0, (4, 4), 96e-12, 32)
+BAD_VALUES = {"NaN": np.nan, "+inf": np.inf, "negative": -1.0}
+BAD_COUNTS_MESSAGE = {"NaN": "^transient holds NaN or infinite values$",
+                      "+inf": "^transient holds NaN or infinite values$",
+                      "negative": "^transient holds negative values; photon counts must be >= 0$"}
+
+
+@pytest.mark.parametrize("method", physics.METHODS)
+def test_bad_counts_raise_naming_the_problem_in_every_method_under_checked_jit(method):
+  """Through ``reconstruct`` and the method's own function; one bad bin in the second frame of a
+  batch of two is enough. Good counts give the plain ``jit`` volume."""
+  x = np.random.default_rng(36).poisson(0.5, (2, BAD_SETUP.num_bins, *BAD_SETUP.grid)).astype(np.float32)
+  plain = np.asarray(jax.jit(lambda v: reconstruct(v, BAD_SETUP, method))(x))
+  for fn in (lambda v: reconstruct(v, BAD_SETUP, method),
+             lambda v: getattr(physics, method)(v, BAD_SETUP)):
+    safe = checks.checked(fn)
+    np.testing.assert_allclose(np.asarray(safe(x)), plain, rtol=1e-6, atol=1e-7 * plain.max())
+    for kind, value in BAD_VALUES.items():
+      bad = x.copy()
+      bad[1, 7, 2, 3] = value
+      with pytest.raises(ValueError, match=BAD_COUNTS_MESSAGE[kind]):
+        safe(bad)
+      with pytest.raises(ValueError, match=BAD_COUNTS_MESSAGE[kind]):      # eagerly: the same
+        fn(bad)
+
+
+METRICS = ("psnr", "ssim", "rmse", "mad", "rmse_object", "mad_object", "recall", "precision", "f1")
+
+
+def _all_metrics(pred, target) -> dict:
+  """Every public metric of ``nlosjax.metrics`` (``surface_scores`` as ``surface.<name>``)."""
+  out = {name: getattr(metrics, name)(pred, target) for name in METRICS}
+  out.update({f"surface.{k}": v for k, v in metrics.surface_scores(pred, target).items()})
+  return out
+
+
+def _reference_metrics(pred: np.ndarray, target: np.ndarray) -> dict:
+  """The definitions in float64 NumPy, one image (inf in, inf or NaN out by IEEE rules)."""
+  with np.errstate(all="ignore"):
+    mse = np.mean((pred - target) ** 2)
+    truth, found = target > 0, pred >= metrics.SURFACE_MIN_DEPTH
+    tp, fn, fp = np.sum(truth & found), np.sum(truth & ~found), np.sum(~truth & found)
+    err = np.where(truth, pred - target, 0.0)
+    ref = {"psnr": 10 * np.log10(1.0 / max(mse, 1e-10)), "rmse": np.sqrt(mse),
+           "mad": np.mean(np.abs(pred - target)),
+           "ssim": (structural_similarity(pred, target, gaussian_weights=True, sigma=1.5,
+                                          use_sample_covariance=False, data_range=1.0)
+                    if np.all(np.isfinite(pred) & np.isfinite(target)) else np.nan),
+           "rmse_object": np.sqrt(np.sum(err ** 2) / (tp + fn)),
+           "mad_object": np.sum(np.abs(err)) / (tp + fn), "recall": tp / (tp + fn),
+           "precision": tp / (tp + fp), "f1": 2 * tp / (2 * tp + fp + fn)}
+  ref.update({f"surface.{k}": ref[k] for k in metrics.OBJECT_METRICS})
+  return ref
+
+
+def test_every_metric_propagates_nan_and_scores_inf_and_negative_values_under_checked_jit():
+  """One compile of every metric for seven 12 x 12 depth maps: a clean pair, then NaN, +inf and
+  -1 m at a true-surface pixel of the prediction, then of the target."""
+  # Every public function of nlosjax.metrics is here but ``surface`` (a boolean mask, not a score).
+  public = {n for n in metrics.__all__ if callable(getattr(metrics, n))}
+  assert public == set(METRICS) | {"surface_scores", "surface"}, public
+  rng = np.random.default_rng(36)
+  target = np.zeros((12, 12))
+  target[3:9, 2:8] = rng.uniform(0.8, 1.5, (6, 6))
+  pred = np.where(rng.random(target.shape) < 0.8, target + rng.normal(0, 0.05, target.shape), 0.0)
+  pred[0, 0] = 0.4                                          # one false positive
+  rows = [("clean", None, None)] + [(kind, arg, v) for arg in (0, 1)
+                                    for kind, v in BAD_VALUES.items()]
+  pairs = np.stack([np.stack([pred, target])] * len(rows)).astype(np.float32)   # [7, 2, H, W]
+  for i, (_, arg, value) in enumerate(rows[1:], 1):
+    pairs[i, arg, 5, 4] = value
+  got = checks.checked(_all_metrics)(pairs[:, 0], pairs[:, 1])
+  plain = jax.jit(_all_metrics)(pairs[:, 0], pairs[:, 1])
+  assert set(got) == set(METRICS) | {f"surface.{k}" for k in metrics.OBJECT_METRICS}
+  for i, (kind, arg, _) in enumerate(rows):
+    ref = _reference_metrics(pairs[i, 0].astype(np.float64), pairs[i, 1].astype(np.float64))
+    for name, value in got.items():
+      v, what = float(value[i]), (name, kind, "-" if arg is None else ("pred", "target")[arg])
+      assert v == float(plain[name][i]) or (np.isnan(v) and np.isnan(plain[name][i])), what
+      if kind == "NaN":
+        assert np.isnan(v), what                    # never a finite number made up for it
+      else:
+        np.testing.assert_allclose(v, ref[name], rtol=1e-5, atol=1e-6, err_msg=str(what))
+      if kind == "+inf" and name in ("psnr", "ssim", "rmse", "mad", "rmse_object", "mad_object"):
+        assert not np.isfinite(v), what             # the inf enters each of these errors
+  # Eagerly, NaN is refused before anything compiles; inf and negative values score as under jit.
+  for name in METRICS + ("surface_scores",):
+    for i in (i for i, (kind, _, _) in enumerate(rows) if kind == "NaN"):
+      with pytest.raises(ValueError, match=f"{('pred', 'target')[rows[i][1]]} contains NaN"):
+        getattr(metrics, name)(pairs[i, 0], pairs[i, 1])
+  eager_rows = [i for i, (kind, _, _) in enumerate(rows) if kind != "NaN"]
+  eager = _all_metrics(pairs[eager_rows, 0], pairs[eager_rows, 1])
+  for name, value in eager.items():
+    np.testing.assert_allclose(value, np.asarray(got[name])[eager_rows], rtol=1e-6, err_msg=name)
