@@ -2,9 +2,14 @@
 
 Every ``import`` and ``from ... import`` statement of every module, top level or inside
 a function (or in a string run as a subprocess script), is read with ``ast``.
+
+Inside ``nlosjax`` no two modules import each other, directly or round a longer circle
+(issue 36: ``physics.depth_range`` and ``physics.reconstruct`` did, through imports inside
+functions).
 """
 
 import ast
+import importlib
 import pathlib
 import re
 
@@ -36,3 +41,107 @@ def test_imports_run_downward(package):
     if wrong:
       bad.append(f"{path.relative_to(ROOT)} imports {sorted(wrong)}")
   assert not bad, "\n".join(bad)
+
+
+# ------------------------------------------------------------- cycles inside nlosjax
+def _nlosjax_modules() -> dict[str, pathlib.Path]:
+  """Dotted module name -> file, for every module and package of ``nlosjax``."""
+  modules = {}
+  for path in sorted((ROOT / "nlosjax").rglob("*.py")):
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+  return modules
+
+
+def _import_graph() -> dict[str, set[str]]:
+  """Module -> the ``nlosjax`` modules it imports (top level or inside functions).
+
+  ``from pkg import name`` is an edge to ``pkg.name`` when that is a module (importing a
+  submodule runs its package's ``__init__`` first, which Python does for every import and
+  is no circle), else to ``pkg`` (the name comes from its ``__init__``).
+  """
+  modules = _nlosjax_modules()
+  graph = {}
+  for name, path in modules.items():
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    edges = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+      if isinstance(node, ast.Import):
+        for alias in node.names:
+          parts = alias.name.split(".")
+          edges |= {".".join(parts[:i]) for i in range(len(parts), 0, -1)
+                    if ".".join(parts[:i]) in modules}
+      elif isinstance(node, ast.ImportFrom):
+        if node.level:
+          base = package.split(".")[:len(package.split(".")) - node.level + 1]
+          source = ".".join(base + ([node.module] if node.module else []))
+        else:
+          source = node.module
+        subs = {f"{source}.{a.name}" for a in node.names} & set(modules)
+        edges |= subs
+        if len(subs) < len(node.names) and source in modules:
+          edges.add(source)
+    graph[name] = edges - {name}
+  return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+  """The strongly connected components of more than one module (Tarjan), sorted."""
+  index, low, stack, on_stack, found = {}, {}, [], set(), []
+
+  def visit(v):
+    index[v] = low[v] = len(index)
+    stack.append(v)
+    on_stack.add(v)
+    for w in sorted(graph[v]):
+      if w not in index:
+        visit(w)
+        low[v] = min(low[v], low[w])
+      elif w in on_stack:
+        low[v] = min(low[v], index[w])
+    if low[v] == index[v]:
+      component = []
+      while not component or component[-1] != v:
+        component.append(stack.pop())
+        on_stack.discard(component[-1])
+      if len(component) > 1:
+        found.append(sorted(component))
+
+  for v in sorted(graph):
+    if v not in index:
+      visit(v)
+  return sorted(found)
+
+
+def test_the_cycle_finder_sees_imports_inside_functions_and_relative_ones():
+  graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": {"f"}, "f": {"e"}}
+  assert _cycles(graph) == [["a", "b", "c"], ["e", "f"]]
+  assert _cycles({"a": {"b"}, "b": set()}) == []
+  edges = _import_graph()
+  assert "nlosjax.physics.methods.lct" in edges["nlosjax.physics.methods.fbp"]
+  assert "nlosjax.physics._validate" in edges["nlosjax.physics.methods.fbp"]      # from pkg import mod
+  assert "nlosjax.physics" not in edges["nlosjax.physics.methods.fbp"]
+  assert "nlosjax.physics.setup" in edges["nlosjax.physics"]                    # the __init__
+
+
+def test_depth_range_and_reconstruct_import_one_way():
+  """The dispatch imports the depth-range estimator, which uses f-k from its own module."""
+  edges = _import_graph()
+  assert "nlosjax.physics.depth_range" in edges["nlosjax.physics.reconstruct"]
+  assert "nlosjax.physics.reconstruct" not in edges["nlosjax.physics.depth_range"]
+  assert "nlosjax.physics.methods.fk" in edges["nlosjax.physics.depth_range"]
+  # Every public name is still where it was. (``nlosjax.physics.reconstruct`` the attribute is
+  # the function, which the package re-exports over the module's name: hence import_module.)
+  from nlosjax.physics import auto_depth_range, estimate_depth_range, fk, reconstruct
+  rec = importlib.import_module("nlosjax.physics.reconstruct")
+  dr = importlib.import_module("nlosjax.physics.depth_range")
+  fk_module = importlib.import_module("nlosjax.physics.methods.fk")
+  assert rec.fk is fk is fk_module.fk and rec.reconstruct is reconstruct
+  assert rec.auto_depth_range is auto_depth_range
+  assert dr.estimate_depth_range is estimate_depth_range and dr.auto_depth_range is auto_depth_range
+
+
+def test_no_import_cycle_among_nlosjax_modules():
+  cycles = _cycles(_import_graph())
+  assert not cycles, "modules that import each other (directly or round a circle):\n" + "\n".join(
+      " <-> ".join(c) for c in cycles)

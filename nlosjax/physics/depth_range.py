@@ -18,6 +18,10 @@ kept every pixel but spanned 2.50 m, 0.2 spanned 2.35 m.
 ``benchmarks/results/depth_range.md`` measures what the defaults save and keep
 on the test split and the shipped scans. A scene with dim objects far behind
 bright ones can lose them below ``threshold``: lower it, or widen the margin.
+
+Imports run one way: this module uses :func:`nlosjax.physics.methods.fk.fk`
+directly, and :mod:`nlosjax.physics.reconstruct` (the dispatch, for
+``depth_range="auto"``) imports this module, never the reverse.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import math
 import numpy as np
 
 from nlosjax.physics import _validate
+from nlosjax.physics.methods.fk import fk
 from nlosjax.physics.setup import Setup
 
 DEFAULT_THRESHOLD = 0.3
@@ -54,8 +59,6 @@ def estimate_depth_range(transient, setup: Setup, *, threshold: float = DEFAULT_
   Raises:
     ValueError: traced input, bad options, or a capture with no photon.
   """
-  from nlosjax.physics.reconstruct import fk
-
   if not _validate.is_concrete(transient):
     raise ValueError("estimate_depth_range needs concrete counts (it sets array shapes); call it"
                      " outside jit")

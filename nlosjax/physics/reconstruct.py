@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import jax
 
+from nlosjax.physics.depth_range import auto_depth_range
 from nlosjax.physics.methods.fbp import _neg_log_kernel as _neg_log_kernel
 from nlosjax.physics.methods.fbp import fbp
 from nlosjax.physics.methods.fbp import neg_log_filter as neg_log_filter
@@ -100,7 +101,6 @@ def reconstruct(transient, setup: Setup, method: str, *, depth_range=None, **opt
   if isinstance(depth_range, str):
     if depth_range != "auto":
       raise ValueError(f"depth_range must be None, (z_min, z_max) or 'auto', got {depth_range!r}")
-    from nlosjax.physics.depth_range import auto_depth_range
     setup = auto_depth_range(transient, setup)
   elif depth_range is not None:
     setup = setup.ungated().with_depth_range(*depth_range)
