@@ -45,3 +45,29 @@ def test_lock_file_is_generated_and_installable_as_the_readme_says():
   names = {p.split("==")[0].lower().replace("_", "-") for p in pins}
   for needed in ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy", "pytest"):
     assert needed in names, needed
+
+
+def _quoting_units(text: str):
+  """The README's paragraphs (blank-line separated) and table rows, each as one string."""
+  for block in re.split(r"\n\s*\n", text):
+    rows = [l for l in block.splitlines() if l.lstrip().startswith("|")]
+    rest = "\n".join(l for l in block.splitlines() if not l.lstrip().startswith("|"))
+    yield from rows
+    if rest.strip():
+      yield rest
+
+
+def test_the_readme_quotes_only_current_results_files_or_says_the_number_is_stale():
+  """A paragraph or table row that quotes a number from a stale results file says "stale"."""
+  from benchmarks import index
+  states = {e.name: index.state(e) for e in index.entries()}
+  readme = (ROOT / "README.md").read_text().split("```")
+  prose = "".join(readme[::2])                    # outside code blocks
+  bad = []
+  for unit in _quoting_units(prose):
+    named = set(re.findall(r"results/([A-Za-z0-9_]+)\.(?:md|json|png)", unit))
+    numbers = re.search(r"\d\.\d|\d+ ?(?:s|ms|min|dB|x|%)\b", unit)
+    stale = sorted(n for n in named if n in states and states[n] != "current")
+    if stale and numbers and "stale" not in unit.lower():
+      bad.append(f"{', '.join(stale)}: {unit.strip()[:100]}...")
+  assert not bad, "README quotes stale results without saying so:\n" + "\n".join(bad)
