@@ -85,6 +85,18 @@ def test_checked_leaves_plain_jit_untouched_and_composes_without_jit():
     inner(bad_inputs(GOOD)[0][0])
 
 
+def test_checked_of_an_already_jitted_function_checks_and_leaves_it_plain():
+  # jit's trace cache does not see whether checks were on: checked(f) of a jitted f that has
+  # run once must still check, and f must still run plainly after checked(f) has traced it.
+  f = jax.jit(lambda v: physics.reconstruct(v, SETUP, "lct"))
+  plain = np.asarray(f(GOOD))
+  nan = bad_inputs(GOOD)[0][0]
+  with pytest.raises(ValueError, match="^transient holds NaN"):
+    checks.checked(f)(nan)
+  np.testing.assert_array_equal(np.asarray(f(GOOD)), plain)
+  assert np.isnan(np.asarray(f(nan))).any()          # f itself stays unchecked
+
+
 # ------------------------------------------------------- eager input checks
 def test_save_capture_refuses_bad_data_and_keeps_what_was_written(tmp_path):
   from nlosjax.data import io

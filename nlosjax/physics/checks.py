@@ -43,7 +43,9 @@ def checked(fn: Callable, *, jit: bool = True, **jit_kwargs) -> Callable:
 
   Args:
     fn: a function of arrays (and whatever else ``jax.jit`` accepts) that
-      calls nlosjax functions on photon counts.
+      calls nlosjax functions on photon counts. A function already wrapped by
+      ``jax.jit`` is unwrapped and compiled anew with the checks (pass its
+      ``static_argnums`` again in ``jit_kwargs``); the jitted one is left as it was.
     jit: compile the checked function with ``jax.jit`` (default). ``False``
       runs it op by op. Either way the returned function reads the error to
       raise it, so call it outside any ``jit``.
@@ -54,10 +56,15 @@ def checked(fn: Callable, *, jit: bool = True, **jit_kwargs) -> Callable:
     ValueError: ``"<name> holds NaN or infinite values"`` or ``"<name> holds
       negative values; ..."`` for the first failing input.
   """
+  # A function already under jax.jit keeps its traces in jit's cache, which does not know
+  # whether checks were on when it traced: checked(f) would reuse a trace without checks (and
+  # f would later reuse one with them, outside checkify). So the checks trace what jit wraps.
+  inner = fn.__wrapped__ if hasattr(fn, "lower") and hasattr(fn, "__wrapped__") else fn
+
   @functools.wraps(fn)
   def traced(*args, **kwargs):
     with _validate.traced_checks():
-      return fn(*args, **kwargs)
+      return inner(*args, **kwargs)
 
   run = checkify.checkify(traced, errors=checkify.user_checks)
   if jit:
