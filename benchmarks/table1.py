@@ -8,9 +8,10 @@ behind ``python -m experiments.train``) with ``--seeds`` training seeds per
 learned variant, so every interval covers the training run as well as the
 test sequences, then writes the results file whole: provenance (command,
 date, machine, commit), the main job's ``table.md`` (Table 1 with intervals,
-the object-aware table, the paired differences with their verdicts, the
-choices made on the validation split), and beside it ``table1.json`` (the
-table, the comparisons and the validation choices) and the figures.
+the object-aware table, the temporal-consistency table, the paired
+differences with their verdicts, the choices made on the validation split),
+and beside it ``table1.json`` (the table, the comparisons and the validation
+choices) and the figures.
 Resumable: a rerun reuses the workdir's finished models.
 """
 

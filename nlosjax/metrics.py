@@ -8,8 +8,10 @@ object-aware scores (:func:`surface_scores`: ``rmse_object``, ``mad_object``,
 
 Every function takes ``pred`` and ``target`` of the same shape ``[..., H, W]``
 (any number of leading batch dimensions, ``H, W`` being the last two axes) and
-returns one value per image, shape ``[...]``. Everything is pure
-``jax.numpy``: the functions can be jitted, vmapped and differentiated.
+returns one value per image, shape ``[...]``; the temporal scores take
+sequences ``[..., F, H, W]`` instead (see "Temporal consistency" below).
+Everything is pure ``jax.numpy``: the functions can be jitted, vmapped and
+differentiated.
 
 Conventions:
 
@@ -75,6 +77,42 @@ Surfaces (one definition for every method, learned or classic):
   ``NaN > 0`` are false, so without this a NaN pixel would silently count as
   background. ``+inf`` is a depth like any other (surface; an ``inf`` error
   where it is scored).
+
+Temporal consistency (:data:`TEMPORAL_METRICS`; one definition for every method):
+
+* Inputs are sequences ``[..., F, H, W]``: frames on axis -3, consecutive in
+  time (frame ``t`` follows frame ``t - 1``), ``F >= 2``; leading axes are
+  independent sequences (batches broadcast, no ``vmap`` needed). The scores
+  compare how the reconstruction changes between consecutive frames with how
+  the ground truth changes: for the pair ``(t - 1, t)`` the error image is
+  ``e_t = (pred_t - pred_{t-1}) - (target_t - target_{t-1})``.
+* Output: one value per consecutive pair, ``[..., F - 1]`` (entry ``t - 1``
+  is the pair ``(t - 1, t)``); with ``pooled=True`` one value per sequence,
+  ``[...]``, whose mean square pools every pair's (selected) pixels.
+* :func:`temporal_rmse`: ``sqrt(mean(e_t**2))`` over ``H, W`` (the units of
+  the inputs). A reconstruction equal to the truth plus a per-sequence
+  constant (a bias, even one that differs pixel to pixel, as long as it does
+  not change over time) scores 0; against a static truth it is the RMS of the
+  reconstruction's frame-to-frame change (its flicker).
+* :func:`temporal_psnr`: ``10 * log10(data_range**2 / max(MSE_t, data_range**2
+  * 1e-10))`` with ``MSE_t = mean(e_t**2)``: the peak is the *images'* data
+  range, the :func:`psnr` convention (1 for intensities in ``[0, 1]``), not
+  the range of a change (``2 * data_range``, which would add 6.02 dB); so
+  ``temporal_psnr(p, y)[..., t-1] == psnr(p_t - p_{t-1}, y_t - y_{t-1})``, in
+  dB on the per-frame PSNR's scale, with the same 100 dB cap.
+* :func:`temporal_rmse_object`: depth (metres) over the pixels that are true
+  surface (ground-truth depth > 0, "Surfaces") in *both* frames ``t - 1`` and
+  ``t``, whatever was reconstructed there. A pair with no such pixel is NaN
+  (pooled: a sequence where no pair has one); tables skip it like any NaN
+  score, so such a pair adds no frame pair to the counts, and a sequence with
+  no defined pair no sequence. As for :func:`surface_scores`, a NaN anywhere
+  in either depth map of either frame (possible under ``jit`` only) makes the
+  pair NaN.
+* Validation: fewer than 2 frames (``F < 2``) or rank < 3 raises
+  ``ValueError``, eagerly and under ``jit`` (shapes are static); NaN in a
+  concrete input raises as for every metric. Under ``jit`` a NaN in frame
+  ``t`` makes the pairs ``(t - 1, t)`` and ``(t, t + 1)`` NaN (pooled: the
+  sequence); the other pairs keep their values.
 """
 
 from __future__ import annotations
@@ -86,8 +124,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["PSNR_CAP_DB", "SURFACE_MIN_DEPTH", "OBJECT_METRICS", "psnr", "ssim", "rmse", "mad",
-           "surface", "surface_scores", "rmse_object", "mad_object", "recall", "precision", "f1"]
+__all__ = ["PSNR_CAP_DB", "SURFACE_MIN_DEPTH", "OBJECT_METRICS", "TEMPORAL_METRICS", "psnr", "ssim",
+           "rmse", "mad", "surface", "surface_scores", "rmse_object", "mad_object", "recall", "precision",
+           "f1", "temporal_rmse", "temporal_psnr", "temporal_rmse_object"]
 
 PSNR_CAP_DB = 100.0
 """PSNR (dB) returned for identical images: MSE is floored at
@@ -102,6 +141,9 @@ SURFACE_MIN_DEPTH = 0.1
 
 OBJECT_METRICS = ("rmse_object", "mad_object", "recall", "precision", "f1")
 """The keys of :func:`surface_scores`, in table order."""
+
+TEMPORAL_METRICS = ("temporal_rmse", "temporal_psnr", "temporal_rmse_object")
+"""The temporal-consistency scores (see "Temporal consistency"), in table order."""
 
 
 # --------------------------------------------------------------------------
@@ -478,10 +520,15 @@ def surface(depth, *, min_depth: float = SURFACE_MIN_DEPTH):
   return jnp.asarray(depth) >= min_depth
 
 
+def _true_surface(target_depth):
+  """True surface pixels of a ground-truth depth map: depth > 0 (see "Surfaces")."""
+  return target_depth > 0
+
+
 @jax.jit
 def _surface_scores(pred, target, min_depth):
   nan = jnp.array(jnp.nan, pred.dtype)
-  truth = target > 0
+  truth = _true_surface(target)
   found = surface(pred, min_depth=min_depth)
   axes = (-2, -1)
   tp = jnp.sum(truth & found, axis=axes, dtype=pred.dtype)
@@ -571,3 +618,139 @@ def f1(pred_depth, target_depth, *, min_depth: float = SURFACE_MIN_DEPTH):
   """
   return surface_scores(pred_depth, target_depth, min_depth=min_depth)["f1"]
 
+
+# --------------------------------------------------------------------------
+# Temporal consistency: the change between consecutive frames against the true change.
+
+
+def _check_sequences(fn: str, pred, target, pooled) -> None:
+  """Rank >= 3, >= 2 frames, matching shapes, no concrete NaN; ``pooled`` a bool."""
+  shape = tuple(np.shape(pred))
+  if len(shape) < 3:
+    raise ValueError(f"{fn}: pred must have rank >= 3 ([..., F, H, W]: a sequence of F frames), "
+                     f"got shape {shape}")
+  _check_images(fn, pred, target, None)
+  if shape[-3] < 2:
+    raise ValueError(f"{fn}: a sequence needs at least 2 frames (axis -3 of [..., F, H, W]) to "
+                     f"score a change between consecutive frames, got F = {shape[-3]}")
+  if not isinstance(pooled, (bool, np.bool_)):
+    raise ValueError(f"{fn}: pooled must be True or False, got {pooled!r}")
+
+
+def _change_error(pred, target):
+  """``e_t = (pred_t - pred_{t-1}) - (target_t - target_{t-1})``: ``[..., F, H, W] -> [..., F-1, H, W]``."""
+  return (pred[..., 1:, :, :] - pred[..., :-1, :, :]) - (target[..., 1:, :, :] - target[..., :-1, :, :])
+
+
+@functools.partial(jax.jit, static_argnames=("pooled",))
+def _temporal_mse(pred, target, *, pooled):
+  mse = jnp.mean(jnp.square(_change_error(pred, target)), axis=(-2, -1))     # [..., F-1]
+  return jnp.mean(mse, axis=-1) if pooled else mse        # every pair has H * W pixels
+
+
+@functools.partial(jax.jit, static_argnames=("pooled",))
+def _temporal_rmse(pred, target, *, pooled):
+  return _sqrt_guarded(_temporal_mse(pred, target, pooled=pooled))
+
+
+@functools.partial(jax.jit, static_argnames=("pooled",))
+def _temporal_psnr(pred, target, data_range, *, pooled):
+  range_sq = jnp.square(data_range)
+  mse = _temporal_mse(pred, target, pooled=pooled)
+  return 10.0 * jnp.log10(range_sq / jnp.maximum(mse, range_sq * _PSNR_MSE_FLOOR))
+
+
+@functools.partial(jax.jit, static_argnames=("pooled",))
+def _temporal_rmse_object(pred, target, *, pooled):
+  axes = (-2, -1)
+  truth = _true_surface(target)
+  both = truth[..., 1:, :, :] & truth[..., :-1, :, :]                          # [..., F-1, H, W]
+  sq = jnp.sum(jnp.where(both, jnp.square(_change_error(pred, target)), 0), axis=axes)
+  count = jnp.sum(both, axis=axes, dtype=pred.dtype)
+  # NaN > 0 is false (a NaN pixel would drop out of the object): flag pairs that hold one.
+  nan_frame = jnp.any(jnp.isnan(pred) | jnp.isnan(target), axis=axes)         # [..., F]
+  has_nan = nan_frame[..., 1:] | nan_frame[..., :-1]
+  if pooled:
+    sq, count, has_nan = jnp.sum(sq, axis=-1), jnp.sum(count, axis=-1), jnp.any(has_nan, axis=-1)
+  mse = jnp.where((count > 0) & ~has_nan, sq / jnp.maximum(count, 1), jnp.nan)
+  return _sqrt_guarded(mse)
+
+
+def temporal_rmse(pred, target, *, pooled: bool = False):
+  """RMSE of the change between consecutive frames against the true change ("Temporal consistency").
+
+  ``sqrt(mean(e_t**2))`` over ``H, W`` with ``e_t = (pred_t - pred_{t-1}) -
+  (target_t - target_{t-1})``; the units of the inputs.
+
+  Args:
+    pred: ``[..., F, H, W]`` reconstructed sequence (frames on axis -3,
+      consecutive in time, ``F >= 2``), e.g. intensities in ``[0, 1]``.
+    target: ``[..., F, H, W]`` ground truth, same shape and units.
+    pooled: ``False``: one value per consecutive pair; ``True``: one per
+      sequence, the root of the mean square over every pair and pixel.
+
+  Returns:
+    ``[..., F - 1]`` (``[...]`` pooled) float32, >= 0; 0 for a reconstruction
+    that is the truth plus a constant over time. NaN for a pair holding a
+    NaN (traced input).
+
+  Raises:
+    ValueError: rank < 3, ``F < 2``, shapes differ, NaN in a concrete input,
+      ``pooled`` not a bool.
+  """
+  _check_sequences("temporal_rmse", pred, target, pooled)
+  pred, target, _, _ = _prepare(pred, target, None)
+  return _temporal_rmse(pred, target, pooled=bool(pooled))
+
+
+def temporal_psnr(pred, target, *, data_range=1.0, pooled: bool = False):
+  """PSNR (dB) of the change between consecutive frames against the true change.
+
+  ``10 * log10(data_range**2 / max(MSE_t, data_range**2 * 1e-10))``, ``MSE_t
+  = mean(e_t**2)`` (:func:`temporal_rmse` squared): the peak is the images'
+  data range, as in :func:`psnr` (module docstring, "Temporal consistency"),
+  capped at :data:`PSNR_CAP_DB`.
+
+  Args:
+    pred: ``[..., F, H, W]`` reconstructed sequence, ``F >= 2``.
+    target: ``[..., F, H, W]`` ground truth, same shape.
+    data_range: max - min of the possible *image* values (1 for intensities
+      in ``[0, 1]``); a positive scalar or an array broadcastable to the output.
+    pooled: as :func:`temporal_rmse`.
+
+  Returns:
+    ``[..., F - 1]`` (``[...]`` pooled) float32, dB, at most ``PSNR_CAP_DB``.
+
+  Raises:
+    ValueError: as :func:`temporal_rmse`, and ``data_range`` not finite and > 0.
+  """
+  _check_sequences("temporal_psnr", pred, target, pooled)
+  _check_scalar("temporal_psnr", "data_range", data_range, allow_zero=False)
+  pred, target, _, dtype = _prepare(pred, target, None)
+  return _temporal_psnr(pred, target, jnp.asarray(data_range, dtype), pooled=bool(pooled))
+
+
+def temporal_rmse_object(pred_depth, target_depth, *, pooled: bool = False):
+  """Depth RMSE (metres) of the change between consecutive frames, over the objects.
+
+  ``sqrt(mean(e_t**2))`` over the pixels that are true surface (ground-truth
+  depth > 0) in both frames ``t - 1`` and ``t`` (module docstring,
+  "Temporal consistency").
+
+  Args:
+    pred_depth: ``[..., F, H, W]`` reconstructed depth maps, metres, ``F >= 2``.
+    target_depth: ``[..., F, H, W]`` true depth maps, metres, 0 at background.
+    pooled: ``False``: one value per consecutive pair; ``True``: one per
+      sequence, the mean square pooling every pair's object pixels.
+
+  Returns:
+    ``[..., F - 1]`` (``[...]`` pooled) float32, metres; NaN for a pair with no
+    pixel that is surface in both frames (pooled: a sequence with none in any
+    pair) and for a pair holding a NaN (traced input).
+
+  Raises:
+    ValueError: as :func:`temporal_rmse`.
+  """
+  _check_sequences("temporal_rmse_object", pred_depth, target_depth, pooled)
+  pred, target, _, _ = _prepare(pred_depth, target_depth, None)
+  return _temporal_rmse_object(pred, target, pooled=bool(pooled))

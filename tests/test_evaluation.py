@@ -127,3 +127,111 @@ def test_learned_surface_threshold_is_chosen_by_validation_f1():
   assert got["threshold"] == 0.3 and got["f1"] == pytest.approx(1.0)
   assert got["f1_by_threshold"]["0.0"] == pytest.approx(2 * 4 / (2 * 4 + 12))
   assert got["f1_by_threshold"]["0.5"] == pytest.approx(1.0)
+
+
+def test_consecutive_pairs_stay_within_a_sequence():
+  seq = np.array([4, 4, 4, 9, 9, 4])
+  frame = np.array([2, 1, 3, 1, 2, 5])                # any order; frame 4 of sequence 4 is missing
+  prev, cur = scores.consecutive_pairs(seq, frame)
+  assert list(zip(prev, cur)) == [(1, 0), (0, 2), (3, 4)]     # (1, 2), (2, 3) of 4; (1, 2) of 9
+  # Without frame indices: consecutive in the order they appear, sequence by sequence.
+  prev, cur = scores.consecutive_pairs(np.array([4, 4, 9, 4, 9]))
+  assert list(zip(prev, cur)) == [(0, 1), (1, 3), (2, 4)]
+  with pytest.raises(ValueError, match="appears twice"):
+    scores.consecutive_pairs(seq, np.array([1, 1, 2, 1, 2, 3]))
+  with pytest.raises(ValueError, match="one frame index per frame"):
+    scores.consecutive_pairs(seq, frame[:5])
+
+
+def _direct_temporal_rmse(inten, gt, seq, frame) -> list[float]:
+  """Per pair, by sequence: RMSE of the change against the true change, straight from the arrays."""
+  out = []
+  for s in np.unique(seq):
+    rows = {int(f): n for n, f in enumerate(frame) if seq[n] == s}
+    for f in sorted(rows):
+      if f - 1 in rows:
+        a, b = rows[f - 1], rows[f]
+        out.append(np.sqrt(np.mean(((inten[b] - inten[a]) - (gt[b] - gt[a])) ** 2)))
+  return out
+
+
+def test_tabulated_temporal_score_equals_a_direct_computation_and_never_crosses_sequences():
+  """Two sequences in file order (3 and 2 middle frames), the second's first frame right after the
+  first's last: a pair across them would see a jump of 1 in the truth that no method follows."""
+  rng = np.random.default_rng(37)
+  seq = np.array([0, 0, 0, 1, 1])
+  frame = np.array([1, 2, 3, 1, 2])
+  gt_i = np.zeros((5, 12, 12), np.float32)               # 12 x 12: SSIM's smallest is 11 x 11
+  gt_i[3:] = 1.0                                          # the jump between the two sequences
+  gt_i[:, 3:9, 3:9] += rng.uniform(0, 0.5, (5, 6, 6)).astype(np.float32)
+  gt_i = np.clip(gt_i, 0, 1)
+  gt_d = np.where(gt_i > 0.1, 1.0 + gt_i, 0.0).astype(np.float32)
+  ev_scores, images = {}, {}
+  for method, noise in (("fbp", 0.2), ("ours_s", 0.1), ("ours", 0.05)):
+    seeds = 1 if method == "fbp" else 2
+    images[method] = [(np.clip(gt_i + rng.normal(0, noise, gt_i.shape), 0, 1).astype(np.float32),
+                       gt_d + rng.normal(0, noise, gt_d.shape).astype(np.float32))
+                      for _ in range(seeds)]
+    per_seed = [scores.frame_scores(i, d, gt_i, gt_d, sequence=seq, frame=frame)
+                for i, d in images[method]]
+    assert set(per_seed[0]) == set(scores.TABLE_METRICS)
+    ev_scores[method] = (per_seed[0] if method == "fbp" else
+                         {k: np.stack([s[k] for s in per_seed]) for k in scores.TABLE_METRICS})
+  # A sequence's first evaluated frame has no pair: NaN there, the pair's score at its later frame.
+  t = ev_scores["fbp"]["temporal_rmse"]
+  assert np.isnan(t[[0, 3]]).all() and np.isfinite(t[[1, 2, 4]]).all()
+  table, comparisons = protocol.tabulate({"scores": ev_scores, "sequence": seq}, n_boot=200)
+  for method, ims in images.items():
+    direct = [v for i, _ in ims for v in _direct_temporal_rmse(i, gt_i, seq, frame)]
+    cell = table[method]["temporal_rmse"]
+    assert len(direct) == 3 * len(ims)                 # 2 + 1 pairs per seed, none across sequences
+    assert cell["mean"] == pytest.approx(np.mean(direct), rel=1e-5)
+    assert (cell["n_frames"], cell["n_sequences"], cell["n_seeds"]) == (3 * len(ims), 2, len(ims))
+    assert all(v < 0.5 for v in direct)                # a pair across the jump would score ~1
+    psnr = table[method]["temporal_psnr"]["mean"]
+    assert psnr == pytest.approx(np.mean([10 * np.log10(1 / v ** 2) for v in direct]), rel=1e-5)
+  # The paired difference Ours - Ours-S, seed by seed on the same pairs.
+  ours_vs_s = next(c for c in comparisons if (c["a"], c["b"]) == ("ours", "ours_s"))
+  want = np.mean([a - b for (ia, _), (ib, _) in zip(images["ours"], images["ours_s"])
+                  for a, b in zip(_direct_temporal_rmse(ia, gt_i, seq, frame),
+                                  _direct_temporal_rmse(ib, gt_i, seq, frame))])
+  assert ours_vs_s["diff"]["temporal_rmse"]["mean"] == pytest.approx(want, rel=1e-5)
+  assert ours_vs_s["diff"]["temporal_rmse"]["n_frames"] == 6
+  # The Markdown: a temporal table with its own counts, and the temporal column and sentence in the
+  # paired differences; a table without the temporal scores renders as before.
+  text = report.format_tables(table) + report.format_comparisons(comparisons)
+  assert "| temporal intensity error ↓ | temporal intensity PSNR (dB) ↑ |" in text
+  assert "temporal depth error (objects) (m) ↓ | sequences / frame pairs / seeds |" in text
+  assert "| Ours | " in text and "| 2 / 6 / 2 |" in text and "| 2 / 3 / 1 |" in text
+  assert "Ours - Ours-S, temporal intensity error: " in text
+  old = {m: {k: r[k] for k in scores.METRICS} for m, r in table.items()}
+  assert "Over time" not in report.format_tables(old)
+  old_c = [{**c, "diff": {k: c["diff"][k] for k in scores.METRICS}} for c in comparisons]
+  assert "temporal" not in report.format_comparisons(old_c)
+
+
+def test_evaluate_pairs_the_consecutive_middle_frames_of_each_test_sequence(tmp_path):
+  """The protocol end to end on a tiny file of 2 test sequences of 4 frames (one classic method): the
+  middle frames 1 and 2 of each sequence come in file order with their frame index, and each
+  temporal score is that of the previous middle frame of its own sequence."""
+  from nlosjax import metrics, train
+  from tests.tiny_run import tiny_config
+  path = tmp_path / "tiny.h5"
+  cfg = tiny_config(path, eval_batch_size=4)
+  cfg["data"]["num_sequences"] = {"train": 1, "val": 1, "test": 2}
+  train.ensure_dataset(cfg, path, log=lambda s: None)
+  ev = protocol.evaluate(cfg, path, {}, split="test", methods=("lct",), log=lambda s: None)
+  np.testing.assert_array_equal(ev["sequence"], [0, 0, 1, 1])
+  np.testing.assert_array_equal(ev["frame"], [1, 2, 1, 2])       # loader ends="valid": 1 .. F - 2
+  got, im, gt = ev["scores"]["lct"], ev["images"]["lct"], ev["images"]["gt"]
+  assert set(got) == set(scores.TABLE_METRICS)
+  for k in scores.TEMPORAL_METRICS:
+    assert np.isnan(got[k][[0, 2]]).all(), k                     # a sequence's first middle frame
+  for cur in (1, 3):
+    pair = slice(cur - 1, cur + 1)
+    want = {"temporal_rmse": metrics.temporal_rmse(im["intensity"][pair], gt["intensity"][pair]),
+            "temporal_psnr": metrics.temporal_psnr(im["intensity"][pair], gt["intensity"][pair]),
+            "temporal_rmse_object": metrics.temporal_rmse_object(im["depth"][pair], gt["depth"][pair])}
+    for k, v in want.items():
+      assert got[k][cur] == pytest.approx(float(v[0]), rel=1e-6, nan_ok=True), (k, cur)
+  assert np.isfinite(got["temporal_rmse"][[1, 3]]).all()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -467,3 +469,187 @@ def test_surface_scores_reject_bad_input():
     metrics.surface_scores(np.full_like(GT_DEPTH, np.nan), GT_DEPTH)
   with pytest.raises(ValueError, match="min_depth"):
     metrics.surface_scores(PRED_DEPTH, GT_DEPTH, min_depth=0.0)
+
+
+# --------------------------------------------------------------------------
+# Temporal consistency: the change between consecutive frames against the true change.
+
+# A 3-frame sequence of 2 x 2 intensity images (frames first).
+SEQ_TRUTH = np.array([[[0.0, 0.0], [0.0, 0.0]],
+                      [[1.0, 0.0], [0.0, 0.0]],
+                      [[1.0, 1.0], [0.0, 0.0]]])
+SEQ_PRED = np.array([[[0.5, 0.0], [0.0, 0.0]],
+                     [[0.5, 0.0], [0.0, 0.5]],
+                     [[1.0, 0.5], [0.0, 0.5]]])
+# True depth (0 = background) of 4 frames, and a reconstruction of it.
+SEQ_DEPTH = np.array([[[1.0, 0.0], [0.0, 2.0]],
+                      [[1.5, 1.0], [0.0, 0.0]],
+                      [[0.0, 1.0], [0.0, 0.0]],
+                      [[0.0, 0.0], [0.0, 0.0]]])
+SEQ_PRED_DEPTH = np.array([[[1.2, 0.0], [0.3, 2.0]],
+                           [[1.2, 0.9], [0.0, 0.0]],
+                           [[0.0, 1.3], [0.0, 0.0]],
+                           [[0.5, 0.5], [0.5, 0.5]]])
+
+
+def test_temporal_scores_by_hand():
+  # Pair (0, 1): true change [[1, 0], [0, 0]], reconstructed change [[0, 0], [0, 0.5]];
+  #   error [[-1, 0], [0, 0.5]], mean square (1 + 0.25) / 4 = 0.3125.
+  # Pair (1, 2): true change [[0, 1], [0, 0]], reconstructed [[0.5, 0.5], [0, 0]];
+  #   error [[0.5, -0.5], [0, 0]], mean square 0.5 / 4 = 0.125.
+  # Pooled: (0.3125 + 0.125) / 2 = 0.21875. PSNR peak 1: 10 log10(1 / MSE).
+  np.testing.assert_allclose(metrics.temporal_rmse(SEQ_PRED, SEQ_TRUTH),
+                             [np.sqrt(0.3125), np.sqrt(0.125)], rtol=1e-6)
+  np.testing.assert_allclose(metrics.temporal_psnr(SEQ_PRED, SEQ_TRUTH),
+                             [10 * np.log10(1 / 0.3125), 10 * np.log10(8.0)], rtol=1e-6)
+  assert float(metrics.temporal_rmse(SEQ_PRED, SEQ_TRUTH, pooled=True)) == pytest.approx(
+      np.sqrt(0.21875), rel=1e-6)
+  assert float(metrics.temporal_psnr(SEQ_PRED, SEQ_TRUTH, pooled=True)) == pytest.approx(
+      10 * np.log10(1 / 0.21875), rel=1e-6)
+  # The peak is the images' data range, as in psnr: the PSNR of the two changes.
+  np.testing.assert_allclose(metrics.temporal_psnr(SEQ_PRED, SEQ_TRUTH, data_range=2.0),
+                             metrics.psnr(np.diff(SEQ_PRED, axis=0), np.diff(SEQ_TRUTH, axis=0),
+                                          data_range=2.0), rtol=1e-6)
+  # Depth over the pixels that are surface in both frames:
+  # pair (0, 1): only (0, 0); reconstructed change 0, true change 0.5: error -0.5.
+  # pair (1, 2): only (0, 1); reconstructed change 0.4, true change 0: error 0.4 (the reconstructed
+  #   background at (0, 0) and the surface that left at (1, 1) do not count).
+  # pair (2, 3): no pixel is surface in frame 3: NaN, not a number made up for it.
+  got = np.asarray(metrics.temporal_rmse_object(SEQ_PRED_DEPTH, SEQ_DEPTH))
+  np.testing.assert_allclose(got[:2], [0.5, 0.4], rtol=1e-5)
+  assert np.isnan(got[2])
+  # Pooled: (0.25 + 0.16) / 2 object pixels; a sequence with no pair scored is NaN.
+  assert float(metrics.temporal_rmse_object(SEQ_PRED_DEPTH, SEQ_DEPTH, pooled=True)) == pytest.approx(
+      np.sqrt(0.41 / 2), rel=1e-5)
+  assert np.isnan(metrics.temporal_rmse_object(SEQ_PRED_DEPTH[2:], SEQ_DEPTH[2:], pooled=True))
+
+
+def _temporal_loop(pred, target):
+  """The definitions by a pixel loop in float64: per pair, then pooled, for each sequence."""
+  lead, (f, h, w) = pred.shape[:-3], pred.shape[-3:]
+  out = {k: np.zeros(lead + (f - 1,)) for k in ("rmse", "psnr", "object")}
+  pooled = {k: np.zeros(lead) for k in ("rmse", "psnr", "object")}
+  for idx in np.ndindex(*lead):
+    p, y = pred[idx], target[idx]
+    all_sq = obj_sq = 0.0
+    obj_n = 0
+    for t in range(1, f):
+      sq, o_sq, o_n = 0.0, 0.0, 0
+      for i, j in np.ndindex(h, w):
+        e = (p[t, i, j] - p[t - 1, i, j]) - (y[t, i, j] - y[t - 1, i, j])
+        sq += e * e
+        if y[t, i, j] > 0 and y[t - 1, i, j] > 0:
+          o_sq, o_n = o_sq + e * e, o_n + 1
+      out["rmse"][idx + (t - 1,)] = np.sqrt(sq / (h * w))
+      out["psnr"][idx + (t - 1,)] = 10 * np.log10(1 / max(sq / (h * w), 1e-10))
+      out["object"][idx + (t - 1,)] = np.sqrt(o_sq / o_n) if o_n else np.nan
+      all_sq, obj_sq, obj_n = all_sq + sq, obj_sq + o_sq, obj_n + o_n
+    pooled["rmse"][idx] = np.sqrt(all_sq / ((f - 1) * h * w))
+    pooled["psnr"][idx] = 10 * np.log10((f - 1) * h * w / all_sq)
+    pooled["object"][idx] = np.sqrt(obj_sq / obj_n) if obj_n else np.nan
+  return out, pooled
+
+
+def test_temporal_scores_match_a_pixel_loop_batched_and_jitted():
+  rng = np.random.default_rng(37)
+  shape = (2, 3, 4, 5, 6)                                  # 2 x 3 sequences of 4 frames of 5 x 6
+  target = np.where(rng.random(shape) < 0.5, rng.uniform(0.3, 2.0, shape), 0.0)
+  target[1, 2] = 0.0                                       # a sequence without an object
+  target[0, 1, 2] = 0.0                                    # a frame without one
+  pred = np.clip(target + rng.normal(0, 0.2, shape), 0, None)
+  p32, y32 = pred.astype(np.float32), target.astype(np.float32)
+
+  def every(p, y):
+    return {"rmse": metrics.temporal_rmse(p, y), "psnr": metrics.temporal_psnr(p, y),
+            "object": metrics.temporal_rmse_object(p, y),
+            "pooled_rmse": metrics.temporal_rmse(p, y, pooled=True),
+            "pooled_psnr": metrics.temporal_psnr(p, y, pooled=True),
+            "pooled_object": metrics.temporal_rmse_object(p, y, pooled=True)}
+
+  jitted = jax.jit(every)(p32, y32)
+  eager = every(p32, y32)
+  want, want_pooled = _temporal_loop(pred, target)
+  assert np.isnan(want["object"][1, 2]).all() and np.isnan(want["object"][0, 1, 1:3]).all()
+  for k in want:
+    assert jitted[k].shape == shape[:2] + (3,) and jitted[k].dtype == np.float32
+    np.testing.assert_allclose(jitted[k], want[k], rtol=1e-5, atol=1e-6, err_msg=k)
+    np.testing.assert_allclose(jitted[f"pooled_{k}"], want_pooled[k], rtol=1e-5, atol=1e-6, err_msg=k)
+    for name in (k, f"pooled_{k}"):
+      np.testing.assert_allclose(eager[name], jitted[name], rtol=1e-6, atol=1e-7, err_msg=name)
+
+
+def test_temporal_error_is_zero_for_a_constant_offset_and_the_flicker_rms_for_a_static_truth():
+  rng = np.random.default_rng(5)
+  truth = rng.uniform(0, 1, (3, 5, 4, 4)).astype(np.float32)     # 3 sequences of 5 frames
+  depth = np.where(truth > 0.3, 1.0 + truth, 0.0).astype(np.float32)
+  # The truth plus a constant per sequence (here even per pixel): every change is the true one.
+  offset = rng.uniform(-0.2, 0.2, (3, 1, 4, 4)).astype(np.float32)
+  np.testing.assert_allclose(metrics.temporal_rmse(truth + offset, truth), 0.0, atol=1e-6)
+  np.testing.assert_allclose(metrics.temporal_psnr(truth + offset, truth), metrics.PSNR_CAP_DB,
+                             atol=1e-3)
+  np.testing.assert_allclose(metrics.temporal_rmse_object(depth + offset, depth), 0.0, atol=1e-6)
+  # Identical sequences: exactly 0 and the cap.
+  assert float(jnp.max(metrics.temporal_rmse(truth, truth))) == 0.0
+  assert float(jnp.min(metrics.temporal_psnr(truth, truth))) == pytest.approx(metrics.PSNR_CAP_DB)
+  # A static truth and a reconstruction that flickers around it: the error is the RMS of the
+  # flicker, the reconstruction's frame-to-frame change. Alternating +-a (a pattern m): each
+  # change is +-2 a m, whose RMS is 2 a RMS(m), for every pair and pooled.
+  static = np.broadcast_to(truth[:, :1], truth.shape)
+  m = rng.uniform(0.5, 1.0, (4, 4)).astype(np.float32)
+  a = 0.05
+  sign = np.array([1.0, -1.0, 1.0, -1.0, 1.0], np.float32)[:, None, None]
+  flicker = static + a * sign * m
+  rms = 2 * a * np.sqrt(np.mean(m.astype(np.float64) ** 2))
+  np.testing.assert_allclose(metrics.temporal_rmse(flicker, static), rms, rtol=1e-5)
+  np.testing.assert_allclose(metrics.temporal_rmse(flicker, static, pooled=True), rms, rtol=1e-5)
+  # A random flicker: per pair, the RMS of that pair's change.
+  noisy = static + rng.normal(0, 0.1, truth.shape).astype(np.float32)
+  change_rms = np.sqrt(np.mean(np.diff(noisy.astype(np.float64), axis=1) ** 2, axis=(-2, -1)))
+  np.testing.assert_allclose(metrics.temporal_rmse(noisy, static), change_rms, rtol=1e-5)
+
+
+def test_temporal_scores_propagate_nan_under_jit_to_the_pairs_holding_it():
+  rng = np.random.default_rng(8)
+  truth = rng.uniform(0.2, 1.0, (2, 4, 5, 5)).astype(np.float32)   # surface everywhere
+  pred = truth + rng.normal(0, 0.1, truth.shape).astype(np.float32)
+  fns = {n: jax.jit(getattr(metrics, n)) for n in metrics.TEMPORAL_METRICS}
+  clean = {n: np.asarray(fn(pred, truth)) for n, fn in fns.items()}
+  for which in (0, 1):                                    # NaN in pred, then in the target
+    p, y = pred.copy(), truth.copy()
+    (p, y)[which][0, 1, 2, 3] = np.nan                    # sequence 0, frame 1
+    for name, fn in fns.items():
+      got = np.asarray(fn(p, y))
+      assert np.isnan(got[0, :2]).all(), (name, which)     # pairs (0, 1) and (1, 2)
+      np.testing.assert_array_equal(got[0, 2], clean[name][0, 2])   # pair (2, 3) keeps its value
+      np.testing.assert_array_equal(got[1], clean[name][1])         # so does the other sequence
+      pooled = np.asarray(jax.jit(functools.partial(getattr(metrics, name), pooled=True))(p, y))
+      assert np.isnan(pooled[0]) and np.isfinite(pooled[1]), (name, which)
+    # Eagerly the NaN is refused before anything runs.
+    for name in metrics.TEMPORAL_METRICS:
+      with pytest.raises(ValueError, match=f"{('pred', 'target')[which]} contains NaN"):
+        getattr(metrics, name)(p, y)
+  # A NaN at a pixel that is background in the truth still makes the depth pair NaN
+  # (NaN > 0 is false: without the guard it would drop out of the object silently).
+  y = truth.copy()
+  y[0, 1, 0, 0] = 0.0
+  p = pred.copy()
+  p[0, 1, 0, 0] = np.nan
+  got = np.asarray(fns["temporal_rmse_object"](p, y))
+  assert np.isnan(got[0, :2]).all() and np.isfinite(got[0, 2])
+
+
+def test_temporal_scores_reject_bad_input():
+  for name in metrics.TEMPORAL_METRICS:
+    fn = getattr(metrics, name)
+    with pytest.raises(ValueError, match="at least 2 frames"):
+      fn(np.zeros((1, 4, 4)), np.zeros((1, 4, 4)))
+    with pytest.raises(ValueError, match="at least 2 frames"):           # shapes are static
+      jax.jit(fn)(jnp.zeros((3, 1, 4, 4)), jnp.zeros((3, 1, 4, 4)))
+    with pytest.raises(ValueError, match="rank >= 3"):
+      fn(np.zeros((4, 4)), np.zeros((4, 4)))
+    with pytest.raises(ValueError, match="target has shape"):
+      fn(np.zeros((2, 4, 4)), np.zeros((3, 4, 4)))
+    with pytest.raises(ValueError, match="pooled"):
+      fn(np.zeros((2, 4, 4)), np.zeros((2, 4, 4)), pooled="yes")
+  with pytest.raises(ValueError, match="data_range"):
+    metrics.temporal_psnr(np.zeros((2, 4, 4)), np.zeros((2, 4, 4)), data_range=0.0)

@@ -38,7 +38,8 @@ The extremes, and the reference each is held to:
 * bad values (NaN, +inf, a negative count) under ``physics.checks.checked`` (issue 36):
   every classic method, through ``reconstruct`` and its own function, raises ``ValueError``
   naming the problem; every public metric, which has no compiled check, scores NaN for an
-  image holding a NaN, and inf and negative values by its definition (float64 NumPy).
+  image (a temporal score: a pair of frames) holding a NaN, and inf and negative values by its
+  definition (float64 NumPy).
 
 Already covered elsewhere (not repeated): every method on zero / one-photon /
 1e9 inputs and a 1-bin range is finite (``test_physics``
@@ -737,9 +738,10 @@ def _reference_metrics(pred: np.ndarray, target: np.ndarray) -> dict:
 def test_every_metric_propagates_nan_and_scores_inf_and_negative_values_under_checked_jit():
   """One compile of every metric for seven 12 x 12 depth maps: a clean pair, then NaN, +inf and
   -1 m at a true-surface pixel of the prediction, then of the target."""
-  # Every public function of nlosjax.metrics is here but ``surface`` (a boolean mask, not a score).
+  # Every public function of nlosjax.metrics is here but ``surface`` (a boolean mask, not a score)
+  # and the temporal scores of sequences (the next test).
   public = {n for n in metrics.__all__ if callable(getattr(metrics, n))}
-  assert public == set(METRICS) | {"surface_scores", "surface"}, public
+  assert public == set(METRICS) | {"surface_scores", "surface"} | set(metrics.TEMPORAL_METRICS), public
   rng = np.random.default_rng(36)
   target = np.zeros((12, 12))
   target[3:9, 2:8] = rng.uniform(0.8, 1.5, (6, 6))
@@ -773,3 +775,50 @@ def test_every_metric_propagates_nan_and_scores_inf_and_negative_values_under_ch
   eager = _all_metrics(pairs[eager_rows, 0], pairs[eager_rows, 1])
   for name, value in eager.items():
     np.testing.assert_allclose(value, np.asarray(got[name])[eager_rows], rtol=1e-6, err_msg=name)
+
+
+def _reference_temporal(pred: np.ndarray, target: np.ndarray) -> dict:
+  """The temporal scores' definitions in float64 NumPy, one sequence ``[F, H, W]`` -> ``[F - 1]``."""
+  with np.errstate(all="ignore"):
+    err = np.diff(pred, axis=0) - np.diff(target, axis=0)
+    both = (target[1:] > 0) & (target[:-1] > 0)
+    mse = np.mean(err ** 2, axis=(1, 2))
+    return {"temporal_rmse": np.sqrt(mse), "temporal_psnr": 10 * np.log10(1.0 / np.maximum(mse, 1e-10)),
+            "temporal_rmse_object": np.sqrt(np.sum(np.where(both, err ** 2, 0.0), axis=(1, 2))
+                                            / np.sum(both, axis=(1, 2)))}
+
+
+def test_temporal_metrics_propagate_nan_and_score_inf_and_negative_values_under_checked_jit():
+  """The temporal scores of seven 3-frame sequences of 8 x 8 depth maps: a clean one, then NaN, +inf
+  and -1 m at a true-surface pixel of frame 1 of the prediction, then of the target. The bad value
+  enters both pairs; NaN makes them NaN, the others score by the definition."""
+  rng = np.random.default_rng(37)
+  target = np.zeros((3, 8, 8))
+  target[:, 2:6, 2:6] = rng.uniform(0.8, 1.5, (3, 4, 4))
+  pred = target + rng.normal(0, 0.05, target.shape)
+  rows = [("clean", None, None)] + [(kind, arg, v) for arg in (0, 1)
+                                    for kind, v in BAD_VALUES.items()]
+  seqs = np.stack([np.stack([pred, target])] * len(rows)).astype(np.float32)   # [7, 2, F, H, W]
+  for i, (_, arg, value) in enumerate(rows[1:], 1):
+    seqs[i, arg, 1, 3, 4] = value
+
+  def every(p, y):
+    return {n: getattr(metrics, n)(p, y) for n in metrics.TEMPORAL_METRICS}
+
+  got = checks.checked(every)(seqs[:, 0], seqs[:, 1])
+  plain = jax.jit(every)(seqs[:, 0], seqs[:, 1])
+  for i, (kind, arg, _) in enumerate(rows):
+    ref = _reference_temporal(seqs[i, 0].astype(np.float64), seqs[i, 1].astype(np.float64))
+    for name, value in got.items():
+      v, what = np.asarray(value[i]), (name, kind, "-" if arg is None else ("pred", "target")[arg])
+      np.testing.assert_array_equal(v, np.asarray(plain[name][i]), err_msg=str(what))
+      if kind == "NaN":
+        assert np.isnan(v).all(), what
+      else:
+        np.testing.assert_allclose(v, ref[name], rtol=1e-5, atol=1e-5, err_msg=str(what))
+      if kind == "+inf":
+        assert not np.isfinite(v).any(), what
+  for name in metrics.TEMPORAL_METRICS:
+    for i in (i for i, (kind, _, _) in enumerate(rows) if kind == "NaN"):
+      with pytest.raises(ValueError, match=f"{('pred', 'target')[rows[i][1]]} contains NaN"):
+        getattr(metrics, name)(seqs[i, 0], seqs[i, 1])

@@ -37,13 +37,15 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
   saved = json.loads((tmp_path / "results" / "table.json").read_text())
   assert set(saved) == set(report.TABLE_METHODS)
   for method, row in saved.items():
-    assert set(row) == set(scores.METRICS), method
+    assert set(row) == set(scores.TABLE_METRICS), method
     for metric, cell in row.items():
       assert set(cell) == {"mean", "ci95", "std", "n_sequences", "n_frames", "n_seeds"}
       lo, hi = cell["ci95"]
-      if metric in ("psnr", "ssim", "rmse", "mad"):      # defined on every frame
+      if metric in ("psnr", "ssim", "rmse", "mad", "temporal_rmse", "temporal_psnr"):  # every frame
         assert np.isfinite([cell["mean"], lo, hi]).all() and lo <= cell["mean"] <= hi, (method, metric)
-      assert cell["n_sequences"] == 1 and cell["n_frames"] == 2 * cell["n_seeds"]
+      # 2 consecutive middle frames of 1 sequence: 2 frames, 1 frame pair for the temporal scores.
+      per_seed = 1 if metric in scores.TEMPORAL_METRICS else 2
+      assert cell["n_sequences"] == 1 and cell["n_frames"] == per_seed * cell["n_seeds"], (method, metric)
       assert cell["n_seeds"] == (2 if method in T.VARIANT_FRAMES else 1)
     assert_nested_close(row, table[method], path=method)
   comparisons = json.loads((tmp_path / "results" / "comparisons.json").read_text())
@@ -52,6 +54,9 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
   assert [(c["a"], c["b"]) for c in comparisons] == [
       ("ours", "ours_s"), ("ours", "usm"), ("ours_s", "usm"), ("ours", best), ("ours_s", best),
       ("usm", best)]
+  # Ours - Ours-S on the temporal scores: 1 frame pair per seed, both seeds.
+  assert set(comparisons[0]["diff"]) == set(scores.TABLE_METRICS)
+  assert comparisons[0]["diff"]["temporal_rmse"]["n_frames"] == 2
   assert set(validation["classic"]) == {"fbp", "lct", "fk", "phasor", "rsd"}
   assert set(validation["checkpoints"]) == {"ours_s", "ours_s-seed1", "ours", "ours-seed1", "usm",
                                             "usm-seed1"}
@@ -63,7 +68,8 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path):
     assert sorted(int(k) for k in c["val_psnr"]) == [1, 2] and c["step"] in (1, 2)
   text = (tmp_path / "results" / "table.md").read_text()
   for needle in ("object recall", "Ours - Ours-S", "Ours - USM", f"Ours - {report.label(best)}",
-                 "validation split"):
+                 "validation split", "temporal intensity error", "temporal depth error (objects)",
+                 "Ours - Ours-S, temporal intensity error:"):
     assert needle in text, needle
   for name in ("comparison.png", "training_curves.png", "table1_again_comparison.png"):
     assert (tmp_path / "results" / name).stat().st_size > 0

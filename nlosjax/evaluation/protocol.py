@@ -4,7 +4,8 @@
 order: sequence, then middle frame), reconstructs the middle frame of each
 triplet with every classic method (under-scanned input interpolated to the
 full grid, settings from :func:`nlosjax.evaluation.baselines.tune`) and every
-trained model (each of its seeds), and scores each frame
+trained model (each of its seeds), and scores each frame, and each pair of
+consecutive middle frames of a sequence for the temporal scores, seed by seed
 (:func:`nlosjax.evaluation.scores.frame_scores`). :func:`tabulate` turns that
 into the table (mean and 95 % interval over sequences and seeds) and the
 paired comparisons a claim rests on; :func:`write_results` writes them.
@@ -41,21 +42,23 @@ def load_split(config: dict, data_path, split: str, *, batch_size: int) -> dict:
 
   Returns:
     ``{"intensity" [N, H, W], "depth" [N, H, W], "measurement" [N, T, h, w]
-    (the middle frame), "sequence" [N] int, "setup", "stride", "loader"}``;
+    (the middle frame), "sequence" [N] int, "frame" [N] int (the middle
+    frame's index in its sequence), "setup", "stride", "loader"}``;
     the open ``loader`` (unshuffled) feeds :func:`model_images`; close it.
   """
   from nlosjax.train import make_loader
   loader = make_loader(config, data_path, split, batch_size=batch_size, shuffle=False, seed=0)
-  gi, gd, mid, seq = [], [], [], []
+  gi, gd, mid, seq, frame = [], [], [], [], []
   for step in range(len(loader)):
     b = loader.batch(step)
     gi.append(b["intensity"])
     gd.append(b["depth"])
     mid.append(b["measurement"][:, b["measurement"].shape[1] // 2])
     seq.append(b["sequence"])
+    frame.append(b["frame"])
   return {"intensity": np.concatenate(gi), "depth": np.concatenate(gd),
           "measurement": np.concatenate(mid), "sequence": np.concatenate(seq),
-          "setup": loader.setup, "stride": loader.stride, "loader": loader}
+          "frame": np.concatenate(frame), "setup": loader.setup, "stride": loader.stride, "loader": loader}
 
 
 @functools.lru_cache(maxsize=8)
@@ -194,8 +197,10 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
       :func:`surface_cut`; a variant without one is scored as the model outputs.
   Returns:
     ``{"scores": method -> metric -> [N] (classic) or [K, N] (K seeds),
-    "sequence": [N], "images": method -> {"intensity", "depth"} (first seed;
-    plus "gt"), "split", "data", "n_frames"}``.
+    "sequence": [N], "frame": [N], "images": method -> {"intensity", "depth"}
+    (first seed; plus "gt"), "split", "data", "n_frames"}``; the metrics are
+    :data:`~nlosjax.evaluation.scores.TABLE_METRICS` (the temporal ones NaN at
+    each sequence's first evaluated frame).
   """
   from tqdm import tqdm
   batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
@@ -203,6 +208,8 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
   model_thresholds = model_thresholds or {}
   data = load_split(config, data_path, split, batch_size=batch_size)
   gt = {"intensity": data["intensity"], "depth": data["depth"]}
+  # The temporal scores pair consecutive middle frames of one sequence, one method and seed at a time.
+  where = {"sequence": data["sequence"], "frame": data["frame"]}
   images, per_frame = {"gt": gt}, {}
   try:
     for method in tqdm(methods, desc="classic methods", unit="method", disable=not methods):
@@ -216,7 +223,7 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
         out_d.append(d)
       images[method] = {"intensity": np.concatenate(out_i), "depth": np.concatenate(out_d)}
       per_frame[method] = scores.frame_scores(images[method]["intensity"], images[method]["depth"],
-                                              gt["intensity"], gt["depth"])
+                                              gt["intensity"], gt["depth"], **where)
     for variant, models in trained.items():
       seeds = []
       for mcfg, params in _as_seeds(models):
@@ -224,12 +231,13 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
         im["depth"] = surface_cut(im["intensity"], im["depth"], model_thresholds.get(variant, 0.0))
         images.setdefault(variant, im)
         seeds.append(scores.frame_scores(im["intensity"], im["depth"], gt["intensity"],
-                                         gt["depth"]))
-      per_frame[variant] = {k: np.stack([s[k] for s in seeds]) for k in scores.METRICS}
+                                         gt["depth"], **where))
+      per_frame[variant] = {k: np.stack([s[k] for s in seeds]) for k in scores.TABLE_METRICS}
   finally:
     data["loader"].close()
-  return {"scores": per_frame, "sequence": data["sequence"], "images": images, "split": split,
-          "data": str(data_path), "n_frames": int(len(data["sequence"]))}
+  return {"scores": per_frame, "sequence": data["sequence"], "frame": data["frame"],
+          "images": images, "split": split, "data": str(data_path),
+          "n_frames": int(len(data["sequence"]))}
 
 
 def best_classic(evaluation: dict, metric: str = "psnr") -> str | None:
@@ -246,7 +254,9 @@ def tabulate(evaluation: dict, *, best_classic_method: str | None = None, n_boot
 
   Comparisons, where both sides were evaluated: Ours - Ours-S, Ours - USM,
   Ours-S - USM, and each learned model - ``best_classic_method`` (chosen on
-  validation by the caller).
+  validation by the caller), on every metric both sides hold (the temporal
+  ones included: Ours - Ours-S on ``temporal_rmse`` asks whether the
+  temporal input steadies the video).
 
   Returns:
     ``(table, comparisons)``: ``method -> metric -> {"mean", "ci95", "std",

@@ -1,11 +1,14 @@
-"""Markdown of an evaluation: Table 1 with intervals, the object-aware table, paired comparisons.
+"""Markdown of an evaluation: Table 1 with intervals, the object-aware and temporal tables, paired comparisons.
 
 Input is what :func:`nlosjax.evaluation.protocol.tabulate` returns: ``table``
 (``method -> metric -> summary``) and ``comparisons`` (a list of ``{"a", "b",
 "label", "diff": metric -> summary}``). Each cell is ``mean [lo, hi]``, the
 95 % bootstrap interval over sequences (and seeds). The sentences under the
 comparison table are written from the numbers: a difference is called only
-where its interval excludes 0.
+where its interval excludes 0. The temporal table, and the temporal column
+of the comparisons, appear where the table holds the temporal scores
+(:data:`~nlosjax.evaluation.scores.TEMPORAL_METRICS`; a table written before
+them renders as it did).
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ from __future__ import annotations
 import math
 
 from nlosjax import stats
-from nlosjax.evaluation.scores import HIGHER_IS_BETTER
+from nlosjax.evaluation.scores import HIGHER_IS_BETTER, TEMPORAL_METRICS
 
 __all__ = ["METHOD_LABELS", "TABLE_METHODS", "METRIC_LABELS", "label", "format_tables",
            "format_comparisons", "format_choices"]
@@ -27,9 +30,14 @@ METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2), "ssim": ("intensity SSIM",
                  "rmse_object": ("object depth RMSE", "m", 3),
                  "mad_object": ("object depth MAD", "m", 3),
                  "recall": ("object recall", "", 3), "precision": ("surface precision", "", 3),
-                 "f1": ("surface F1", "", 3)}
+                 "f1": ("surface F1", "", 3),
+                 "temporal_rmse": ("temporal intensity error", "", 3),
+                 "temporal_psnr": ("temporal intensity PSNR", "dB", 2),
+                 "temporal_rmse_object": ("temporal depth error (objects)", "m", 3)}
 PAPER_METRICS = ("psnr", "ssim", "rmse", "mad")
 OBJECT_METRICS = ("rmse_object", "mad_object", "recall", "precision", "f1")
+#: Columns of the paired-differences table (and the temporal intensity error where compared).
+COMPARISON_METRICS = ("psnr", "ssim", "rmse_object", "recall", "f1")
 
 
 def label(method: str) -> str:
@@ -55,8 +63,8 @@ def _rows(table: dict) -> list[str]:
   return [m for m in TABLE_METHODS if m in table] + [m for m in table if m not in TABLE_METHODS]
 
 
-def _grid(table: dict, metrics: tuple[str, ...]) -> list[str]:
-  lines = ["| method | " + " | ".join(_header(k) for k in metrics) + " | sequences / frames / seeds |",
+def _grid(table: dict, metrics: tuple[str, ...], counts: str = "sequences / frames / seeds") -> list[str]:
+  lines = ["| method | " + " | ".join(_header(k) for k in metrics) + f" | {counts} |",
            "|---|" + "---|" * len(metrics) + "---|"]
   for m in _rows(table):
     r = table[m]
@@ -68,7 +76,12 @@ def _grid(table: dict, metrics: tuple[str, ...]) -> list[str]:
 
 
 def format_tables(table: dict, caption: str = "") -> str:
-  """Markdown: the paper's Table 1 metrics, then the object-aware scores; ``mean [95 % CI]``."""
+  """Markdown: the paper's Table 1 metrics, the object-aware scores, the temporal ones; ``mean [95 % CI]``.
+
+  The temporal table lists the methods whose row holds every metric of
+  :data:`~nlosjax.evaluation.scores.TEMPORAL_METRICS`, and is left out when
+  none does.
+  """
   lines = ([caption, ""] if caption else [])
   lines += ["Mean [95 % bootstrap interval over sequences, and over training seeds where there "
             "are several]; a frame's scores count once per seed.", "",
@@ -78,6 +91,14 @@ def format_tables(table: dict, caption: str = "") -> str:
             "them reconstructed as surface; precision: share of the reconstructed surface that is "
             "true surface; surface = depth >= 0.1 m for every method):", ""]
   lines += _grid(table, OBJECT_METRICS)
+  temporal = {m: r for m, r in table.items() if all(k in r for k in TEMPORAL_METRICS)}
+  if temporal:
+    lines += ["", "**Over time** (per pair of consecutive evaluated frames of a test sequence, never "
+              "across sequences or seeds: the error of the reconstruction's change between the two "
+              "frames against the true change, `(ŷ_t − ŷ_{t−1}) − (y_t − y_{t−1})`; intensity RMSE, its "
+              "PSNR with peak 1 as for intensity PSNR, and depth RMSE over the pixels that are true "
+              "surface in both frames):", ""]
+    lines += _grid(temporal, TEMPORAL_METRICS, counts="sequences / frame pairs / seeds")
   return "\n".join(lines) + "\n"
 
 
@@ -95,20 +116,31 @@ def _verdict(c: dict, metric: str) -> str:
           f"{'better' if better else 'worse'} than {label(c['b'])}.")
 
 
-def format_comparisons(comparisons: list[dict], metrics=("psnr", "ssim", "rmse_object", "recall",
-                                                         "f1")) -> str:
-  """Markdown table of paired differences ``a - b`` and one sentence per comparison and metric."""
+def format_comparisons(comparisons: list[dict], metrics=None) -> str:
+  """Markdown table of paired differences ``a - b`` and one sentence per comparison and metric.
+
+  ``metrics``: the columns; by default :data:`COMPARISON_METRICS`, then
+  ``temporal_rmse`` where a comparison holds it (the sentences follow the
+  same rule). A comparison without a column's metric shows "n/a".
+  """
   if not comparisons:
     return ""
+  called = ("psnr", "rmse_object", "recall")
+  if metrics is None:
+    metrics = COMPARISON_METRICS
+    if any("temporal_rmse" in c["diff"] for c in comparisons):
+      metrics += ("temporal_rmse",)
+      called += ("temporal_rmse",)
   lines = ["**Paired differences** (a - b on the same frames; 95 % bootstrap interval over "
            "sequences and seeds):", "",
            "| comparison | " + " | ".join(_header(k) for k in metrics) + " |",
            "|---|" + "---|" * len(metrics)]
   for c in comparisons:
     lines.append(f"| {c['label']} | " + " | ".join(
-        _cell(c["diff"][k], METRIC_LABELS[k][2], signed=True) for k in metrics) + " |")
-  lines += [""] + [f"- {_verdict(c, k)}" for c in comparisons for k in ("psnr", "rmse_object",
-                                                                         "recall")]
+        _cell(c["diff"][k], METRIC_LABELS[k][2], signed=True) if k in c["diff"] else "n/a"
+        for k in metrics) + " |")
+  lines += [""] + [f"- {_verdict(c, k)}" for c in comparisons for k in called
+                   if k in c["diff"]]
   return "\n".join(lines) + "\n"
 
 
