@@ -49,7 +49,8 @@ def test_the_digest_sees_code_but_not_comments_docstrings_or_layout():
   files = {"nlosjax/a.py": '"""Doc."""\nX = 1\n\ndef f(x):\n  """Doc."""\n  return x + X\n'}
   read = files.__getitem__
   d0 = provenance.code_digest(files, read)
-  files["nlosjax/a.py"] = '"""Other doc."""\n# a comment\nX = 1\n\n\ndef f(x):\n    """More."""\n    return x + X  # c\n'
+  files["nlosjax/a.py"] = ('"""Other doc."""\n# a comment\nX = 1\n\n\ndef f(x):\n    """More."""\n'
+                           '    return x + X  # c\n')
   assert provenance.code_digest(files, read) == d0
   files["nlosjax/a.py"] = '"""Doc."""\nX = 2\n\ndef f(x):\n  return x + X\n'
   assert provenance.code_digest(files, read) != d0

@@ -3,10 +3,19 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from benchmarks import temporal_probe as P
 from nlosjax.models.network import ModelConfig, STMambaNet
 from nlosjax.physics.setup import Setup
+from tests.xla_options import xla_optimizations
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compiles():
+  # A tiny model compiled three ways: compiling is the whole cost.
+  with xla_optimizations(False):
+    yield
 
 
 def _perturb(params, prefixes, scale=0.5):

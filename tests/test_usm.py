@@ -163,20 +163,24 @@ def test_extraction_pool_starts_as_average_pooling():
 def test_lct_layer_is_nlosjax_physics_lct():
   """The features entering USM's LCT layer, channel 0, give exactly ``physics.lct`` on the half Setup."""
   cfg = tiny()
-  x = counts(jax.random.key(3), cfg.input_shape(2), 2.0)
+  shape, params, _ = _tiny_usm_compiled()
+  x = counts(jax.random.key(3), shape, 2.0)
   model = USMNet(cfg)
-  params = model.init(jax.random.key(4), x)
-  seen = {}
 
-  def record(next_fun, args, kwargs, context):
-    out = next_fun(*args, **kwargs)
-    if isinstance(context.module, blocks.FeatureTransform) and context.method_name == "__call__":
-      seen["x"], seen["out"] = args[0], out
-    return out
+  def features_in_and_out(params, x):
+    seen = {}
 
-  with nn.intercept_methods(record):
-    model.apply(params, x)
-  feats, out = np.asarray(seen["x"]), np.asarray(seen["out"])
+    def record(next_fun, args, kwargs, context):
+      out = next_fun(*args, **kwargs)
+      if isinstance(context.module, blocks.FeatureTransform) and context.method_name == "__call__":
+        seen["x"], seen["out"] = args[0], out
+      return out
+
+    with nn.intercept_methods(record):
+      model.apply(params, x)
+    return seen["x"], seen["out"]
+
+  feats, out = map(np.asarray, jax.jit(features_in_and_out)(params, x))
   coarse = half_setup(TINY)
   assert feats.shape[1:4] == (coarse.num_bins,) + coarse.grid
   ref = physics.lct(jnp.asarray(feats[..., 0]), coarse, snr=cfg.lct_snr, falloff=cfg.falloff,
@@ -188,15 +192,14 @@ def test_lct_layer_is_nlosjax_physics_lct():
 # ------------------------------------------------------------------ model
 def test_shapes_and_finite_outputs():
   cfg = tiny()
-  x = counts(jax.random.key(5), cfg.input_shape(2))
-  model = USMNet(cfg)
-  params = model.init(jax.random.key(6), x)
-  out = model.apply(params, x)
+  shape, params, apply = _tiny_usm_compiled()
+  assert shape == cfg.input_shape(1)
+  out = apply(params, counts(jax.random.key(5), shape))
   H, W = TINY.grid
-  assert out["transient"].shape == (2, TINY.num_bins, H, W)
-  assert out["volume"].shape == (2, TINY.num_depth_bins, H, W)
-  assert out["feature_volume"].shape == (2, 16, H // 2, W // 2, cfg.channels)
-  assert out["intensity"].shape == out["depth"].shape == (2, H, W)
+  assert out["transient"].shape == (1, TINY.num_bins, H, W)
+  assert out["volume"].shape == (1, TINY.num_depth_bins, H, W)
+  assert out["feature_volume"].shape == (1, 16, H // 2, W // 2, cfg.channels)
+  assert out["intensity"].shape == out["depth"].shape == (1, H, W)
   assert all(bool(jnp.all(jnp.isfinite(v))) for v in out.values())
   assert float(out["volume"].min()) >= 0.0
 
@@ -241,12 +244,10 @@ def test_gradients_reach_every_parameter():
 
 
 def test_jit_matches_eager():
-  cfg = tiny()
-  x = counts(jax.random.key(10), cfg.input_shape(1))
-  model = USMNet(cfg)
-  params = model.init(jax.random.key(11), x)
-  eager = model.apply(params, x)
-  jitted = jax.jit(model.apply)(params, x)
+  shape, params, apply = _tiny_usm_compiled()
+  x = counts(jax.random.key(10), shape)
+  eager = USMNet(tiny()).apply(params, x)          # op by op
+  jitted = apply(params, x)
   for k in eager:
     np.testing.assert_allclose(np.asarray(jitted[k]), np.asarray(eager[k]), rtol=1e-4, atol=1e-5)
 
@@ -269,7 +270,7 @@ def test_wrong_input_is_named():
   cfg = tiny()
   model = USMNet(cfg)
   good = jnp.zeros(cfg.input_shape(1))
-  params = model.init(jax.random.key(0), good)
+  params = _tiny_usm_compiled()[1]
   with pytest.raises(ValueError, match="frames"):
     model.apply(params, jnp.zeros((1, 3) + cfg.input_shape(1)[2:]))
   with pytest.raises(ValueError, match="NaN|negative"):
@@ -316,9 +317,8 @@ def test_regularisers_act_on_every_feature_channel():
   """LS sums its per-channel terms and TV never differences across channels (USM's ``V``)."""
   rng = np.random.default_rng(12)
   vol = jnp.asarray(rng.uniform(size=(2, 4, 5, 6, 3)), jnp.float32)
-  ls = losses.local_similarity_loss(vol)
-  assert float(ls) == pytest.approx(sum(float(losses.local_similarity_loss(vol[..., c]))
-                                        for c in range(3)), rel=1e-5)
-  tv = losses.tv_loss(vol)
-  assert float(tv) == pytest.approx(sum(float(losses.tv_loss(vol[..., c])) for c in range(3)),
-                                    rel=1e-5)
+  local_similarity, tv_loss = jax.jit(losses.local_similarity_loss), jax.jit(losses.tv_loss)
+  ls = local_similarity(vol)
+  assert float(ls) == pytest.approx(sum(float(local_similarity(vol[..., c])) for c in range(3)), rel=1e-5)
+  tv = tv_loss(vol)
+  assert float(tv) == pytest.approx(sum(float(tv_loss(vol[..., c])) for c in range(3)), rel=1e-5)
