@@ -36,8 +36,13 @@ INDEX = HERE / "README.md"
 # named here shows "none stated".
 GOALS = {
     "data": "near-linear speed-up with `--workers` (issue 22)",
+    "device": "paper-scale inference >= 30 frames/s on one H100; dry-run memory within ±20 % of the measured "
+              "peak; scan fwd+bwd <= 6x the exp floor; auto within 10 % of the best; every correctness check "
+              "passes (issue 39)",
     "dry_run": "refuses a run above 90 % of device memory",
     "main_job": "the main job within 1200 s (20 min on 2 cores)",
+    "mechanisms": "full - no-SSM and full - Ours-S with intervals at both photon budgets, every run "
+                  "trained to its validation plateau; the SSM probe of a trained Ours (issue 37)",
     "physics": "each method <= 1.3x its FFT floor and >= 1x the same-variant NumPy/SciPy twin, "
                "at 64² and 128² (issue 20)",
     "real": "the network ahead of every classic method against every other method's full scan "
@@ -71,6 +76,16 @@ numbers it quotes from it as stale. The numbers are in the files.
 
 This file is written by `python -m benchmarks.index` from the results files' headers; rerun it
 after any benchmark (a test fails while it is out of date).
+
+**On a GPU** (`device.md`, from a borrowed GPU machine with no network): from the repository
+root run exactly `PYTHONPATH=. python -m benchmarks.device --out $OUT/device` under a time limit
+below 10 minutes (the command keeps itself within its own `--budget-s 480`); no install step is
+needed. Six files come back in `$OUT/device`: `environment.json`, `correctness.json`,
+`scan_kernels.json`, `paper_scale.json`, `classic.json` and `device.log`, each part's JSON written
+as the part runs, so a cut-off run still returns what it measured. On the developer machine,
+`python -m benchmarks.device --collect DIR` writes `results/device.md` whole (the device named);
+then rerun `python -m benchmarks.index`. `python -m benchmarks.device --tiny` rehearses the same
+code paths on CPU in the test suite, so the command cannot rot between GPU loans.
 """
 
 
