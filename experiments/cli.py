@@ -29,8 +29,8 @@ config overrides:
                                e.g. --config.train.steps=100 --config.data.renderer=lct
                                '--config.data.photons=(50.0, 2000.0)'; sections: data (data.scene,
                                data.loader, data.num_sequences), model, train (train.optim,
-                               train.loss), usm (usm.model, usm.optim), independent. An unknown
-                               key or section exits with the known ones.
+                               train.loss, train.stop), usm (usm.model, usm.optim), independent.
+                               An unknown key or section exits with the known ones.
 """
 
 
@@ -110,7 +110,10 @@ def _schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
     return _fields(ModelConfig, ("setup", "stride", "frames")), set()   # frames: by variant
   if path == ("train",):
     from nlosjax.train import TRAIN_DEFAULTS
-    return set(TRAIN_DEFAULTS) - {"optim", "loss"}, {"optim", "loss"}
+    return set(TRAIN_DEFAULTS) - {"optim", "loss", "stop"}, {"optim", "loss", "stop"}
+  if path == ("train", "stop"):
+    from nlosjax.train import StopRule
+    return _fields(StopRule), set()
   if path in (("train", "optim"), ("usm", "optim")):
     from nlosjax.train import OptimConfig
     return _fields(OptimConfig), set()

@@ -17,6 +17,10 @@ One concern per module, each usable alone; everything is importable from
 * :mod:`~nlosjax.train.checkpoint` -- :class:`Checkpointer` (orbax: params,
   optimizer state, step and data position; refuses another run's checkpoint),
   :func:`run_signature`.
+* :mod:`~nlosjax.train.stopping` -- :class:`StopRule` (``train.stop``): a fixed
+  step count (the default) or the plateau of the validation PSNR
+  (:func:`plateau_reached`), the learning-rate horizon it implies, and the
+  resumable validation curve (:func:`read_curve`).
 * :mod:`~nlosjax.train.loop` -- :func:`train_model`: one variant, one seed,
   resumable; the config pieces it reads (:data:`TRAIN_DEFAULTS`,
   :func:`model_config_for`, :func:`make_loader`, :func:`ensure_dataset`, ...).
@@ -41,16 +45,17 @@ from nlosjax.train.loop import (
     training_recipe,
     with_defaults,
 )
-from nlosjax.train.optimizer import OptimConfig, make_optimizer
+from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
 from nlosjax.train.sharding import initialize_distributed, make_mesh, mesh_for, shard_batch, to_host
 from nlosjax.train.state import TrainState, abstract_train_state, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_targets, make_train_step, train_step
+from nlosjax.train.stopping import StopRule, plateau_reached, read_curve, stop_reason
 
 __all__ = [
-    "BATCH_KEYS", "Checkpointer", "OptimConfig", "TRAIN_DEFAULTS", "TrainState", "USM_RECIPES",
+    "BATCH_KEYS", "Checkpointer", "OptimConfig", "StopRule", "TRAIN_DEFAULTS", "TrainState", "USM_RECIPES",
     "VARIANT_FRAMES", "abstract_train_state", "create_train_state", "ensure_dataset", "initialize_distributed",
-    "make_loader", "make_mesh", "make_optimizer", "make_targets", "make_train_step", "mesh_for",
-    "model_config_for", "network", "param_fingerprint", "read_metrics", "read_selection",
-    "run_signature", "select_frames", "shard_batch", "to_host", "train_model", "train_step",
-    "training_recipe", "with_defaults",
+    "learning_rate_at", "make_loader", "make_mesh", "make_optimizer", "make_targets", "make_train_step",
+    "mesh_for", "model_config_for", "network", "param_fingerprint", "plateau_reached", "read_curve",
+    "read_metrics", "read_selection", "run_signature", "select_frames", "shard_batch", "stop_reason",
+    "to_host", "train_model", "train_step", "training_recipe", "with_defaults",
 ]

@@ -92,6 +92,10 @@ class Checkpointer:
     state = state.replace(step=item["step"], params=item["params"], opt_state=item["opt_state"])
     return state, int(meta["data_position"])
 
+  def wait(self):
+    """Block until every save started so far is finalised on disk."""
+    self.manager.wait_until_finished()
+
   def close(self):
     self.manager.wait_until_finished()
     self.manager.close()

@@ -19,10 +19,11 @@ import numpy as np
 
 from nlosjax import losses
 from nlosjax.train.checkpoint import Checkpointer, run_signature
-from nlosjax.train.optimizer import OptimConfig, make_optimizer
+from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
 from nlosjax.train.sharding import mesh_for, shard_batch, to_host
 from nlosjax.train.state import TrainState, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_train_step
+from nlosjax.train.stopping import BEST_FOLDER, PlateauTracker, StopRule
 
 VARIANT_FRAMES = {"ours": 3, "ours_s": 1, "usm": 1}
 #: USM's training recipes (``config["usm"]["recipe"]``): "ours" trains it with the config's
@@ -36,12 +37,16 @@ USM_RECIPES = ("ours", "published")
 #: kept checkpoint with the best validation intensity PSNR); ``check_memory``: before
 #: any data or parameters exist, compile each variant's train step and refuse when XLA's
 #: planned peak exceeds the device's memory (:func:`nlosjax.plan.check_fits`);
-#: ``devices``: train data-parallel on the first ``devices`` devices (None: all of them).
+#: ``devices``: train data-parallel on the first ``devices`` devices (None: all of them);
+#: ``stop``: when training stops (:class:`~nlosjax.train.stopping.StopRule`): ``{"rule":
+#: "steps"}`` runs ``steps`` steps; ``{"rule": "plateau", ...}`` validates during training,
+#: stops when validation stops improving and keeps the best model (``steps`` and
+#: ``select_checkpoint`` then play no part).
 TRAIN_DEFAULTS = {
     "steps": 300, "batch_size": 4, "seed": 0, "seeds": 1, "log_every": 10, "checkpoint_every": 50,
     "keep_checkpoints": 2, "eval_batch_size": 8, "variants": ("ours_s", "ours"),
     "data_workers": 1, "optim": {}, "loss": {}, "select_checkpoint": "last",
-    "check_memory": False, "devices": None,
+    "check_memory": False, "devices": None, "stop": {"rule": "steps"},
 }
 
 
@@ -152,19 +157,30 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     variant: ``"ours"``, ``"ours_s"`` or ``"usm"`` (:data:`VARIANT_FRAMES`).
     folder: sub-folder of this model (default ``variant``).
     validate: ``(model_config, params) -> score`` on the validation split
-      (higher is better). With ``config["train"]["select_checkpoint"] ==
-      "val"`` every kept checkpoint is scored after training and the best is
-      returned; the scores and the choice go to ``<folder>/selection.json``
-      (:func:`read_selection`).
+      (higher is better; the validation intensity PSNR in dB). With
+      ``config["train"]["select_checkpoint"] == "val"`` every kept checkpoint
+      is scored after training and the best is returned; the scores and the
+      choice go to ``<folder>/selection.json`` (:func:`read_selection`).
+      Required by the plateau stopping rule (``config["train"]["stop"]``,
+      :mod:`nlosjax.train.stopping`), which scores the model every
+      ``stop.every`` steps during training, stops when the scores stop
+      improving (or at ``stop.max_steps``) and returns the best; its curve
+      goes to ``<folder>/validation_curve.json``, the steps taken and the stop
+      reason to ``selection.json`` too. A rerun of a stopped run trains nothing.
+    log: progress messages.
   Returns:
     ``(model_config, state)``: after ``config["train"]["steps"]`` steps, or at
-    the checkpoint chosen on validation.
+    the checkpoint chosen on validation (the plateau rule's best).
   """
   from tqdm import tqdm
 
   from nlosjax.models.network import format_summary, model_summary
   tr = config["train"]
   steps, batch_size, seed = int(tr["steps"]), int(tr["batch_size"]), int(tr.get("seed", 0))
+  stop = StopRule.from_config(tr.get("stop"))
+  if stop.rule == "plateau" and validate is None:
+    raise ValueError('train.stop.rule "plateau" needs the validate callback')
+  steps = stop.horizon(steps)       # the plateau rule: its max_steps, also the schedule's horizon
   vdir = pathlib.Path(workdir) / (folder or variant)
   vdir.mkdir(parents=True, exist_ok=True)
   primary = jax.process_index() == 0
@@ -190,6 +206,14 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   if restored is not None:
     state, start = restored
     log(f"[{variant}] resumed from step {start} ({ckpt.directory})")
+  tracker = None
+  if stop.rule == "plateau":
+    best = Checkpointer(vdir / BEST_FOLDER, signature, every=1, keep=1)
+    tracker = PlateauTracker(vdir, stop, best, validate, lambda s: learning_rate_at(optim, steps, s - 1),
+                             primary=primary)
+    tracker.resume(start)
+    if tracker.pending(start):       # killed after the checkpoint of a validation step, before its curve
+      tracker.record(mcfg, state, start, to_host)
   # One process writes the log (several processes share the workdir); the others write
   # theirs to /dev/null.
   log_path = vdir / "metrics.jsonl" if primary else pathlib.Path(os.devnull)
@@ -203,12 +227,15 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
                                       unit="step", dynamic_ncols=True, mininterval=2.0,
                                       disable=not primary) as bar:
     for step in range(start, steps):
+      if tracker is not None and tracker.reason(step):
+        break                           # a stopped run (rerun after its end): no step more
       host = loader.batch(step)
       batch = {k: host[k] for k in BATCH_KEYS}
       batch["measurement"] = select_frames(batch["measurement"], mcfg.frames)
       state, metrics = step_fn(state, shard_batch(batch, mesh), jax.random.fold_in(loop_key, step))
       done = step + 1
-      if done % log_every == 0 or done == steps:
+      validating = tracker is not None and stop.validates_at(done)
+      if done % log_every == 0 or done == steps or validating:
         m = {k: float(v) for k, v in to_host(metrics).items()}
         if not all(math.isfinite(v) for v in m.values()):
           raise FloatingPointError(f"[{variant}] non-finite metrics at step {done}: {m}")
@@ -216,9 +243,20 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
         f.write(json.dumps(row) + "\n")
         f.flush()
         bar.set_postfix(loss=f"{m['loss']:.4f}")
+      if validating:
+        ckpt.save(state, done, force=True)
+        ckpt.wait()                     # the curve may name only finished checkpoints
+        score = tracker.record(mcfg, state, done, to_host)
+        bar.set_postfix(val_psnr=f"{score:.2f}")
+        bar.update(1)
+        if tracker.reason(done):
+          break
+        continue
       ckpt.save(state, done, force=(done == steps))
       bar.update(1)
   loader.close()
+  if tracker is not None:
+    return mcfg, _finish_plateau(tracker, state, ckpt, vdir, variant, primary, log)
   selection = {"select": str(tr.get("select_checkpoint", "last")), "step": int(state.step),
                "val_psnr": {}}
   if selection["select"] not in ("last", "val"):
@@ -238,6 +276,28 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   if primary:
     (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
   return mcfg, state
+
+
+def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpointer, vdir: pathlib.Path,
+                    variant: str, primary: bool, log: Callable[[str], None]) -> TrainState:
+  """End a plateau run: the best state, the final curve and ``selection.json``."""
+  done = tracker.curve[-1]["step"] if tracker.curve else int(state.step)
+  reason = tracker.reason(done)
+  if reason is None:
+    raise RuntimeError(f"[{variant}] the plateau run ended at step {done} without a stop reason")
+  best = tracker.best_state(state)
+  ckpt.close()
+  tracker.best.close()
+  tracker.write(done)
+  summary = tracker.summary(done)
+  selection = {"select": "plateau", "step": int(best.step), "steps_taken": int(done),
+               "stop_reason": reason, "rule": tracker.rule.to_dict(),
+               "val_psnr": {p["step"]: p["val_psnr"] for p in tracker.curve}}
+  if primary:
+    (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
+  log(f"[{variant}] stopped after {done} steps ({reason}); best on validation: step {int(best.step)}"
+      f" ({summary['best_val_psnr']:.2f} dB)")
+  return best
 
 
 def training_recipe(config: dict, variant: str) -> tuple[OptimConfig, losses.LossWeights]:
@@ -266,7 +326,10 @@ def training_recipe(config: dict, variant: str) -> tuple[OptimConfig, losses.Los
 def read_selection(folder) -> dict | None:
   """A model folder's ``selection.json`` (written by :func:`train_model`), or None.
 
-  ``{"select": "last" | "val", "step": chosen step, "val_psnr": {step: dB}}``.
+  ``{"select": "last" | "val" | "plateau", "step": chosen step, "val_psnr": {step: dB}}``;
+  a plateau run adds ``"steps_taken"``, ``"stop_reason"`` (``"plateau"`` or
+  ``"max_steps"``) and ``"rule"`` (its curve with times: ``validation_curve.json``,
+  :func:`nlosjax.train.stopping.read_curve`).
   """
   path = pathlib.Path(folder) / "selection.json"
   if not path.exists():

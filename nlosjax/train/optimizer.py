@@ -35,17 +35,14 @@ class OptimConfig:
   b2: float = 0.999
 
 
-@functools.lru_cache(maxsize=16)
-def make_optimizer(cfg: OptimConfig, total_steps: int) -> optax.GradientTransformation:
-  """AdamW with the configured schedule and clipping.
+def learning_rate_schedule(cfg: OptimConfig, total_steps: int) -> Any:
+  """The learning rate: a float (constant) or an optax schedule ``step -> rate`` over ``total_steps``.
 
-  Cached: the same settings give the same object, so train states built for
-  several seeds share one static ``tx`` and one compiled train step.
+  ``total_steps`` is the horizon of the cosine decay: the run's length, or
+  under the plateau stopping rule its ``max_steps`` (:mod:`nlosjax.train.stopping`).
   """
   if not cfg.learning_rate > 0:
     raise ValueError(f"learning_rate must be > 0, got {cfg.learning_rate!r}")
-  if not cfg.weight_decay >= 0:
-    raise ValueError(f"weight_decay must be >= 0, got {cfg.weight_decay!r}")
   lr: Any = cfg.learning_rate
   if cfg.cosine:
     lr = optax.warmup_cosine_decay_schedule(
@@ -54,6 +51,25 @@ def make_optimizer(cfg: OptimConfig, total_steps: int) -> optax.GradientTransfor
   elif cfg.warmup_steps:
     lr = optax.join_schedules([optax.linear_schedule(0.0, cfg.learning_rate, cfg.warmup_steps),
                                optax.constant_schedule(cfg.learning_rate)], [cfg.warmup_steps])
+  return lr
+
+
+def learning_rate_at(cfg: OptimConfig, total_steps: int, step: int) -> float:
+  """The learning rate of update ``step`` (0-based: the update that makes step ``step + 1``)."""
+  lr = learning_rate_schedule(cfg, total_steps)
+  return float(lr(step)) if callable(lr) else float(lr)
+
+
+@functools.lru_cache(maxsize=16)
+def make_optimizer(cfg: OptimConfig, total_steps: int) -> optax.GradientTransformation:
+  """AdamW with the configured schedule and clipping.
+
+  Cached: the same settings give the same object, so train states built for
+  several seeds share one static ``tx`` and one compiled train step.
+  """
+  lr = learning_rate_schedule(cfg, total_steps)
+  if not cfg.weight_decay >= 0:
+    raise ValueError(f"weight_decay must be >= 0, got {cfg.weight_decay!r}")
   parts = []
   if cfg.clip_norm:
     parts.append(optax.clip_by_global_norm(cfg.clip_norm))

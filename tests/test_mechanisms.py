@@ -1,0 +1,164 @@
+"""benchmarks.mechanisms: photon budgets, rows, resumable JSON records, the honest report, the SSM probe."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from benchmarks import mechanisms as M
+from experiments import configs
+from tests.xla_options import xla_optimizations
+
+
+def strict_json(path):
+  """The file's JSON; fails on NaN/Infinity (the records are strict JSON)."""
+  def refuse(name):
+    raise AssertionError(f"{path}: non-standard JSON constant {name}")
+  return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def fake_record(budget, row, seed, psnr, seq, frames):
+  n = len(psnr)
+  scores = {"psnr": list(psnr), "ssim": [0.5] * n, "rmse_object": [0.3] * n,
+            "recall": [None] + [0.8] * (n - 1), "temporal_psnr": [None] * n}
+  curve = [{"step": 50 * (i + 1), "val_psnr": 15.0 + i, "time_s": 10.0 * i, "val_s": 1.0, "lr": 1e-3}
+           for i in range(5)]
+  return {"budget": budget, "row": row, "seed": seed, "variant": M.ROWS[row][1], "label": M.ROWS[row][2],
+          "config": {"data": {"photons": [50.0, 2000.0], "ambient": [50.0, 500.0], "path": "x.h5"},
+                     "model": {}, "train": {"stop": dict(M.STUDY_STOP)}},
+          "machine": {"cpu": "Test CPU", "cores": 2, "commit": "abc", "code_digest": "0" * 12},
+          "steps_taken": 250, "stop_reason": "plateau", "best_step": 50, "best_val_psnr": 15.0,
+          "train_wall_s": 40.0, "validation_curve": curve, "loss_curve": [],
+          "test": {"split": "test", "sequence": list(seq), "frame": list(frames), "scores": scores}}
+
+
+def test_the_tenth_budget_is_derived_from_the_preset():
+  base = configs.get_config("cpu")
+  tenth = M.budget_config(base, "tenth")["data"]
+  # The low-photon tables' overrides, derived rather than typed.
+  assert tenth["photons"] == (5.0, 200.0) and tenth["ambient"] == (5.0, 50.0)
+  assert tenth["path"] == "runs/data/cpu-v3-exposure-0.1.h5"
+  assert M.budget_config(base, "full")["data"] == base["data"]
+  assert base["data"]["photons"] == (5e1, 2e3)                       # the preset is left as it was
+
+
+def test_each_row_trains_its_variant_with_the_plateau_rule():
+  base = configs.get_config("cpu")
+  full = M.run_config(base, "full", "full", 1, M.STUDY_STOP)
+  assert full["train"]["variants"] == ("ours",) and full["train"]["seed"] == 1
+  assert full["train"]["stop"] == M.STUDY_STOP
+  assert M.run_config(base, "full", "ours_s", 0, M.STUDY_STOP)["train"]["variants"] == ("ours_s",)
+  no_ssm = M.run_config(base, "tenth", "no_ssm", 2, M.STUDY_STOP)
+  assert no_ssm["model"]["variant"] == "none" and no_ssm["data"]["photons"] == (5.0, 200.0)
+  assert M.run_config(base, "full", "no_pf", 0, M.STUDY_STOP)["train"]["loss"]["phasor_field"] == 0.0
+  with pytest.raises(SystemExit, match="plateau"):
+    M.study_stop({"train": {"stop": {"rule": "steps"}}})
+
+
+def test_the_report_names_missing_runs_and_pairs_only_common_seeds(tmp_path):
+  rng = np.random.default_rng(0)
+  seq, frames = np.repeat(np.arange(6), 4), np.tile(np.arange(1, 5), 6)
+  full = {s: 20 + rng.normal(0, 1, 24) for s in M.SEEDS}
+  for s in M.SEEDS:
+    M.write_json(M.run_json(tmp_path, "full", "full", s), fake_record("full", "full", s, full[s], seq, frames))
+  for s in (0, 1):           # no_ssm: the same frames 1 dB lower, seeds 0 and 1 only
+    M.write_json(M.run_json(tmp_path, "full", "no_ssm", s),
+                 fake_record("full", "no_ssm", s, full[s] - 1 + rng.normal(0, 0.01, 24), seq, frames))
+  assert M.main(["--report-only", "--results", str(tmp_path)]) == 0
+  text = (tmp_path / M.REPORT).read_text()
+  assert text.startswith("# Mechanisms") and "Produced by `python -m benchmarks.mechanisms --report-only" in text
+  assert "**Missing runs (13 of 18)**" in text
+  assert "full/ours_s-seed0" in text and "full/no_ssm-seed2" in text and "tenth/full-seed0" in text
+  assert "No run of this budget has finished yet." in text
+  line = next(x for x in text.splitlines() if x.startswith("- **full - no_ssm**"))
+  assert "seeds 0, 1" in line and "+1.00 dB" in line and "Called" in line and "Only 2 of 3 seeds" in line
+  assert "- **full - ours_s** (`full`): not computed yet" in text
+  summary = M.summarise(M.load_runs(tmp_path), ["full"], list(M.MAIN_ROWS))["full"]
+  assert summary["rows"]["full"]["psnr"]["n_seeds"] == 3
+  assert summary["rows"]["full"]["recall"]["n_frames"] == 3 * 23          # the None frame left out
+  assert (tmp_path / M.FIGURE).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch):
+  seq, frames = [0, 0, 1, 1], [1, 2, 1, 2]
+  calls = []
+
+  def fake_run_one(base, budget, row, seed, stop, workdir, results, log=print):
+    calls.append((budget, row, seed))
+    assert stop == M.STUDY_STOP and base["train"]["stop"] == M.STUDY_STOP
+    record = fake_record(budget, row, seed, [20.0, 21.0, 22.0, 23.0], seq, frames)
+    M.write_json(M.run_json(results, budget, row, seed), record)
+    return record
+
+  monkeypatch.setattr(M, "run_one", fake_run_one)
+  args = ["--results", str(tmp_path), "--workdir", str(tmp_path / "runs"), "--budgets", "tenth"]
+  M.main(args + ["--max-runs", "2"])
+  assert calls == [("tenth", "full", 0), ("tenth", "ours_s", 0)]          # seed by seed, every row first
+  M.main(args + ["--max-runs", "2", "--rows", "full", "no_ssm"])
+  assert calls[2:] == [("tenth", "no_ssm", 0), ("tenth", "full", 1)]     # finished runs are skipped
+  M.main(args + ["--time-limit-s", "0"])
+  assert len(calls) == 4                                                 # no run starts after the limit
+  M.main(args + ["--seeds", "0", "--extra-rows"])
+  assert calls[4:] == [("tenth", "bidirectional", 0), ("tenth", "no_pf", 0)]
+
+
+def test_tiny_study_end_to_end_resumes_and_probes(tmp_path, monkeypatch, capsys):
+  results = tmp_path / "results"
+  args = ["--tiny", "--workdir", str(tmp_path / "runs"), "--results", str(results)]
+  with xla_optimizations(False):          # tiny shapes compile faster without them
+    assert M.main(args) == 0
+  from nlosjax.evaluation import scores
+  records = {}
+  for row in M.TINY_DESIGN["rows"]:
+    path = M.run_json(results, "full", row, 0)
+    r = records[row] = strict_json(path)
+    assert (r["budget"], r["row"], r["seed"]) == ("full", row, 0)
+    assert r["config"]["train"]["stop"] == M.TINY_STOP
+    assert r["stop_reason"] in ("plateau", "max_steps") and 2 <= r["steps_taken"] <= M.TINY_STOP["max_steps"]
+    assert [p["step"] for p in r["validation_curve"]] == list(range(2, r["steps_taken"] + 1, 2))
+    assert r["best_val_psnr"] == max(p["val_psnr"] for p in r["validation_curve"])
+    assert r["loss_curve"][-1]["step"] == r["steps_taken"]
+    n = len(r["test"]["sequence"])
+    assert n == len(r["test"]["frame"]) > 0
+    assert set(scores.METRICS) <= set(r["test"]["scores"])               # every per-frame key kept
+    assert all(len(v) == n for v in r["test"]["scores"].values())
+    assert r["machine"]["commit"] and len(r["machine"]["code_digest"]) == 12
+  assert "probe" not in records["no_ssm"]
+
+  # The probe: bypassing nothing is the model as validated (exactly), bypassing an SSM changes it.
+  p = records["full"]["probe"]
+  assert p["intact_psnr"] == records["full"]["best_val_psnr"]
+  assert len(p["modules"]) == 10 and p["modules"][0]["module"] == "st_mamba0/ssm/temporal0"
+  assert any(m["psnr"] != p["intact_psnr"] for m in p["modules"])
+  assert all(m["drop_db"] == pytest.approx(p["intact_psnr"] - m["psnr"]) for m in p["modules"])
+  assert set(p["gates"]) == {"st_mamba0", "cross_prev1_0", "cross_next1_0"}
+  assert all(-0.28 < g < 10 and math.isfinite(g) for g in p["gates"].values())  # SiLU >= -0.2785
+  text = (results / M.REPORT).read_text()
+  assert "All 2 runs of the design are present." in text and "| `st_mamba0/ssm/spatial1` |" in text
+  assert "- **full - no_ssm** (`full`, seeds 0)" in text and "1 test sequence(s) give no interval" in text
+  assert (results / M.FIGURE).read_bytes()[:4] == b"\x89PNG"
+
+  # Resume: a second invocation trains nothing; --report-only rewrites the same report.
+  def no_run(*a, **k):
+    raise AssertionError("a run with a JSON file was trained again")
+
+  monkeypatch.setattr(M, "run_one", no_run)
+  capsys.readouterr()
+  assert M.main(args) == 0
+  assert "2 of 2 runs already have their JSON" in capsys.readouterr().out
+  assert M.main(args + ["--report-only"]) == 0
+
+  def body(t):
+    return [x for x in t.splitlines() if not x.startswith(("Produced by", "- Date", "- Load", "- Code"))]
+
+  assert body((results / M.REPORT).read_text()) == body(text)
+
+  # --probe RUN_DIR reloads the finished run without training it and finds the same numbers.
+  from nlosjax.train import loop
+  monkeypatch.setattr(loop, "make_train_step", lambda *a, **k: no_run)
+  with xla_optimizations(False):
+    assert M.main(args + ["--probe", str(M.run_dir(tmp_path / "runs", "full", "full", 0))]) == 0
+  again = strict_json(M.run_json(results, "full", "full", 0))["probe"]
+  assert [m["psnr"] for m in again["modules"]] == [m["psnr"] for m in p["modules"]]
+  assert again["intact_psnr"] == p["intact_psnr"] and again["gates"] == p["gates"]
