@@ -20,6 +20,16 @@ from nlosjax.data import scenes
 from nlosjax.physics import Setup, render_points
 from nlosjax.physics.noise import jitter_kernel
 from tests.tiny_run import LCT_DATA, LCT_SCENE
+from tests.xla_options import xla_optimizations
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _optimised_xla():
+  # Programs here run long (full captures, samplers, renderers): XLA's optimisations pay for
+  # their compile time. The suite turns them off by default (conftest.py).
+  with xla_optimizations(True):
+    yield
+
 
 # Tiny capture: 16 x 16 on a 2 m wall, 64 bins of 264 ps (2.53 m of depth, as the presets).
 # The light-cone renderer and helix scenes: these tests check the fast path against

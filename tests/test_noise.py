@@ -19,6 +19,16 @@ from nlosjax.physics.noise import (
   load_measured_jitter,
 )
 from nlosjax.physics.setup import Setup
+from tests.xla_options import xla_optimizations
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _optimised_xla():
+  # Programs here run long (full captures, samplers, renderers): XLA's optimisations pay for
+  # their compile time. The suite turns them off by default (conftest.py).
+  with xla_optimizations(True):
+    yield
+
 
 SETUP = Setup(1.0, (4, 4), 32e-12, 64)
 T, H, W = 64, 4, 4

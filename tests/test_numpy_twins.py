@@ -10,6 +10,16 @@ import pytest
 
 from experiments import numpy_twins as tw
 from nlosjax.physics.setup import Setup
+from tests.xla_options import xla_optimizations
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _optimised_xla():
+  # Programs here run long (full captures, samplers, renderers): XLA's optimisations pay for
+  # their compile time. The suite turns them off by default (conftest.py).
+  with xla_optimizations(True):
+    yield
+
 
 EXIT_SIGN = pathlib.Path("/work/shared/data/real/data_exit_sign.mat")
 

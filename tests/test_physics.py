@@ -18,6 +18,16 @@ import scipy.ndimage
 from nlosjax import physics
 from nlosjax.physics import Setup, reconstruct, render, render_points
 from nlosjax.physics.operators import linear_axis_matrix, squared_axis_matrix
+from tests.xla_options import xla_optimizations
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _optimised_xla():
+  # Programs here run long (full captures, samplers, renderers): XLA's optimisations pay for
+  # their compile time. The suite turns them off by default (conftest.py).
+  with xla_optimizations(True):
+    yield
+
 
 C = physics.SPEED_OF_LIGHT
 # the module (``physics.reconstruct`` is the function of the same name)

@@ -16,6 +16,15 @@ import pytest
 from experiments import numpy_twins as twins
 from nlosjax import physics
 from nlosjax.data import io
+from tests.xla_options import xla_optimizations
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _optimised_xla():
+  # Programs here run long (full captures, samplers, renderers): XLA's optimisations pay for
+  # their compile time. The suite turns them off by default (conftest.py).
+  with xla_optimizations(True):
+    yield
 
 
 def ncc(a, b):

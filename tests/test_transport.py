@@ -15,6 +15,16 @@ import pytest
 from nlosjax.data import scenes, surfaces
 from nlosjax.physics import Setup
 from nlosjax.physics.transport import SurfaceSamples, default_spacing, render_surfaces
+from tests.xla_options import xla_optimizations
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _optimised_xla():
+  # Programs here run long (full captures, samplers, renderers): XLA's optimisations pay for
+  # their compile time. The suite turns them off by default (conftest.py).
+  with xla_optimizations(True):
+    yield
+
 
 SETUP = Setup(wall_size=0.8, grid=(6, 6), bin_width=32e-12, num_bins=200)
 
