@@ -50,6 +50,17 @@ def model_folder(variant: str, seed: int, base_seed: int) -> str:
   return variant if seed == base_seed else f"{variant}-seed{seed}"
 
 
+def _training_length(tr: dict) -> str:
+  """How long each model trained, for the table's caption: a fixed step count or the plateau rule."""
+  from nlosjax.train.stopping import StopRule
+  rule = StopRule.from_config(tr.get("stop"))
+  if rule.rule == "steps":
+    return f"{tr['steps']} steps"
+  return (f"trained to a validation plateau (no gain above {rule.min_delta_db} dB over {rule.patience} "
+          f"validations {rule.every} steps apart, at most {rule.max_steps} steps; each model's steps in "
+          "validation.json)")
+
+
 def _tune_classic(config: dict, data_path, log) -> dict:
   batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
   data = protocol.load_split(config, data_path, "val", batch_size=batch_size)
@@ -99,7 +110,9 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
         logs[variant] = train.read_metrics(workdir / folder / "metrics.jsonl")
       selection = train.read_selection(workdir / folder) or {}
       checkpoints[folder] = {"variant": variant, "seed": seed, "step": selection.get("step"),
-                             "val_psnr": selection.get("val_psnr", {})}
+                             "val_psnr": selection.get("val_psnr", {}),
+                             "steps_taken": selection.get("steps_taken", int(tr["steps"])),
+                             "stop_reason": selection.get("stop_reason", "steps")}
   if not primary:                         # process 0 evaluates; the others are done
     return {}
   log("validation: tuning the classic methods ...")
@@ -115,7 +128,7 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
   n_frames = evaluation["n_frames"]
   n_seq = len(set(evaluation["sequence"].tolist()))
   caption = (f"Test split of `{data_path}` ({n_seq} sequences, {n_frames} frames); "
-             f"{tr['steps']} steps of batch {tr['batch_size']} per model, "
+             f"{_training_length(tr)} of batch {tr['batch_size']} per model, "
              f"{n_seeds} seed(s) ({base}-{base + n_seeds - 1}); "
              f"{jax.devices()[0].platform}, {jax.device_count()} device(s); "
              f"main job wall time {time.perf_counter() - t0:.0f} s.")
