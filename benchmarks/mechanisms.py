@@ -164,8 +164,24 @@ def run_dir(workdir: pathlib.Path, budget: str, row: str, seed: int) -> pathlib.
 
 
 # --------------------------------------------------------------- provenance
+_CODE_AT_START: dict = {}
+
+
+def code_at_start() -> dict:
+  """The commit and code digest of this process's code, read once, before its first run.
+
+  A study runs for hours: read at the end of a run, ``git`` and the files on disk may
+  already show a later commit or someone's uncommitted edits that this process never
+  loaded. :func:`main` calls this first; :func:`machine` reports what it read then.
+  """
+  if not _CODE_AT_START:
+    from experiments import provenance as P
+    _CODE_AT_START.update(commit=P.git_commit(), code_digest=P.code_digest(P.code_modules(P.command_roots())))
+  return dict(_CODE_AT_START)
+
+
 def machine() -> dict:
-  """Where and from which code a run's numbers came (experiments.provenance helpers)."""
+  """Where and from which code a run's numbers came (experiments.provenance helpers; code as at start)."""
   import jax
 
   from experiments import provenance as P
@@ -173,8 +189,7 @@ def machine() -> dict:
           "cpu": P.cpu_model(), "cores": P.usable_cores(), "memory": P.memory_text(),
           "backend": jax.default_backend(), "device": jax.devices()[0].device_kind,
           "python": platform.python_version(), "jax": jax.__version__,
-          "commit": P.git_commit(), "code_digest": P.code_digest(P.code_modules(P.command_roots())),
-          "load_average": P.load_average(", ")}
+          **code_at_start(), "load_average": P.load_average(", ")}
 
 
 # --------------------------------------------------------------- JSON I/O
@@ -631,6 +646,7 @@ def tiny_base(workdir: pathlib.Path) -> dict:
 
 def main(argv=None) -> int:
   from experiments.cli import config_parser, parse_config
+  code_at_start()                          # before any run: the code this process loads
   parser = config_parser(__doc__.split("\n\n")[0])
   parser.add_argument("--budgets", nargs="+", choices=list(BUDGETS), default=None,
                       help="photon budgets to run (default: all; --tiny: full)")
