@@ -1,7 +1,8 @@
 """Benchmark the ST-Mamba network: one training step (forward + backward) per config.
 
     python -m benchmarks.model [--configs cpu usm paper] [--frames 3] [--batch 1] [--repeats 1]
-                               [--time-limit 600] [--out benchmarks/results/model.md]
+                               [--forward] [--reference] [--time-limit 600]
+                               [--out benchmarks/results/model.md]
 
 For every config (``cpu`` = the model ``python -m experiments.train`` trains,
 the ``cpu`` preset's ``Ours`` on its data's Setup; ``usm`` = the USM baseline
@@ -23,7 +24,14 @@ that preset trains when ``train.variants`` holds ``"usm"``, one frame whatever
   counted), the first call and the median of ``--repeats`` more calls, each
   ended by ``block_until_ready``; the process's peak resident memory
   (``ru_maxrss``, compile included);
-* with ``--forward``, the same for the forward pass alone.
+* with ``--forward``, the same for the forward pass alone;
+* with ``--reference``, the same step on the slow reference path
+  (``conv_impl="fold"``: every 3-D convolution a time-folded 2-D convolution)
+  beside the default fast path, both compiled in the same child and timed
+  interleaved (``--repeats`` rounds of one call each, medians), their ratio,
+  and how far the fast path's loss and gradients are from the reference's
+  (largest difference over each gradient leaf's largest magnitude). Configs
+  without ``conv_impl`` (``usm``) are timed as before.
 
 Input: Poisson counts (rate 0.05 per bin, a low photon budget). A case that
 runs out of its ``--time-limit`` is recorded as a timeout. The Markdown
@@ -91,7 +99,46 @@ def _timed(fn, *args, repeats: int):
   return first, (statistics.median(runs) if runs else float("nan"))
 
 
-def run_case(name: str, frames: int, batch: int, repeats: int, forward: bool) -> dict:
+def compare_reference(cfg, params, x, repeats: int) -> dict:
+  """Step time and agreement of ``cfg`` (the fast path) against ``cfg.replace(conv_impl="fold")``.
+
+  Both ``jit(value_and_grad(loss))`` are compiled first, then timed interleaved
+  (``max(repeats, 3)`` rounds, one call of each per round) so that a shared
+  machine's load falls on both alike. Returns ``ref_step_s``, ``fast_step_s``,
+  ``speedup`` (ratio of the medians), ``loss_rel_diff`` and ``grad_rel_err``
+  (the largest ``max |g_fast - g_ref| / max |g_ref|`` over the gradient leaves).
+  """
+  import jax
+  import jax.numpy as jnp
+
+  def make(c):
+    model = c.module()
+
+    def loss(p):
+      o = model.apply({"params": p}, x)
+      return sum(jnp.mean(jnp.square(o[k])) for k in ("transient", "volume", "intensity", "depth"))
+    return jax.jit(jax.value_and_grad(loss)).lower(params).compile()
+
+  steps = {"ref": make(cfg.replace(conv_impl="fold")), "fast": make(cfg)}
+  results = {k: f(params) for k, f in steps.items()}
+  jax.block_until_ready(results)
+  times = {k: [] for k in steps}
+  for _ in range(max(repeats, 3)):
+    for k, f in steps.items():
+      t = time.perf_counter()
+      jax.block_until_ready(f(params))
+      times[k].append(time.perf_counter() - t)
+  (v_ref, g_ref), (v_fast, g_fast) = results["ref"], results["fast"]
+  err = max(float(jnp.max(jnp.abs(a - b)) / jnp.maximum(jnp.max(jnp.abs(a)), 1e-30))
+            for a, b in zip(jax.tree.leaves(g_ref), jax.tree.leaves(g_fast)))
+  ref_s, fast_s = statistics.median(times["ref"]), statistics.median(times["fast"])
+  return {"ref_step_s": ref_s, "fast_step_s": fast_s, "speedup": ref_s / fast_s,
+          "loss_rel_diff": abs(float(v_fast) - float(v_ref)) / max(abs(float(v_ref)), 1e-30),
+          "grad_rel_err": err}
+
+
+def run_case(name: str, frames: int, batch: int, repeats: int, forward: bool,
+             reference: bool = False) -> dict:
   """One config in this process; returns the measured numbers."""
   import jax
   import jax.numpy as jnp
@@ -138,6 +185,8 @@ def run_case(name: str, frames: int, batch: int, repeats: int, forward: bool) ->
     fc = fwd.lower(params).compile()
     out["fwd_compile_s"] = time.perf_counter() - t
     out["fwd_first_s"], out["fwd_s"] = _timed(fc, params, repeats=repeats)
+  if reference and hasattr(cfg, "conv_impl"):
+    out.update(compare_reference(cfg, params, x, repeats))
   out["max_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GIB
   return out
 
@@ -149,10 +198,10 @@ def _child(queue, *args):
     queue.put(("error", traceback.format_exc(limit=4)))
 
 
-def run_isolated(name, frames, batch, repeats, forward, time_limit) -> dict:
+def run_isolated(name, frames, batch, repeats, forward, time_limit, reference=False) -> dict:
   ctx = multiprocessing.get_context("spawn")
   queue = ctx.Queue()
-  proc = ctx.Process(target=_child, args=(queue, name, frames, batch, repeats, forward))
+  proc = ctx.Process(target=_child, args=(queue, name, frames, batch, repeats, forward, reference))
   t = time.perf_counter()
   proc.start()
   proc.join(time_limit)
@@ -196,7 +245,10 @@ NOTES = """
   trains (the cpu preset's Ours on its data Setup); inputs and outputs are in the table.
 - Widths are ours (the paper gives none): see `ModelConfig.paper` and the cpu preset.
 - 3-D convolutions run as 2-D convolutions of time-folded channels (`Conv3D`): the same
-  sums, chosen because XLA:CPU's 3-D convolutions were slower, forward and backward.
+  sums, chosen because XLA:CPU's 3-D convolutions were slower, forward and backward; the
+  unstrided ones with at most 4 = Cin x Cout channel pairs (the refinement's) as fused sums of
+  shifted slices with their own VJP (`conv_impl="auto"`, the default; `--reference` times
+  the all-folded path beside it).
 - The stride-2 3-D transposed convolutions of the transient spreading are sub-pixel
   convolutions (`Upsample3D`: conv to 8x the channels, then depth-to-space), a family that
   contains them, chosen because XLA:CPU's transposed 3-D convolutions were much slower.
@@ -264,6 +316,17 @@ def to_markdown(rows, info, cmd, load_before, load_after) -> str:
     for r in fwd:
       lines.append(f"| {r['config']} | {r['frames']} | {r['fwd_compile_s']:.1f} |"
                    f" {r['fwd_first_s']:.1f} | {_fmt(r['fwd_s'], '.1f')} |")
+  ref = [r for r in rows if r.get("status") == "ok" and "speedup" in r]
+  if ref:
+    lines += ["", "Reference path (`conv_impl=\"fold\"`) against the default fast path, the same"
+              " step timed interleaved in one process (medians); agreement of the fast path with"
+              " the reference: |loss difference| / |loss| and the largest"
+              " max |g_fast - g_ref| / max |g_ref| over the gradient leaves:", "",
+              "| config | frames | reference step s | fast step s | speedup | loss rel. diff |"
+              " grad rel. err |", "|---|---|---|---|---|---|---|"]
+    for r in ref:
+      lines.append(f"| {r['config']} | {r['frames']} | {r['ref_step_s']:.3f} | {r['fast_step_s']:.3f} |"
+                   f" {r['speedup']:.2f}x | {r['loss_rel_diff']:.1e} | {r['grad_rel_err']:.1e} |")
   return "\n".join(lines) + "\n" + NOTES
 
 
@@ -275,6 +338,8 @@ def main(argv=None):
   p.add_argument("--batch", type=int, default=1)
   p.add_argument("--repeats", type=int, default=1)
   p.add_argument("--forward", action="store_true", help="also time the forward pass alone")
+  p.add_argument("--reference", action="store_true",
+                 help="also time the reference path (conv_impl='fold') beside the fast one, interleaved")
   p.add_argument("--time-limit", type=float, default=600.0, help="seconds per case")
   p.add_argument("--out", type=pathlib.Path, default=DEFAULT_OUT)
   p.add_argument("--no-write", action="store_true", help="print only")
@@ -283,7 +348,8 @@ def main(argv=None):
   rows = []
   for name in args.configs:
     for frames in ([1] if name == "usm" else args.frames):     # USM reconstructs one frame
-      r = run_isolated(name, frames, args.batch, args.repeats, args.forward, args.time_limit)
+      r = run_isolated(name, frames, args.batch, args.repeats, args.forward, args.time_limit,
+                       args.reference)
       print({k: v for k, v in r.items()}, flush=True)
       rows.append(r)
   load_after = tuple(round(v, 2) for v in os.getloadavg())

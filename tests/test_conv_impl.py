@@ -1,0 +1,87 @@
+"""The fast "direct" 3-D convolution (``Conv3D(impl="direct")``, ``ModelConfig.conv_impl="auto"``)
+against its references: XLA's own 3-D convolution (values and both gradients) and, for the
+whole network at the cpu preset's architecture, the all-"fold" path (loss and every gradient
+on a fixed batch, equal to float32 rounding)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from experiments.configs import cpu as cpu_preset
+from nlosjax.models import ModelConfig, blocks
+from nlosjax.physics import Setup
+from tests.xla_options import xla_optimizations
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compiles():
+  with xla_optimizations(False):
+    yield
+
+
+def _grads(conv, params, x):
+  def loss(p, xx):
+    return jnp.sum(jnp.sin(conv.apply(p, xx)))
+  return jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(params, x)
+
+
+@pytest.mark.parametrize("kernel, dilation, cin, feats, padding", [
+    ((3, 3, 3), 1, 2, 2, "zero"), ((3, 3, 3), 2, 1, 2, "zero"), ((3, 3, 3), 4, 2, 1, "zero"),
+    ((3, 1, 1), 2, 2, 2, "zero"), ((1, 3, 5), 1, 1, 1, "zero"), ((3, 3, 3), 1, 2, 2, "edge")])
+def test_direct_conv_equals_xla_3d_conv_with_gradients(kernel, dilation, cin, feats, padding):
+  x = jax.random.normal(jax.random.key(0), (2, 9, 5, 6, cin))
+  direct = blocks.Conv3D(feats, kernel, 1, dilation, impl="direct", padding=padding)
+  params = direct.init(jax.random.key(1), x)
+  params = jax.tree.map(lambda p: p + 0.1, params)                 # a nonzero bias too
+  ref = blocks.Conv3D(feats, kernel, 1, dilation, impl="xla", padding=padding)
+  np.testing.assert_allclose(direct.apply(params, x), ref.apply(params, x), rtol=1e-5, atol=1e-5)
+  (v, (gp, gx)), (v_ref, (gp_ref, gx_ref)) = _grads(direct, params, x), _grads(ref, params, x)
+  np.testing.assert_allclose(v, v_ref, rtol=1e-5)
+  np.testing.assert_allclose(gx, gx_ref, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(gx_ref))))
+  for a, b in zip(jax.tree.leaves(gp), jax.tree.leaves(gp_ref)):
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(b))))
+
+
+def test_auto_picks_direct_for_few_channels_only():
+  assert blocks.resolve_conv_impl("auto", (3, 3, 3), 2, 2, 1) == "direct"
+  assert blocks.resolve_conv_impl("auto", (3, 3, 3), 1, 2, 1) == "direct"
+  assert blocks.resolve_conv_impl("auto", (3, 3, 3), 4, 8, 1) == "fold"
+  assert blocks.resolve_conv_impl("auto", (3, 3, 3), 2, 2, 2) == "fold"      # strided
+  assert blocks.resolve_conv_impl("auto", (1, 1, 1), 1, 1, 1) == "fold"      # a matmul
+  assert blocks.resolve_conv_impl("xla", (3, 3, 3), 1, 1, 1) == "xla"
+  with pytest.raises(ValueError, match="impl"):
+    blocks.resolve_conv_impl("im2col", (3, 3, 3), 1, 1, 1)
+  with pytest.raises(ValueError, match="conv_impl"):
+    ModelConfig.cpu(conv_impl="im2col")
+  with pytest.raises(ValueError, match="unstrided"):
+    blocks.Conv3D(2, time_stride=2, impl="direct").init(jax.random.key(0), jnp.zeros((1, 4, 3, 3, 1)))
+
+
+def test_fast_path_equals_the_fold_reference_at_the_cpu_preset():
+  """The cpu preset's Ours (its widths, a small Setup): its volume stage, which holds every conv
+  that "auto" runs "direct" at these widths, gives the same loss and gradients (parameters and
+  input) as the all-"fold" reference on a fixed batch. (The whole network at the preset's own
+  shapes: ``python -m benchmarks.model --configs cpu --batch 4 --reference``.)"""
+  setup = Setup(wall_size=2.0, grid=(8, 8), bin_width=132e-12, num_bins=64)
+  cfg = ModelConfig(setup=setup, stride=4, frames=3, **cpu_preset.get_config()["model"])
+  assert cfg.conv_impl == "auto"
+  assert blocks.resolve_conv_impl("auto", (3, 3, 3), cfg.refine_width, cfg.refine_width, 1) == "direct"
+  fast = blocks.VolumeReconstruction(**cfg.volume_kwargs())
+  ref = blocks.VolumeReconstruction(**cfg.replace(conv_impl="fold").volume_kwargs())
+  a, b = cfg.time_window
+  x = jax.random.normal(jax.random.key(3), (2, b - a) + setup.grid)
+  params = jax.jit(ref.init)(jax.random.key(4), x)["params"]
+
+  def step(stage):
+    def loss(p, xx):
+      o = stage.apply({"params": p}, xx)
+      return sum(jnp.mean(jnp.square(o[k])) for k in ("volume", "intensity", "depth"))
+    return jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(params, x)
+
+  (v_ref, g_ref), (v, g) = step(ref), step(fast)
+  np.testing.assert_allclose(v, v_ref, rtol=1e-5)
+  assert jax.tree.structure(g) == jax.tree.structure(g_ref)
+  for u, w in zip(jax.tree.leaves(g), jax.tree.leaves(g_ref)):
+    np.testing.assert_allclose(u, w, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(w))))
+  assert float(jnp.max(jnp.abs(g[0]["refine"]["conv1"]["kernel"]))) > 0    # direct convs got gradients
