@@ -241,12 +241,17 @@ def backfill(path: pathlib.Path) -> bool:
     if listing is None or m is None:
       raise ValueError(f"{path.name}: cannot backfill (commit {commit!r}, command {entry.command!r})")
     files = {f for f in listing.splitlines() if f.endswith(".py")}
-    read = lambda p: _git("show", f"{commit}:{p}") + "\n"
+    show = _GitFiles()
+    read = lambda p: show(commit, p)
     roots = [m.group(1), *provenance.SUBPROCESS_ROOTS.get(m.group(1), ())]
-    modules = provenance.code_modules(roots, files, read)
+    try:
+      modules = provenance.code_modules(roots, files, read)
+      digest = provenance.code_digest(modules, read)
+    finally:
+      show.close()
     note = (f", backfilled from commit {commit} by `python -m benchmarks.index --backfill`"
             + ("; the run had uncommitted edits the digest cannot see" if "+changes" in entry.commit else ""))
-    line = provenance.code_line(modules, provenance.code_digest(modules, read), note) + "\n"
+    line = provenance.code_line(modules, digest, note) + "\n"
     at = next(i for i, l in enumerate(lines) if l.startswith("- Commit:"))
     lines.insert(at + 1, line)
   new = "".join(lines)
@@ -278,17 +283,23 @@ def companions(results: pathlib.Path, stem: str, tables: set[str] | None = None)
   return out
 
 
-def render(results: pathlib.Path = RESULTS) -> str:
-  """The index's Markdown text."""
+def states(results: pathlib.Path = RESULTS) -> dict[str, str]:
+  """Each results file's :func:`state`, by file stem."""
+  files = provenance.project_files()
+  return {e.name: state(e, files) for e in entries(results)}
+
+
+def render(results: pathlib.Path = RESULTS, computed: dict[str, str] | None = None) -> str:
+  """The index's Markdown text; ``computed``: :func:`states` where the caller has them already."""
   lines = [HEADER, "| results file | what | command | date (UTC) | machine | commit | "
            "state | goal | companions |", "|---|---|---|---|---|---|---|---|---|"]
   found = entries(results)
   tables = {e.name for e in found}
-  files = provenance.project_files()
+  computed = states(results) if computed is None else computed
   for e in found:
     cells = [f"[{e.name}.md](results/{e.name}.md)", e.title.replace("|", "\\|"),
              f"`{e.command}`".replace("|", "\\|"), e.date, e.machine, e.commit,
-             f"**{st}**" if (st := state(e, files)) == "current" else st,
+             f"**{st}**" if (st := computed[e.name]) == "current" else st,
              GOALS.get(e.name, "none stated"),
              ", ".join(companions(results, e.name, tables))]
     lines.append("| " + " | ".join(cells) + " |")
@@ -306,7 +317,8 @@ def main(argv=None) -> int:
     for path in sorted(RESULTS.glob("*.md")):
       if backfill(path):
         print(f"backfilled {path.relative_to(provenance.ROOT)}")
-  text = render()
+  computed = states()
+  text = render(computed=computed)
   if args.check:
     if comparable(INDEX.read_text()) != comparable(text):
       print("benchmarks/README.md is out of date: run python -m benchmarks.index", file=sys.stderr)
@@ -314,8 +326,8 @@ def main(argv=None) -> int:
     return 0
   INDEX.write_text(text)
   print(f"wrote {INDEX}")
-  for e in entries():
-    print(f"  {e.name}: {state(e)}")
+  for name, st in computed.items():
+    print(f"  {name}: {st}")
   return 0
 
 
