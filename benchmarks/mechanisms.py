@@ -98,7 +98,10 @@ PROBE = ("full", 0)
 PAIRS = (("full", "no_ssm"), ("full", "ours_s"), ("full", "bidirectional"), ("full", "no_pf"))
 #: Report columns: metric -> (header, digits).
 COLUMNS = {"psnr": ("PSNR (dB) ↑", 2), "ssim": ("SSIM ↑", 3), "rmse_object": ("object depth RMSE (m) ↓", 3),
-           "recall": ("object recall ↑", 3)}
+           "recall": ("object recall ↑", 3), "temporal_psnr": ("temporal PSNR (dB) ↑", 2)}
+#: Verdict sentences: metric -> (name in the sentence, unit); each pair gets one per metric.
+VERDICTS = {"psnr": ("intensity PSNR", "dB"),
+            "temporal_psnr": ("temporal PSNR (frame-to-frame change against the truth's)", "dB")}
 LOSS_POINTS = 100
 REPORT = "mechanisms.md"
 FIGURE = "mechanisms_curves.png"
@@ -459,28 +462,35 @@ def _budget_text(runs: dict, budget: str) -> str:
           f" per scan point; `{d.get('path')}`)")
 
 
-def _verdict(pair: dict, budget: str, n_seeds: int) -> str:
-  """The plain sentence of one paired difference."""
+def _verdict(pair: dict, budget: str, n_seeds: int, metric: str = "psnr") -> str:
+  """The plain sentence of one paired difference in ``metric`` (a key of :data:`VERDICTS`)."""
   from nlosjax import stats
   a, b = pair["a"], pair["b"]
   name = f"full - {b}" if a == "full" else f"{a} - {b}"
+  what, unit = VERDICTS[metric]
   if not pair["seeds"]:
-    return (f"- **{name}** (`{budget}`): not computed yet: no seed has finished in both rows.")
-  d = pair["diff"]["psnr"]
+    return (f"- **{name}** (`{budget}`, {what}): not computed yet: no seed has finished in both rows.")
+  d = pair["diff"][metric]
   seeds = ", ".join(str(s) for s in pair["seeds"])
-  text = (f"- **{name}** (`{budget}`, seeds {seeds}): {d['mean']:+.2f} dB "
+  text = (f"- **{name}** (`{budget}`, seeds {seeds}, {what}): {d['mean']:+.2f} {unit} "
           f"[{d['ci95'][0]:+.2f}, {d['ci95'][1]:+.2f}]. ")
   if d["n_sequences"] < 2:
     text += (f"Not called: {d['n_sequences']} test sequence(s) give no interval to judge by (the"
              " bootstrap resamples whole sequences).")
   elif stats.excludes_zero(d):
     better = ROWS[a][2] if d["mean"] > 0 else ROWS[b][2]
-    text += f"Called: the interval excludes 0, {better} reconstructs the intensity better."
+    text += f"Called: the interval excludes 0, {better} is better."
   else:
     text += "Not called: the interval includes 0, so this study cannot tell the two rows apart."
   if len(pair["seeds"]) < n_seeds:
     text += f" (Only {len(pair['seeds'])} of {n_seeds} seeds so far.)"
   return text
+
+
+def barely_trained(records: list[dict]) -> list[dict]:
+  """The runs whose best validation came at their first validation (learning never went past it)."""
+  return [r for r in records if r["validation_curve"]
+          and r["best_step"] == r["validation_curve"][0]["step"]]
 
 
 def _steps_text(rs: list[dict]) -> str:
@@ -614,7 +624,14 @@ def report(runs: dict, design: dict, command: str) -> str:
         cells = (" | ".join(_cell(p["diff"][m], d, True) for m, (_, d) in COLUMNS.items())
                  if p["diff"] else " | ".join("—" for _ in COLUMNS))
         lines.append(f"| {p['a']} - {p['b']} | {', '.join(map(str, p['seeds'])) or 'none'} | {cells} |")
-      lines += [""] + [_verdict(p, budget, len(seeds)) for p in pairs]
+      lines += [""] + [_verdict(p, budget, len(seeds), m) for p in pairs for m in VERDICTS]
+    early = barely_trained([r for k, r in sorted(runs.items()) if k[0] == budget and k[1] in rows])
+    if early:
+      names = ", ".join(f"{r['row']}-seed{r['seed']}" for r in early)
+      lines += ["", f"**Barely trained**: {names} validated best at their first validation (step"
+                f" {early[0]['validation_curve'][0]['step']}) and never improved after it; their"
+                " scores are those of a model that has hardly started to learn, and a difference"
+                " involving them says little about the mechanism."]
     lines += _probe_lines(runs, budget)
     lines.append("")
   lines += [f"Validation curves: `{FIGURE}` (one panel per budget; a dot marks each run's best step).", ""]

@@ -21,14 +21,14 @@ def strict_json(path):
 def fake_record(budget, row, seed, psnr, seq, frames):
   n = len(psnr)
   scores = {"psnr": list(psnr), "ssim": [0.5] * n, "rmse_object": [0.3] * n,
-            "recall": [None] + [0.8] * (n - 1), "temporal_psnr": [None] * n}
+            "recall": [None] + [0.8] * (n - 1), "temporal_psnr": [None] + [float(v) + 5 for v in psnr[1:]]}
   curve = [{"step": 50 * (i + 1), "val_psnr": 15.0 + i, "time_s": 10.0 * i, "val_s": 1.0, "lr": 1e-3}
            for i in range(5)]
   return {"budget": budget, "row": row, "seed": seed, "variant": M.ROWS[row][1], "label": M.ROWS[row][2],
           "config": {"data": {"photons": [50.0, 2000.0], "ambient": [50.0, 500.0], "path": "x.h5"},
                      "model": {}, "train": {"stop": dict(M.STUDY_STOP)}},
           "machine": {"cpu": "Test CPU", "cores": 2, "commit": "abc", "code_digest": "0" * 12},
-          "steps_taken": 250, "stop_reason": "plateau", "best_step": 50, "best_val_psnr": 15.0,
+          "steps_taken": 250, "stop_reason": "plateau", "best_step": 250, "best_val_psnr": 19.0,
           "train_wall_s": 40.0, "validation_curve": curve, "loss_curve": [],
           "test": {"split": "test", "sequence": list(seq), "frame": list(frames), "scores": scores}}
 
@@ -73,11 +73,27 @@ def test_the_report_names_missing_runs_and_pairs_only_common_seeds(tmp_path):
   assert "No run of this budget has finished yet." in text
   line = next(x for x in text.splitlines() if x.startswith("- **full - no_ssm**"))
   assert "seeds 0, 1" in line and "+1.00 dB" in line and "Called" in line and "Only 2 of 3 seeds" in line
-  assert "- **full - ours_s** (`full`): not computed yet" in text
+  assert "intensity PSNR" in line
+  assert "- **full - ours_s** (`full`, intensity PSNR): not computed yet" in text
+  assert "temporal PSNR (dB) ↑" in text                      # the temporal column, every table
+  assert "Barely trained" not in text                          # every fake run peaks at its last validation
   summary = M.summarise(M.load_runs(tmp_path), ["full"], list(M.MAIN_ROWS))["full"]
   assert summary["rows"]["full"]["psnr"]["n_seeds"] == 3
   assert summary["rows"]["full"]["recall"]["n_frames"] == 3 * 23          # the None frame left out
   assert (tmp_path / M.FIGURE).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_run_that_peaked_at_its_first_validation_is_named_barely_trained(tmp_path):
+  seq, frames = np.repeat(np.arange(3), 2), np.tile([1, 2], 3)
+  for row in ("full", "ours_s"):
+    record = fake_record("tenth", row, 0, [16.0] * 6, seq, frames)
+    if row == "ours_s":
+      record["best_step"], record["best_val_psnr"] = 50, 15.0         # its first validation
+    M.write_json(M.run_json(tmp_path, "tenth", row, 0), record)
+  assert [r["row"] for r in M.barely_trained(list(M.load_runs(tmp_path).values()))] == ["ours_s"]
+  assert M.main(["--report-only", "--results", str(tmp_path)]) == 0
+  text = (tmp_path / M.REPORT).read_text()
+  assert "**Barely trained**: ours_s-seed0 validated best at their first validation (step 50)" in text
 
 
 def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch):
@@ -136,7 +152,9 @@ def test_tiny_study_end_to_end_resumes_and_probes(tmp_path, monkeypatch, capsys)
   assert all(-0.28 < g < 10 and math.isfinite(g) for g in p["gates"].values())  # SiLU >= -0.2785
   text = (results / M.REPORT).read_text()
   assert "All 2 runs of the design are present." in text and "| `st_mamba0/ssm/spatial1` |" in text
-  assert "- **full - no_ssm** (`full`, seeds 0)" in text and "1 test sequence(s) give no interval" in text
+  assert "- **full - no_ssm** (`full`, seeds 0, intensity PSNR)" in text
+  assert "- **full - no_ssm** (`full`, seeds 0, temporal PSNR" in text
+  assert "1 test sequence(s) give no interval" in text
   assert (results / M.FIGURE).read_bytes()[:4] == b"\x89PNG"
 
   # Resume: a second invocation trains nothing; --report-only rewrites the same report.
