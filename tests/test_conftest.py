@@ -85,3 +85,16 @@ def test_this_run_compiles_through_its_cache():
     assert jax.config.jax_persistent_cache_min_compile_time_secs == 0     # made by conftest
     assert jax.config.jax_compilation_cache_max_size > 0
 
+
+
+def test_suite_xla_flags_are_added_once_and_only_where_known():
+  known = lambda flag: True                                   # noqa: E731
+  unknown = lambda flag: False                                # noqa: E731
+  assert conftest.suite_xla_flags("", known) == "--xla_cpu_use_fusion_emitters=false"
+  assert (conftest.suite_xla_flags("--xla_force_host_platform_device_count=4", known)
+          == "--xla_force_host_platform_device_count=4 --xla_cpu_use_fusion_emitters=false")
+  # The user's own setting wins; a jaxlib that does not know the flag does not get it.
+  assert conftest.suite_xla_flags("--xla_cpu_use_fusion_emitters=true", known) == \
+      "--xla_cpu_use_fusion_emitters=true"
+  assert conftest.suite_xla_flags("", unknown) == ""
+  assert not conftest._xla_flag_known("--xla_no_such_flag_for_nlosjax=1")

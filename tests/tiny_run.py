@@ -13,8 +13,12 @@ LCT_DATA = dict(renderer="lct", retroreflective=0.0, photons=(1e3, 1e4))
 LCT_SCENE = dict(scenes._LATER_FIELDS)
 TINY_DATA = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, input_stride=4, input_offset=2,
                  num_sequences={"train": 2, "val": 1, "test": 1}, render_batch=4, **LCT_DATA)
+# conv_impl="fold": at these widths "auto" would pick the unrolled "direct" sums for every
+# convolution (the cpu preset: only the refinement's), and the train step would compile 1.3-1.6x
+# slower; tests/test_conv_impl.py checks "direct" against "fold", values and gradients.
 TINY_MODEL = dict(width=4, d_state=2, extract_time_stride=2, extract_blocks=1, st_depth=1,
-                  cross_depth=1, spread_min_width=1, volume_features=1, refine_width=2)
+                  cross_depth=1, spread_min_width=1, volume_features=1, refine_width=2,
+                  conv_impl="fold")
 #: USM (the "usm" variant) at the same scale.
 TINY_USM = dict(trn_width=2, trn_kernels=(3, 9), fusion_widths=(), extract_width=1,
                 refine=((2, 3), (2, 3)), render_widths=(2, 2))
