@@ -337,7 +337,8 @@ def run_model(model_config, params, frames, *, batch_size: int = 4):
   from nlosjax.physics.checks import checked
   x = triplets(np.asarray(frames, np.float32), model_config.frames)
   model = model_config.module()
-  apply = checked(lambda p, b: model.apply({"params": p}, b))     # NaN / negative counts raise
+  apply = checked(lambda p, b: model.apply({"params": p}, b),     # NaN / negative counts raise
+                  operators=model_config.physics_operators())        # physics operators as an argument
   out = {k: [] for k in ("intensity", "depth", "volume", "transient")}
   for s in range(0, len(x), batch_size):
     o = apply(params, jnp.asarray(x[s:s + batch_size]))

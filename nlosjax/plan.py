@@ -45,7 +45,7 @@ from jax.sharding import PartitionSpec as P
 
 from nlosjax import train
 from nlosjax.models.network import flop_counts
-from nlosjax.physics import Setup
+from nlosjax.physics import Setup, operator_args
 
 GIB = 2 ** 30
 #: Fraction of the device memory a plan may use (XLA needs some room beyond its plan:
@@ -167,7 +167,8 @@ def _compile_inference(mcfg, batch: int):
   model = train.network(mcfg)
   x = jax.ShapeDtypeStruct(tuple(mcfg.input_shape(batch)), jnp.float32)
   params = jax.eval_shape(model.init, jax.random.key(0), x)["params"]
-  return jax.jit(lambda p, xx: model.apply({"params": p}, xx)).lower(params, x).compile()
+  forward = operator_args.bind(lambda p, xx: model.apply({"params": p}, xx), mcfg.physics_operators())
+  return forward.lower(params, x).compile()
 
 
 def plan_variant(config: dict, setup: Setup, variant: str, mesh, *, inference: bool = True) -> dict:

@@ -59,13 +59,15 @@ def test_dry_run_plans_from_shapes_and_measures_without_data(tiny):
   for v in result["variants"].values():
     p = v["train"]
     mcfg = v["model_config"]
-    # Arguments of the train step: the state (params + AdamW's two moments + counts) and
-    # the batch, counted here from shapes independently of XLA.
+    # Arguments of the train step: the state (params + AdamW's two moments + counts), the
+    # batch and the physics operators (an argument, not constants), counted here from shapes
+    # independently of XLA.
     state = T.abstract_train_state(T.network(mcfg), mcfg.input_shape(2), T.make_optimizer(T.OptimConfig(), 10),
                                    T.make_mesh())
     batch = plan._abstract_batch(mcfg, 2, T.make_mesh())
+    ops = mcfg.physics_operators()
     nbytes = sum(np.prod(x.shape) * x.dtype.itemsize
-                 for x in jax.tree.leaves((state, batch)) if hasattr(x, "shape"))
+                 for x in jax.tree.leaves((state, batch, ops)) if hasattr(x, "shape"))
     assert abs(p.argument_bytes - nbytes) <= 64, (p.argument_bytes, nbytes)
     assert p.alias_bytes > 0                              # the donated state is reused
     assert p.peak_bytes >= p.argument_bytes and p.temp_bytes > 0 and p.flops > 0

@@ -71,7 +71,7 @@ def _jitted_apply(mcfg):
   """
   from nlosjax.physics.checks import checked
   model = mcfg.module()
-  return checked(lambda p, x: model.apply({"params": p}, x))
+  return checked(lambda p, x: model.apply({"params": p}, x), operators=mcfg.physics_operators())
 
 
 def model_images(mcfg, params, loader) -> dict:

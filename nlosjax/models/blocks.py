@@ -52,6 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from nlosjax.physics import operator_args
 from nlosjax.physics.operators import check_falloff, lct_apply, lct_filter, lct_operators, to_depth
 from nlosjax.physics.setup import Setup
 from nlosjax.physics.wavelet import convolve_time, illumination_wavelet
@@ -614,12 +615,20 @@ class FeatureTransform(nn.Module):
                           sampling_coeff=self.sampling_coeff)
 
   def operators(self):
-    """The cached :class:`~nlosjax.physics.operators.LCTOperators` of this layer."""
+    """The :class:`~nlosjax.physics.operators.LCTOperators` of this layer.
+
+    The cached constants, or, inside a function jitted by
+    :func:`nlosjax.physics.operator_args.bind`, the same operators as its argument.
+    """
     power = float(check_falloff(self.falloff)) if self.method == "lct" else 0.0
-    # Built eagerly even when called inside a trace: the cache must hold arrays, not tracers.
-    with jax.ensure_compile_time_eval():
-      return lct_operators(self.capture, power, oversample=self.oversample, dtype=jnp.float32,
-                           fft_length=self.fft_length)
+
+    def build():
+      # Built eagerly even when called inside a trace: the cache must hold arrays, not tracers.
+      with jax.ensure_compile_time_eval():
+        return lct_operators(self.capture, power, oversample=self.oversample, dtype=jnp.float32,
+                             fft_length=self.fft_length)
+    key = ("lct_operators", self.capture, power, self.oversample, self.fft_length)
+    return operator_args.lookup(key, build)
 
   @property
   def fft_length(self) -> str:

@@ -31,6 +31,7 @@ operators are rebuilt for it; they are constants, not parameters).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import flax.linen as nn
@@ -40,7 +41,7 @@ import numpy as np
 
 from nlosjax.models import blocks
 from nlosjax.models.stmamba import VARIANTS, CrossSTMambaBlock, STMambaBlock
-from nlosjax.physics import _validate
+from nlosjax.physics import _validate, operator_args
 from nlosjax.physics.operators import lct_domain
 from nlosjax.physics.setup import Setup
 from nlosjax.ssm import resolve_method
@@ -63,6 +64,12 @@ def _power_of_two(value, name: str) -> int:
   return value
 
 
+@functools.lru_cache(maxsize=16)
+def _physics_operators(config):
+  x = jax.ShapeDtypeStruct(tuple(config.input_shape(1)), jnp.float32)
+  return operator_args.operators_of(config.module().init, jax.random.key(0), x)
+
+
 class ScanInputConfig:
   """What every model config derives from its ``setup``, ``stride`` and ``frames`` fields.
 
@@ -75,6 +82,16 @@ class ScanInputConfig:
   def with_setup(self, setup: Setup):
     """The same architecture (same parameter tree) for another capture."""
     return dataclasses.replace(self, setup=setup)
+
+  def physics_operators(self):
+    """The physics operators this config's module reads, as an
+    :class:`~nlosjax.physics.operator_args.OperatorTable` (traced on shapes; cached).
+
+    Pass it to :func:`~nlosjax.physics.operator_args.bind` or
+    :func:`~nlosjax.physics.checks.checked` (``operators=``) so a jitted forward
+    or train step takes the operators as an argument instead of constants.
+    """
+    return _physics_operators(self)
 
   def replace(self, **changes):
     return dataclasses.replace(self, **changes)

@@ -115,7 +115,7 @@ def probed_apply(mcfg, ssms: tuple[str, ...], blocks: tuple[str, ...]):
       out = model.apply({"params": params}, frames)
     return out, gates
 
-  return checked(run)
+  return checked(run, operators=mcfg.physics_operators())
 
 
 def mixing_weights(params) -> dict:

@@ -30,7 +30,7 @@ from typing import Callable
 import jax
 from jax.experimental import checkify
 
-from nlosjax.physics import _validate
+from nlosjax.physics import _validate, operator_args
 
 __all__ = ["checked"]
 
@@ -38,7 +38,7 @@ __all__ = ["checked"]
 _MESSAGE_TAIL = re.compile(r"\s*\((`check` failed|check failed at)[^)]*\)\s*$")
 
 
-def checked(fn: Callable, *, jit: bool = True, **jit_kwargs) -> Callable:
+def checked(fn: Callable, *, jit: bool = True, operators=None, **jit_kwargs) -> Callable:
   """``fn`` with nlosjax's input checks compiled in; raises ``ValueError`` when one fails.
 
   Args:
@@ -49,6 +49,10 @@ def checked(fn: Callable, *, jit: bool = True, **jit_kwargs) -> Callable:
     jit: compile the checked function with ``jax.jit`` (default). ``False``
       runs it op by op. Either way the returned function reads the error to
       raise it, so call it outside any ``jit``.
+    operators: an :class:`~nlosjax.physics.operator_args.OperatorTable` (e.g.
+      :func:`~nlosjax.physics.operator_args.operators_of` the model's ``init``):
+      its physics operators enter the compiled function as an argument instead
+      of constants (with ``jit`` only; the numbers are the same).
     **jit_kwargs: passed to ``jax.jit`` (``static_argnums``, ...).
   Returns:
     A function with ``fn``'s signature and outputs.
@@ -67,7 +71,9 @@ def checked(fn: Callable, *, jit: bool = True, **jit_kwargs) -> Callable:
       return inner(*args, **kwargs)
 
   run = checkify.checkify(traced, errors=checkify.user_checks)
-  if jit:
+  if jit and operators is not None:
+    run = operator_args.bind(run, operators, **jit_kwargs)
+  elif jit:
     run = jax.jit(run, **jit_kwargs)
 
   @functools.wraps(fn)

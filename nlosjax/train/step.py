@@ -18,6 +18,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from nlosjax import losses
+from nlosjax.physics import operator_args
 from nlosjax.physics import illumination_wavelet
 from nlosjax.train.state import TrainState
 
@@ -74,6 +75,11 @@ def train_step(state: TrainState, batch: dict, key: jax.Array, *, weights: losse
 def make_train_step(model_config, weights: losses.LossWeights, mesh: Mesh) -> Callable:
   """``train_step`` jitted: state donated and replicated, batch sharded over ``mesh``.
 
+  The physics layer's operators enter the compiled step as an argument
+  (replicated over ``mesh``), not as constants
+  (:mod:`nlosjax.physics.operator_args`); the returned function is called and
+  lowered as ``step(state, batch, key)``.
+
   Cached per (model config, weights, mesh), so a resumed or repeated run in
   one process reuses the compiled step.
   """
@@ -83,4 +89,6 @@ def make_train_step(model_config, weights: losses.LossWeights, mesh: Mesh) -> Ca
   fn = functools.partial(train_step, weights=weights, wavelet=wavelet,
                          time_window=model_config.time_window)
   replicated = NamedSharding(mesh, P())
-  return jax.jit(fn, donate_argnums=0, out_shardings=(replicated, replicated))
+  table = operator_args.replicate(model_config.physics_operators(), replicated)
+  return operator_args.bind(fn, table, donate_argnums=0, out_shardings=(replicated, replicated))
+
