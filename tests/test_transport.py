@@ -123,6 +123,20 @@ def test_occlusion_matches_exact_visibility():
   assert err < 0.1 * ignored, (err, ignored)
 
 
+def test_padding_buckets_change_nothing_and_compile_few_programs(monkeypatch):
+  from nlosjax.physics import transport
+  # Few buckets: 2048 * 2^k or 3072 * 2^k patches, cells a multiple of 128.
+  assert [transport._padded_patches(n) for n in (1, 2048, 2049, 3073, 5000, 22528)] == \
+      [2048, 2048, 3072, 4096, 6144, 24576]
+  assert [transport._padded_cells(n) for n in (1, 128, 129, 320, 510)] == [128, 128, 256, 384, 512]
+  s = plates()
+  got = render_surfaces(s, SETUP)
+  # Other paddings (more patches that carry nothing, more empty z-buffer cells): the same sums.
+  monkeypatch.setattr(transport, "_PATCH_BUCKET", 4096 + 1024)
+  monkeypatch.setattr(transport, "_CELL_BUCKET", 32 * 7)
+  np.testing.assert_array_equal(render_surfaces(s, SETUP), got)
+
+
 @pytest.mark.parametrize("kind", ["sphere", "box", "plate"])
 def test_convex_objects_hide_nothing_but_their_back(kind):
   """Occlusion on or off gives the same transient for one convex object (or a plate)."""
