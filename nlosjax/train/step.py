@@ -18,8 +18,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from nlosjax import losses
-from nlosjax.physics import operator_args
-from nlosjax.physics import illumination_wavelet
+from nlosjax.physics import illumination_wavelet, operator_args
 from nlosjax.train.state import TrainState
 
 BATCH_KEYS = ("measurement", "transient", "intensity", "depth")
