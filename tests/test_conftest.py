@@ -86,7 +86,6 @@ def test_this_run_compiles_through_its_cache():
     assert jax.config.jax_compilation_cache_max_size > 0
 
 
-
 def test_suite_xla_flags_are_added_once_and_only_where_known():
   known = lambda flag: True                                   # noqa: E731
   unknown = lambda flag: False                                # noqa: E731

@@ -67,8 +67,8 @@ _PATCH_BUCKET = 2048  # patches are padded to 2048 * 2^k or 3072 * 2^k (fewer co
 # Each distinct (patches, cells) pair compiles the renderer anew (~0.3 s on an EPYC, longer
 # on a slower CPU). Rounding cells to multiples of 128 (was 32) and patches to 2048 * 2^k or
 # 3072 * 2^k (was multiples of 2048): the cpu preset's first 12 sequences compile 16 programs
-# instead of 39, in 36.3 s instead of 38.1 s on 2 quiet EPYC cores (/tmp script: 12
-# sequences of simulate_sequence; powers of two for the cells compiled 7 programs but took
+# instead of 39, in 36.3 s instead of 38.1 s on 2 quiet EPYC cores (simulate_sequence of
+# train sequences 0-11, one process, compiles included; powers of two for the cells compiled 7 programs but took
 # 43.8 s: the per-scan-point z-buffer grows with the cells). The padding changes nothing
 # computed: the cell size is an argument (the grid only has more empty cells), and padded
 # patches face away and carry no light.

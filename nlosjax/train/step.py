@@ -90,4 +90,3 @@ def make_train_step(model_config, weights: losses.LossWeights, mesh: Mesh) -> Ca
   replicated = NamedSharding(mesh, P())
   table = operator_args.replicate(model_config.physics_operators(), replicated)
   return operator_args.bind(fn, table, donate_argnums=0, out_shardings=(replicated, replicated))
-
