@@ -318,15 +318,23 @@ def run_one(base: dict, budget: str, row: str, seed: int, stop: dict, workdir: p
 def probe_model(cfg: dict, data_path, mcfg, params, log: Callable[[str], None] = print) -> dict:
   """Validation PSNR with each SSM bypassed (its output replaced by its input) and the mean gates.
 
-  Scored exactly as :func:`nlosjax.evaluation.protocol.validation_psnr` scores a
-  checkpoint (mean over the validation frames of the clamped intensity's PSNR),
-  so the intact row equals the run's best validation PSNR.
+  Scored as :func:`nlosjax.evaluation.protocol.validation_psnr` scores a
+  checkpoint (mean over the validation frames of the clamped intensity's PSNR).
+  ``intact_psnr`` is computed by that very function, so it equals the run's
+  best validation PSNR bit for bit. The bypassed passes run the probe's own
+  program (:func:`nlosjax.models.probe.probed_apply`, a different XLA program,
+  which may round differently in the last place, and which a process may have
+  compiled under other XLA options than the validation forward it cached);
+  each ``drop_db`` is measured against that program's pass with nothing
+  bypassed (``probe_intact_psnr``), so an SSM the network ignores drops by
+  exactly 0.
 
   Returns:
-    ``{"split": "val", "n_frames", "intact_psnr", "all_bypassed_psnr", "all_drop_db",
-    "modules": [{"module", "block", "psnr", "drop_db", "gate_mean"}], "gates":
-    {block: mean SiLU(z)}, "mixing": learned mixing weights}``; ``drop_db`` is
-    intact minus bypassed (positive: the model needs that SSM).
+    ``{"split": "val", "n_frames", "intact_psnr", "probe_intact_psnr",
+    "all_bypassed_psnr", "all_drop_db", "modules": [{"module", "block", "psnr",
+    "drop_db", "gate_mean"}], "gates": {block: mean SiLU(z)}, "mixing": learned
+    mixing weights}``; ``drop_db`` is intact minus bypassed (positive: the model
+    needs that SSM).
   """
   import jax.numpy as jnp
   from tqdm import tqdm
@@ -364,7 +372,9 @@ def probe_model(cfg: dict, data_path, mcfg, params, log: Callable[[str], None] =
     modules.append({"module": p, "block": block, "psnr": psnr[p], "drop_db": psnr["none"] - psnr[p],
                     "gate_mean": gates.get(block)})
   log(f"[probe] intact {psnr['none']:.2f} dB; every SSM bypassed {psnr['all']:.2f} dB")
-  return {"split": "val", "n_frames": int(len(data["intensity"])), "intact_psnr": psnr["none"],
+  intact = protocol.validation_psnr(cfg, data_path)(mcfg, params)
+  return {"split": "val", "n_frames": int(len(data["intensity"])), "intact_psnr": intact,
+          "probe_intact_psnr": psnr["none"],
           "all_bypassed_psnr": psnr["all"], "all_drop_db": psnr["none"] - psnr["all"],
           "modules": modules, "gates": gates, "mixing": P.mixing_weights(params)}
 

@@ -10,7 +10,9 @@ whose entry in a boolean mask is set returns its input instead of its output
 averaged on the way. The mask is an array argument, so one compiled program
 serves every choice of bypassed modules; with nothing bypassed the model
 computes what it computes without the probe (the mask selects the SSM's own
-output element by element).
+output element by element), up to rounding in the last place: it is another
+XLA program, fused differently, and ``jax.jit`` keeps whichever executable it
+compiled first, whatever ``jax_disable_most_optimizations`` says now.
 
 The learned mixing weights that are parameters, not activations
 (:func:`mixing_weights`): the spreading stage's skip gain and, with
