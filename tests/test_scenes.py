@@ -217,7 +217,8 @@ def test_drawn_scenes_stay_in_their_box():
     assert np.all(np.abs(traj[:, :2]) <= p.lateral_extent + 1e-9)
     seen.update(o.kind for o in scene.objects)
     seen.update(o.texture["name"] for o in scene.objects)
-  assert set(scenes.KINDS) <= seen and set(scenes.TEXTURES) <= seen
+  assert set(scenes.DEFAULT_KINDS) <= seen and set(scenes.TEXTURES) <= seen
+  assert not set(scenes.CHART_KINDS) & seen          # charts only when a scene's kinds name them
 
 
 def test_rasterized_maps_have_documented_ranges_and_dtypes():
@@ -259,6 +260,12 @@ def test_default_scenes_do_not_depend_on_the_later_options_and_to_dict_omits_the
   assert a.describe() == b.describe() and a.motion == "helix"
   wide = SceneParams(albedo_range=(0.05, 1.0), motions=("helix", "line"), spin_speed=(0.5, 1.0))
   assert SceneParams.from_dict(wide.to_dict()) == wide
+  # Charts, font weights and non-rigid motion (added later still) change no default scene either.
+  assert not {"glyph_weights", "deform"} & set(d) and SceneParams().kinds == scenes.DEFAULT_KINDS
+  c = scenes.make_scene(7, SceneParams(glyph_weights=("bold",), deform=(0.0, 0.0)), 4)
+  assert a.describe() == c.describe() and not c.deforms
+  new = SceneParams(kinds=scenes.KINDS, glyph_weights=scenes.GLYPH_WEIGHTS, deform=(0.1, 0.3))
+  assert SceneParams.from_dict(new.to_dict()) == new
 
 
 def test_line_motion_is_a_straight_constant_velocity_path_inside_the_box():
@@ -304,3 +311,147 @@ def test_albedo_range_sets_the_base_albedo():
     SceneParams(albedo_range=(0.0, 1.0))
   with pytest.raises(ValueError, match="motions"):
     SceneParams(motions=("zigzag",))
+
+
+# ------------------------------------------- charts, thin glyphs, non-rigid motion
+def shoelace(poly):
+  x, y = poly[:, 0], poly[:, 1]
+  return 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+def covered_area(polygons, step=2e-3):
+  """Brute force: the even-odd area of outlines counted on a fine grid (m^2)."""
+  pts = np.concatenate(polygons)
+  u = np.arange(pts[:, 0].min(), pts[:, 0].max(), step) + step / 2
+  v = np.arange(pts[:, 1].min(), pts[:, 1].max(), step) + step / 2
+  U, V = np.meshgrid(u, v)
+  return scenes.inside_polygons(U.ravel(), V.ravel(), polygons).sum() * step * step
+
+
+def test_bar_chart_has_equal_bars_and_gaps_of_the_closed_form_area():
+  size, fill = 0.5, 0.8
+  for count in (3, 4, 6):
+    polys = scenes.chart_polygons("bars", count, size, fill)
+    width = size / (2 * count - 1)
+    assert len(polys) == count
+    assert covered_area(polys) == pytest.approx(count * width * fill * size, rel=0.02)
+    # Across the middle: count runs of width w, separated by gaps of width w, spanning `size`.
+    u = np.linspace(-size / 2 + 1e-4, size / 2 - 1e-4, 4001)
+    inside = scenes.inside_polygons(u, np.zeros_like(u), polys)
+    edges = np.flatnonzero(np.diff(inside.astype(int)))
+    assert inside[0] and inside[-1] and len(edges) == 2 * (count - 1)
+    np.testing.assert_allclose(np.diff(u[edges]), width, atol=2 * (u[1] - u[0]))
+
+
+def test_dot_chart_is_a_grid_of_discs_of_the_circles_area():
+  size, fill, count = 0.4, 0.6, 3
+  polys = scenes.chart_polygons("dots", count, size, fill)
+  r = fill * size / count / 2
+  assert len(polys) == count * count
+  np.testing.assert_allclose([shoelace(p) for p in polys], math.pi * r * r, rtol=1e-12)
+  assert covered_area(polys, 1e-3) == pytest.approx(count * count * math.pi * r * r, rel=0.02)
+  centres = np.array([p.mean(0) for p in polys])
+  pitch = size / count
+  assert sorted(set(np.round(centres[:, 0] / pitch, 6))) == [-1.0, 0.0, 1.0]
+
+
+def test_chart_facing_the_wall_covers_its_area_on_the_scan_grid():
+  """A fronto-parallel bar chart at 1 m: ray-cast coverage x pixel area = its closed-form area."""
+  size, fill, count = 0.9, 0.9, 3
+  polys = scenes.chart_polygons("bars", count, size, fill)
+  chart = SceneObject("bars", np.array([0.0, 0.0, 1.0]), np.eye(3), size, 0.64,
+                      {"count": count, "fill": fill, "polygons": polys}, {"name": "uniform", "albedo": 1.0})
+  out = draw(still_scene(chart), supersample=8)
+  dy, dx = SETUP.spacing
+  area = np.isfinite(out.ray_depth[0]).mean(0).sum() * dx * dy
+  assert area == pytest.approx(count * size / (2 * count - 1) * fill * size, rel=0.03)
+
+
+def test_regular_glyphs_have_thinner_strokes_than_bold():
+  for char in "EHL7":
+    bold = covered_area(scenes.glyph_polygons(char, "bold"), 2e-3)
+    regular = covered_area(scenes.glyph_polygons(char, "regular"), 2e-3)
+    assert regular < 0.8 * bold, char
+  with pytest.raises(ValueError, match="weight"):
+    scenes.glyph_polygons("E", "light")
+
+
+def deforming_scene(kind="letter", seed=3, frames=6):
+  params = SceneParams(num_static=(1, 1), dynamic_kinds=(kind,), deform=(0.3, 0.4),
+                       helix_speed=(1.0, 1.5), texture_probability=1.0)
+  return scenes.make_scene(seed, params, frames, setup=SETUP)
+
+
+def test_deformation_is_an_area_keeping_stretch_of_the_drawn_amplitude():
+  scene = deforming_scene()
+  i = scene.dynamic_index
+  assert scene.deforms and 0.3 <= scene.deform_amplitude <= 0.4
+  for f in range(scene.num_frames):
+    M = scene.deformation(i, f)
+    s = scene.deform_amplitude * math.sin(scene.deform_speed * f / scene.frame_rate + scene.deform_phase)
+    np.testing.assert_allclose(M, M.T, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(M), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.eigvalsh(M), sorted([math.exp(s), math.exp(-s)]), atol=1e-12)
+    direction = np.array([math.cos(scene.deform_angle), math.sin(scene.deform_angle)])
+    np.testing.assert_allclose(M @ direction, math.exp(s) * direction, atol=1e-12)
+  static = 1 - i
+  np.testing.assert_array_equal(scene.deformation(static, 2), np.eye(2))
+  assert "warp" not in scene.posed(static, 2).shape
+  assert scene.describe()["deform"]["amplitude"] == scene.deform_amplitude
+  # The stretched object stays in the scene box: its bounding radius covers the largest stretch.
+  r = scene.objects[i].radius
+  outline = np.concatenate(scene.objects[i].shape["polygons"])
+  assert np.max(np.linalg.norm(outline, axis=1)) * math.exp(scene.deform_amplitude) <= r + 1e-9
+  assert np.all(scene.trajectory[:, 2] - r >= 0.5 - 1e-9)
+  assert np.all(scene.trajectory[:, 2] + r <= 1.5 + 1e-9)
+  with pytest.raises(ValueError, match="deform"):
+    SceneParams(deform=(0.2, 0.8))
+  with pytest.raises(ValueError, match="glyph_weights"):
+    SceneParams(glyph_weights=("light",))
+
+
+def test_deformed_object_casts_the_footprint_of_its_explicitly_mapped_outline():
+  """Twin: the ray cast of a posed (warped) object equals that of an object whose outline was
+  mapped by hand and which carries no warp (a uniform texture, so albedo compares too)."""
+  scene = deforming_scene("dots", seed=5)
+  i = scene.dynamic_index
+  for f in (0, 3, 5):
+    posed = scene.posed(i, f)
+    M = posed.shape["warp"]
+    mapped = SceneObject(posed.kind, posed.anchor, posed.rotation, posed.size, posed.radius,
+                         {"polygons": tuple(p @ M.T for p in posed.shape["polygons"])},
+                         {"name": "uniform", "albedo": 0.7})
+    warped = SceneObject(posed.kind, posed.anchor, posed.rotation, posed.size, posed.radius,
+                         posed.shape, {"name": "uniform", "albedo": 0.7})
+    ox, oy = scenes._ray_origins(SETUP, 3)
+    t_a, a_a = scenes._cast(warped, warped.anchor, ox, oy)
+    t_b, a_b = scenes._cast(mapped, mapped.anchor, ox, oy)
+    hit_a, hit_b = np.isfinite(t_a), np.isfinite(t_b)
+    assert hit_a.sum() > 50
+    assert np.sum(hit_a != hit_b) <= 2          # rays exactly on an edge may round either way
+    both = hit_a & hit_b
+    np.testing.assert_allclose(t_a[both], t_b[both], rtol=1e-12)
+    np.testing.assert_allclose(a_a[both], a_b[both], rtol=1e-12)
+  cover = np.isfinite(scenes.rasterize(scene, SETUP, objects=[i], supersample=3).ray_depth).mean(1)
+  assert np.abs(cover[0] - cover[3]).sum() > 1.0     # its footprint changes shape over the sequence
+
+
+def test_transport_patches_of_a_deformed_object_follow_its_mapped_outline():
+  """Patches sampled on a deformed planar object: their area is the outline's (det M = 1), and
+  every patch, mapped back by M^-1 in the object's plane, lies inside the reference outline,
+  with the albedo of its reference point."""
+  from nlosjax.data import surfaces
+  scene = deforming_scene("letter", seed=3)
+  i = scene.dynamic_index
+  ref_area = covered_area(scene.objects[i].shape["polygons"], 1e-3)
+  for f in (0, 4):
+    posed = scene.posed(i, f)
+    M = posed.shape["warp"]
+    samples = surfaces.object_samples(posed, 0.01)
+    assert float(np.sum(samples.area)) == pytest.approx(ref_area, rel=0.03)
+    local = (np.asarray(samples.points) - posed.anchor) @ posed.rotation
+    np.testing.assert_allclose(local[:, 2], 0.0, atol=1e-12)
+    back = local[:, :2] @ np.linalg.inv(M).T
+    assert scenes.inside_polygons(back[:, 0], back[:, 1], posed.shape["polygons"]).all()
+    q = np.concatenate([back, np.zeros((len(back), 1))], axis=1)
+    np.testing.assert_allclose(samples.albedo, scenes.texture_albedo(posed.texture, q), rtol=1e-12)

@@ -221,11 +221,14 @@ def test_bad_input():
   assert 0 < default_spacing(SETUP) <= SETUP.depth_bin_length / 2
 
 
-def test_moving_sampled_patches_equals_sampling_the_posed_scene():
+@pytest.mark.parametrize("deform", [(0.0, 0.0), (0.3, 0.4)])
+def test_moving_sampled_patches_equals_sampling_the_posed_scene(deform):
   """render_scene samples each object once and moves the patches per frame; sampling the
-  object at its pose of that frame (line motion and spin) gives the same transient."""
+  object at its pose of that frame (line motion and spin) gives the same transient. A
+  deforming planar object (non-rigid motion) is sampled at each frame's shape instead."""
   params = scenes.SceneParams(num_static=(1, 1), motions=("line",), spin_speed=(1.0, 2.0),
-                              depth_range=(0.5, 1.0), size_range=(0.2, 0.3))
+                              depth_range=(0.5, 1.0), size_range=(0.2, 0.3), deform=deform,
+                              dynamic_kinds=("letter", "bars", "dots"))
   setup = Setup(wall_size=1.0, grid=(6, 6), bin_width=48e-12, num_bins=160)
   scene = scenes.make_scene(4, params, 4, setup=setup)
   got = surfaces.render_scene(scene, setup, frames=[3], spacing=0.015, retroreflective=0.5)[0]

@@ -9,12 +9,17 @@ not enter the draw, so one seed gives the same 3-D scene at any resolution.
 Nothing is downloaded: letters and digits are outlines of matplotlib's bundled
 DejaVu Sans Bold font (read from matplotlib's own data folder).
 
-Shapes (:data:`KINDS`): planar ``letter`` (A-Z) and ``digit`` (0-9) cut-outs,
-planar ``polygon`` (regular, star or irregular, 3-8 corners), planar
+Shapes (:data:`KINDS`): planar ``letter`` (A-Z) and ``digit`` (0-9) cut-outs
+(DejaVu Sans Bold, or with ``glyph_weights`` also the thinner-stroked DejaVu
+Sans), planar ``polygon`` (regular, star or irregular, 3-8 corners), planar
 ``plate`` (rectangle, always textured), solid ``box``, ``sphere``, ``torus``
-and thin ``bar`` (a long box). Planar objects face the wall, their normal
-tilted from it by at most ``max_tilt`` degrees and spun in plane; solids get a
-uniformly random orientation. Textures (:data:`TEXTURES`): ``uniform``,
+and thin ``bar`` (a long box); and the two resolution charts of measured
+scans, planar ``bars`` (3-6 parallel bars, bars and gaps equally wide) and
+planar ``dots`` (a 2 x 2 to 4 x 4 grid of discs), which a scene draws only
+when its ``kinds`` name them (:data:`DEFAULT_KINDS` leaves them out, so the
+default scenes are those of earlier versions). Planar objects face the wall,
+their normal tilted from it by at most ``max_tilt`` degrees and spun in plane;
+solids get a uniformly random orientation. Textures (:data:`TEXTURES`): ``uniform``,
 ``checker`` and ``stripes`` (3-D solid textures in the object's frame) and
 ``noise`` (a sum of random sinusoids); albedo in ``[0.1, 1]``.
 
@@ -45,6 +50,12 @@ anchor position per frame, on the helix or, with ``motions`` including
 ``"line"``, a straight line; by default the object translates without turning,
 so its orthographic footprint moves rigidly with the anchor's (x, y);
 ``spin_speed > 0`` turns it about a random axis as well (``Scene.rotation``).
+Non-rigid motion (``deform``): a planar dynamic object stretches in its own
+plane by ``exp(a sin(w t + phi))`` along a random in-plane direction and
+shrinks by the inverse across it (an area-keeping 2 x 2 map,
+``Scene.deformation``), its texture carried with the material; the outline,
+the ray cast, the albedo volume and the transport renderer's patches all
+follow it exactly (a linear map of a plane stays a plane).
 """
 
 from __future__ import annotations
@@ -61,7 +72,10 @@ from nlosjax.physics.setup import Setup
 
 __all__ = [
     "BACKGROUND_DEPTH",
+    "CHART_KINDS",
+    "DEFAULT_KINDS",
     "GENERATOR_VERSION",
+    "GLYPH_WEIGHTS",
     "KINDS",
     "MOTIONS",
     "TEXTURES",
@@ -84,11 +98,22 @@ GENERATOR_VERSION = "1.0"
 BACKGROUND_DEPTH = 0.0
 
 #: SceneParams fields added after files were written, with their defaults.
-_LATER_FIELDS = {"albedo_range": (0.5, 1.0), "motions": ("helix",), "spin_speed": (0.0, 0.0)}
+_LATER_FIELDS = {"albedo_range": (0.5, 1.0), "motions": ("helix",), "spin_speed": (0.0, 0.0),
+                 "glyph_weights": ("bold",), "deform": (0.0, 0.0)}
 
-#: Object kinds.
-KINDS = ("letter", "digit", "polygon", "plate", "box", "sphere", "torus", "bar")
-PLANAR_KINDS = ("letter", "digit", "polygon", "plate")
+#: Object kinds a scene draws from by default (those of generator 1.0's first files).
+DEFAULT_KINDS = ("letter", "digit", "polygon", "plate", "box", "sphere", "torus", "bar")
+#: Resolution charts, as in measured scans: parallel ``bars`` and a grid of ``dots``.
+CHART_KINDS = ("bars", "dots")
+#: Every object kind.
+KINDS = DEFAULT_KINDS + CHART_KINDS
+PLANAR_KINDS = ("letter", "digit", "polygon", "plate") + CHART_KINDS
+
+#: Font weights of letters and digits: DejaVu Sans Bold (strokes about 1/6 of
+#: the glyph's height) and DejaVu Sans (about 1/9), both bundled with matplotlib.
+GLYPH_WEIGHTS = ("bold", "regular")
+_FONT_FILES = {"bold": "DejaVuSans-Bold.ttf", "regular": "DejaVuSans.ttf"}
+_DISC_CORNERS = 32     # corners of the polygon that outlines a chart's dot
 
 #: Paths of the dynamic object (:attr:`SceneParams.motions`).
 MOTIONS = ("helix", "line")
@@ -152,18 +177,25 @@ class SceneParams:
     spin_speed: ``(min, max)`` rad/s of the dynamic object's rotation about a
       random axis through its anchor (direction random); ``(0, 0)``: it
       translates without turning.
+    glyph_weights: font weights letters and digits are drawn in (uniformly),
+      a subset of :data:`GLYPH_WEIGHTS`; ``("bold",)`` draws nothing.
+    deform: ``(min, max)`` amplitude ``a`` (in ``[0, 0.5]``) of the planar
+      dynamic object's non-rigid stretch (module docstring); its angular
+      speed is drawn from ``helix_speed``. ``(0, 0)``: rigid. Solids are
+      never deformed.
 
-  The last three are drawn from a stream of their own (the seed, spawn key
-  4) and left out of :meth:`to_dict` at their defaults, so a scene drawn with
-  the defaults is the one earlier versions drew.
+  The last five are drawn from streams of their own (the seed, spawn keys 4
+  and 5; the font weight after the glyph's character) and left out of
+  :meth:`to_dict` at their defaults, so a scene drawn with the defaults is
+  the one earlier versions drew.
   """
 
   num_static: tuple[int, int] = (1, 3)
   depth_range: tuple[float, float] = (0.5, 1.5)
   lateral_extent: float = 0.5
   size_range: tuple[float, float] = (0.2, 0.6)
-  kinds: tuple[str, ...] = KINDS
-  dynamic_kinds: tuple[str, ...] = KINDS
+  kinds: tuple[str, ...] = DEFAULT_KINDS
+  dynamic_kinds: tuple[str, ...] = DEFAULT_KINDS
   texture_probability: float = 0.5
   max_tilt: float = math.radians(35.0)
   helix_radius: tuple[float, float] = (0.05, 0.25)
@@ -175,6 +207,8 @@ class SceneParams:
   albedo_range: tuple[float, float] = (0.5, 1.0)
   motions: tuple[str, ...] = ("helix",)
   spin_speed: tuple[float, float] = (0.0, 0.0)
+  glyph_weights: tuple[str, ...] = ("bold",)
+  deform: tuple[float, float] = (0.0, 0.0)
 
   def __post_init__(self):
     ns = _pair(self.num_static, "num_static", low=0, integer=True)
@@ -190,8 +224,15 @@ class SceneParams:
       raise ValueError(f"size_range {sr} exceeds the depth_range span {dr[1] - dr[0]:.3g} m;"
                        " objects would not fit")
     object.__setattr__(self, "size_range", sr)
-    for name in ("helix_radius", "helix_pitch", "helix_speed", "spin_speed"):
+    for name in ("helix_radius", "helix_pitch", "helix_speed", "spin_speed", "deform"):
       object.__setattr__(self, name, _pair(getattr(self, name), name, low=0.0))
+    if self.deform[1] > 0.5:
+      raise ValueError(f"deform amplitudes must lie in [0, 0.5], got {self.deform!r}")
+    weights = (self.glyph_weights,) if isinstance(self.glyph_weights, str) else tuple(self.glyph_weights)
+    if not weights or any(w not in GLYPH_WEIGHTS for w in weights):
+      raise ValueError(f"glyph_weights must be a non-empty subset of {GLYPH_WEIGHTS},"
+                       f" got {self.glyph_weights!r}")
+    object.__setattr__(self, "glyph_weights", weights)
     ar = _pair(self.albedo_range, "albedo_range", low=0.0)
     if ar[0] <= 0 or ar[1] > 1:
       raise ValueError(f"albedo_range must lie in (0, 1], got {self.albedo_range!r}")
@@ -371,6 +412,10 @@ class Scene:
     line: the dynamic object's straight path, when its motion is ``"line"``.
     spin_axis, spin_speed: the dynamic object turns about ``spin_axis``
       ``[3]`` (unit, through its anchor) at ``spin_speed`` rad/s (0: it does not).
+    deform_amplitude, deform_angle, deform_speed, deform_phase: the planar
+      dynamic object's stretch ``exp(a sin(w t + phi))`` along the in-plane
+      direction at ``deform_angle`` (radians from its local x axis), ``w``
+      in rad/s; amplitude 0: rigid (:meth:`deformation`).
   """
 
   objects: tuple[SceneObject, ...]
@@ -381,6 +426,15 @@ class Scene:
   line: Line | None = None
   spin_axis: np.ndarray | None = None
   spin_speed: float = 0.0
+  deform_amplitude: float = 0.0
+  deform_angle: float = 0.0
+  deform_speed: float = 0.0
+  deform_phase: float = 0.0
+
+  @property
+  def deforms(self) -> bool:
+    """Whether the dynamic object changes shape over the sequence (non-rigid motion)."""
+    return self.deform_amplitude > 0.0
 
   @property
   def motion(self) -> str:
@@ -421,13 +475,36 @@ class Scene:
       return obj.rotation
     return _axis_angle(self.spin_axis, self.spin_speed * frame / self.frame_rate) @ obj.rotation
 
+  def deformation(self, index: int, frame: int) -> np.ndarray:
+    """``[2, 2]`` in-plane map of object ``index`` at ``frame`` (local x, y; identity if rigid).
+
+    ``M = R(angle) diag(e^s, e^-s) R(angle)^T`` with ``s = a sin(w t + phi)``:
+    symmetric, determinant 1 (areas kept), singular values ``e^|s| <= e^a``.
+    """
+    obj = self.objects[index]
+    if not obj.dynamic or not self.deforms:
+      return np.eye(2)
+    stretch = self.deform_amplitude * math.sin(self.deform_speed * frame / self.frame_rate
+                                               + self.deform_phase)
+    c, s = math.cos(self.deform_angle), math.sin(self.deform_angle)
+    rot = np.array([[c, -s], [s, c]])
+    return rot @ np.diag([math.exp(stretch), math.exp(-stretch)]) @ rot.T
+
   def posed(self, index: int, frame: int) -> SceneObject:
-    """Object ``index`` at its anchor and rotation of ``frame``."""
+    """Object ``index`` at its anchor, rotation and (planar, non-rigid) deformation of ``frame``.
+
+    A deformed object's ``shape`` gains ``"warp"``: the ``[2, 2]``
+    :meth:`deformation` that maps its reference outline (``polygons``) and
+    texture coordinates to the frame's.
+    """
     obj = self.objects[index]
     if not obj.dynamic:
       return obj
-    return dataclasses.replace(obj, anchor=self.anchor(index, frame),
-                               rotation=self.rotation(index, frame))
+    posed = dataclasses.replace(obj, anchor=self.anchor(index, frame),
+                                rotation=self.rotation(index, frame))
+    if self.deforms:
+      posed = dataclasses.replace(posed, shape={**obj.shape, "warp": self.deformation(index, frame)})
+    return posed
 
   def describe(self) -> dict:
     """JSON-able summary of the scene (objects, path, frames)."""
@@ -438,13 +515,18 @@ class Scene:
       d["line"] = self.line.describe()
     if self.spin_speed:
       d["spin"] = {"axis": self.spin_axis.tolist(), "speed": self.spin_speed}
+    if self.deforms:
+      d["deform"] = {"amplitude": self.deform_amplitude, "angle": self.deform_angle,
+                     "speed": self.deform_speed, "phase": self.deform_phase}
     return d
 
 
 # ----------------------------------------------------------------- glyphs
-@functools.lru_cache(maxsize=64)
-def glyph_polygons(char: str) -> tuple[np.ndarray, ...]:
-  """Outlines of ``char`` in DejaVu Sans Bold, centred, largest side 1.
+@functools.lru_cache(maxsize=128)
+def glyph_polygons(char: str, weight: str = "bold") -> tuple[np.ndarray, ...]:
+  """Outlines of ``char`` in DejaVu Sans Bold (``weight="bold"``) or DejaVu Sans (``"regular"``).
+
+  Centred, largest side 1.
 
   Returns:
     tuple of ``[N, 2]`` float64 closed outlines (x along scan columns, y
@@ -453,10 +535,12 @@ def glyph_polygons(char: str) -> tuple[np.ndarray, ...]:
   """
   if not isinstance(char, str) or len(char) != 1 or char not in _LETTERS + _DIGITS:
     raise ValueError(f"char must be one of A-Z or 0-9, got {char!r}")
+  if weight not in GLYPH_WEIGHTS:
+    raise ValueError(f"weight must be one of {GLYPH_WEIGHTS}, got {weight!r}")
   import matplotlib
   from matplotlib.font_manager import FontProperties
   from matplotlib.textpath import TextPath
-  font = pathlib.Path(matplotlib.get_data_path()) / "fonts" / "ttf" / "DejaVuSans-Bold.ttf"
+  font = pathlib.Path(matplotlib.get_data_path()) / "fonts" / "ttf" / _FONT_FILES[weight]
   path = TextPath((0, 0), char, size=1.0, prop=FontProperties(fname=str(font)))
   polys = [np.asarray(p, np.float64) for p in path.to_polygons(closed_only=True) if len(p) >= 3]
   pts = np.concatenate(polys)
@@ -532,12 +616,53 @@ def _texture(rng, size, force: bool, probability: float, albedo_range=(0.5, 1.0)
           "phases": rng.uniform(0, 2 * math.pi, 3)}
 
 
-def _shape(rng, kind, size) -> tuple[dict, float]:
+def _disc(centre, radius) -> np.ndarray:
+  """``[_DISC_CORNERS, 2]`` regular polygon inscribed in the circle, with the circle's area."""
+  ang = np.arange(_DISC_CORNERS) * 2 * math.pi / _DISC_CORNERS
+  n = _DISC_CORNERS
+  r = radius * math.sqrt(2 * math.pi / (n * math.sin(2 * math.pi / n)))   # same area as the disc
+  return np.asarray(centre, np.float64) + r * np.stack([np.cos(ang), np.sin(ang)], -1)
+
+
+def chart_polygons(kind: str, count: int, size: float, fill: float) -> tuple[np.ndarray, ...]:
+  """Outlines of a resolution chart ``kind`` (``"bars"`` or ``"dots"``), centred, in metres.
+
+  ``bars``: ``count`` bars of width ``size / (2 count - 1)`` (bars and gaps
+  equally wide, so the chart spans ``size`` along x) and height ``fill *
+  size``. ``dots``: a ``count x count`` grid of pitch ``size / count``, discs
+  of radius ``fill * pitch / 2`` (each a polygon of the disc's area).
+  Returns ``[N, 2]`` outlines (local x, y), disjoint.
+  """
+  if kind == "bars":
+    width = size / (2 * count - 1)
+    h = fill * size / 2
+    left = -size / 2 + 2 * width * np.arange(count)
+    return tuple(np.array([[x, -h], [x + width, -h], [x + width, h], [x, h]]) for x in left)
+  if kind == "dots":
+    pitch = size / count
+    centres = -size / 2 + pitch * (np.arange(count) + 0.5)
+    return tuple(_disc((x, y), fill * pitch / 2) for y in centres for x in centres)
+  raise ValueError(f"chart kind must be one of {CHART_KINDS}, got {kind!r}")
+
+
+def _shape(rng, kind, size, weights=("bold",)) -> tuple[dict, float]:
   """(kind parameters, bounding radius) for an object of extent ``size``."""
   if kind in ("letter", "digit"):
     char = str(rng.choice(list(_LETTERS if kind == "letter" else _DIGITS)))
-    polys = tuple(p * size for p in glyph_polygons(char))
-    return {"char": char, "polygons": polys}, size / math.sqrt(2)
+    weight = str(rng.choice(list(weights))) if len(weights) > 1 else weights[0]
+    polys = tuple(p * size for p in glyph_polygons(char, weight))
+    shape = {"char": char, "polygons": polys}
+    if weight != "bold":
+      shape["weight"] = weight
+    return shape, size / math.sqrt(2)
+  if kind == "bars":
+    count, fill = int(rng.integers(3, 7)), float(rng.uniform(0.6, 1.0))
+    return ({"count": count, "fill": fill, "polygons": chart_polygons(kind, count, size, fill)},
+            math.hypot(size, fill * size) / 2)
+  if kind == "dots":
+    count, fill = int(rng.integers(2, 5)), float(rng.uniform(0.5, 0.8))
+    return ({"count": count, "fill": fill, "polygons": chart_polygons(kind, count, size, fill)},
+            size / math.sqrt(2))
   if kind == "polygon":
     n = int(rng.integers(3, 9))
     style = str(rng.choice(["regular", "star", "irregular"]))
@@ -589,7 +714,7 @@ def _scale_shape(shape: dict, k: float) -> dict:
 def _make_object(rng, params: SceneParams, kinds, dynamic: bool) -> SceneObject:
   kind = str(rng.choice(list(kinds)))
   size = float(rng.uniform(*params.size_range))
-  shape, radius = _shape(rng, kind, size)
+  shape, radius = _shape(rng, kind, size, params.glyph_weights)
   cap = 0.49 * (params.depth_range[1] - params.depth_range[0])
   if radius > cap:  # the bounding sphere must fit the depth range
     shape, size, radius = _scale_shape(shape, cap / radius), size * cap / radius, cap
@@ -676,6 +801,21 @@ def make_scene(seed: int, params: SceneParams | Mapping | None = None, num_frame
   duration = (num_frames - 1) / params.frame_rate
 
   dyn = _make_object(rng, params, params.dynamic_kinds, dynamic=True)
+  # Non-rigid stretch, from a stream of its own; its bounding sphere grows by the largest stretch.
+  deform = {}
+  if params.deform[1] > 0 and dyn.kind in PLANAR_KINDS:
+    deform_rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(5,)))
+    deform = {"deform_amplitude": float(deform_rng.uniform(*params.deform)),
+              "deform_angle": float(deform_rng.uniform(0, math.pi)),
+              "deform_speed": float(deform_rng.uniform(*params.helix_speed)),
+              "deform_phase": float(deform_rng.uniform(0, 2 * math.pi))}
+    grown = dyn.radius * math.exp(deform["deform_amplitude"])
+    cap = 0.49 * (params.depth_range[1] - params.depth_range[0])
+    if grown > cap:   # as _make_object: the (stretched) bounding sphere must fit the depth range
+      k = cap / grown
+      dyn = dataclasses.replace(dyn, shape=_scale_shape(dyn.shape, k), size=dyn.size * k,
+                                radius=dyn.radius * k)
+    dyn = dataclasses.replace(dyn, radius=dyn.radius * math.exp(deform["deform_amplitude"]))
   helix = _make_helix(rng, params, dyn.radius, duration)
   # Motion and spin come from a stream of their own: the default scenes stay as they were.
   motion_rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(4,)))
@@ -707,7 +847,7 @@ def make_scene(seed: int, params: SceneParams | Mapping | None = None, num_frame
     statics.append(dataclasses.replace(obj, anchor=anchor))
   return Scene(objects=tuple(statics) + (dyn,), helix=helix, num_frames=int(num_frames),
                frame_rate=params.frame_rate, seed=int(seed), line=line, spin_axis=spin_axis,
-               spin_speed=spin_speed)
+               spin_speed=spin_speed, **deform)
 
 
 # ------------------------------------------------------------- ray casting
@@ -752,6 +892,9 @@ def _cast(obj: SceneObject, anchor: np.ndarray, ox: np.ndarray, oy: np.ndarray):
       return t_hit, shade
     t = -q0c[:, 2] / d[2]
     q = q0c + t[:, None] * d
+    warp = obj.shape.get("warp")
+    if warp is not None:    # back to the reference outline (and texture) of a deformed object
+      q = np.concatenate([q[:, :2] @ np.linalg.inv(warp).T, q[:, 2:]], axis=1)
     hit = (t > 0) & inside_polygons(q[:, 0], q[:, 1], obj.shape["polygons"])
     cos = np.full(t.shape, abs(d[2]))
   elif kind == "sphere":

@@ -9,8 +9,10 @@ materials. This is the dataset renderer ``renderer="transport"``
 (:class:`nlosjax.data.DatasetSpec`), the one that is not the LCT operator.
 
 Sampling, patch side ``a`` (metres): planar cut-outs (letters, digits,
-polygons, plates) on an ``a``-grid of their plane, kept inside their outline,
-two-sided; boxes and bars per face on a grid of about ``a``; spheres on a
+polygons, plates, bar and dot charts) on an ``a``-grid of their plane, kept
+inside their outline, two-sided (a deformed one, :meth:`Scene.deformation`,
+sampled on its reference outline at ``a`` over its largest stretch, its
+patches then mapped, albedo kept where the material was); boxes and bars per face on a grid of about ``a``; spheres on a
 Fibonacci lattice of ``4 pi r^2 / a^2`` points; tori on a ``(theta, phi)`` grid
 with exact area elements. Albedo is the object's texture at the patch
 (:func:`nlosjax.data.scenes.texture_albedo`).
@@ -97,7 +99,8 @@ def _torus(obj, a):
 
 
 _SAMPLERS = {"letter": _planar, "digit": _planar, "polygon": _planar, "plate": _planar,
-             "box": _box, "bar": _box, "sphere": _sphere, "torus": _torus}
+             "bars": _planar, "dots": _planar, "box": _box, "bar": _box, "sphere": _sphere,
+             "torus": _torus}
 
 
 def object_samples(obj: scenes.SceneObject, spacing: float, *, anchor=None,
@@ -105,8 +108,16 @@ def object_samples(obj: scenes.SceneObject, spacing: float, *, anchor=None,
   """Surface patches of one object at ``anchor`` (default its own), patch side ``spacing`` m."""
   if not (isinstance(spacing, (int, float)) and spacing > 0 and math.isfinite(spacing)):
     raise ValueError(f"spacing must be a positive number of metres, got {spacing!r}")
-  q, n, area, two_sided = _SAMPLERS[obj.kind](obj, float(spacing))
-  albedo = scenes.texture_albedo(obj.texture, q)
+  warp = obj.shape.get("warp")
+  if warp is None:
+    q, n, area, two_sided = _SAMPLERS[obj.kind](obj, float(spacing))
+    albedo = scenes.texture_albedo(obj.texture, q)
+  else:   # a deformed planar object: sample its reference outline finely enough, then map it
+    warp = np.asarray(warp, np.float64)
+    q, n, area, two_sided = _SAMPLERS[obj.kind](obj, float(spacing) / np.linalg.norm(warp, 2))
+    albedo = scenes.texture_albedo(obj.texture, q)
+    q = np.concatenate([q[:, :2] @ warp.T, q[:, 2:]], axis=1)
+    area = area * abs(np.linalg.det(warp))
   anchor = obj.anchor if anchor is None else np.asarray(anchor, np.float64)
   R = obj.rotation
   pts = q @ R.T + anchor
@@ -154,15 +165,21 @@ def render_scene(scene: scenes.Scene, setup: Setup, *, frames=None, spacing: flo
   spacing = default_spacing(setup) if spacing is None else float(spacing)
   frames = np.arange(scene.num_frames) if frames is None else np.asarray(frames).reshape(-1)
   materials = object_materials(scene, retroreflective)
-  # Objects move rigidly: sample each once at its own pose, then move the patches per frame.
+  # Rigid objects: sample each once at its own pose, then move the patches per frame. A
+  # deforming one (non-rigid motion) is sampled afresh at each frame's shape.
   base = [object_samples(o, spacing, anchor=o.anchor, retroreflective=bool(materials[i]),
                          object_id=i) for i, o in enumerate(scene.objects)]
+  deforming = {i for i, o in enumerate(scene.objects) if o.dynamic and scene.deforms}
   H, W = setup.grid
   out = np.empty((frames.size, setup.num_bins, H, W), np.float32)
   for n, f in enumerate(frames):
     parts = []
     for i, b in enumerate(base):
       o = scene.objects[i]
+      if i in deforming:
+        parts.append(object_samples(scene.posed(i, int(f)), spacing,
+                                    retroreflective=bool(materials[i]), object_id=i))
+        continue
       turn = scene.rotation(i, int(f)) @ o.rotation.T
       parts.append(b.moved(turn, o.anchor, scene.anchor(i, int(f))))
     out[n] = render_surfaces(SurfaceSamples.concatenate(parts), setup.ungated(),
