@@ -158,6 +158,27 @@ def essentials(cfg: dict) -> dict:
           "train": {k: tr.get(k) for k in ("seed", "batch_size", "eval_batch_size", "optim", "loss", "stop")}}
 
 
+def check_same_data(results: pathlib.Path, budget: str, cfg: dict) -> None:
+  """Refuse a run whose data differ from those of the budget's finished runs (paired by sequence).
+
+  Compares :func:`essentials` ``["data"]`` on the keys both records hold (a record
+  written before a key was recorded is not held to it). A preset whose data change
+  (another scene mix, another file) starts a study of its own: ``--results`` elsewhere.
+  """
+  want = json.loads(json.dumps(essentials(cfg)["data"]))
+  for (b, row, seed), r in sorted(load_runs(results).items()):
+    if b != budget:
+      continue
+    have = r["config"]["data"]
+    differ = sorted(k for k in set(want) & set(have) if want[k] != have[k])
+    if differ:
+      what = ", ".join(f"{k}: {have[k]!r} there, {want[k]!r} now" for k in differ)
+      raise SystemExit(f"mechanisms: the data of this run differ from those of {budget}/{row}-seed{seed}"
+                       f" in {results / 'mechanisms'} ({what});"
+                       " the study pairs runs on the same sequences: keep the preset's data or give --results"
+                       " another folder")
+
+
 def run_json(results: pathlib.Path, budget: str, row: str, seed: int) -> pathlib.Path:
   return pathlib.Path(results) / "mechanisms" / budget / f"{row}-seed{seed}.json"
 
@@ -718,6 +739,8 @@ def main(argv=None) -> int:
     todo = [j for j in jobs if not run_json(results, *j).exists()]
     print(f"mechanisms: {len(jobs) - len(todo)} of {len(jobs)} runs already have their JSON "
           f"in {results / 'mechanisms'}; {len(todo)} to train")
+    for budget, row, seed in todo:
+      check_same_data(results, budget, run_config(base, budget, row, seed, stop))
     t0, trained = time.perf_counter(), 0
     for budget, row, seed in tqdm(todo, desc="mechanisms", unit="run"):
       if args.max_runs is not None and trained >= args.max_runs:

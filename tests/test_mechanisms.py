@@ -181,3 +181,15 @@ def test_tiny_study_end_to_end_resumes_and_probes(tmp_path, monkeypatch, capsys)
   again = strict_json(M.run_json(results, "full", "full", 0))["probe"]
   assert [m["psnr"] for m in again["modules"]] == [m["psnr"] for m in p["modules"]]
   assert again["intact_psnr"] == p["intact_psnr"] and again["gates"] == p["gates"]
+
+
+def test_a_run_on_other_data_than_its_budgets_finished_runs_is_refused(tmp_path):
+  """The study pairs runs sequence by sequence: a preset whose data changed must not join it."""
+  record = {"budget": "full", "row": "full", "seed": 0,
+            "config": {"data": {"path": "runs/data/cpu-v3.h5", "photons": [50.0, 2000.0]}}}
+  M.write_json(M.run_json(tmp_path, "full", "full", 0), record)
+  cfg = {"data": {"path": "runs/data/cpu-v3.h5", "photons": (50.0, 2000.0), "grid": 32}, "train": {}}
+  M.check_same_data(tmp_path, "full", cfg)                      # same data (grid: not recorded there)
+  M.check_same_data(tmp_path, "tenth", {**cfg, "data": {**cfg["data"], "path": "other.h5"}})
+  with pytest.raises(SystemExit, match="path: 'runs/data/cpu-v3.h5' there, 'runs/data/cpu-v4.h5' now"):
+    M.check_same_data(tmp_path, "full", {**cfg, "data": {**cfg["data"], "path": "runs/data/cpu-v4.h5"}})
