@@ -4,10 +4,11 @@
         [--frames 8] [--seed 2026] [--data PATH] [--first-seed-only]
         [--out benchmarks/results/table1_independent.md]
 
-The test file comes from :mod:`experiments.independent_set` (other shapes and
-motions, a per-point renderer with exact distances, its own noise code; no
-code shared with the training generator), written if absent; ``--data``
-defaults to the run config's ``independent.path``. The main job
+The test file comes from :mod:`experiments.independent_set` (stroke-font
+letters and digits, bar and dot charts and other shapes; other motions, a
+per-point renderer with exact distances, its own noise code; no code shared
+with the training generator), written if absent; ``--data`` defaults to the
+run config's ``independent.path``. The main job
 scores its own models on the same set (``results/table1_independent.md`` in
 its workdir); this script scores any run's checkpoints (every training seed's
 ``<variant>[-seed<k>]`` folder unless ``--first-seed-only``) and every classic
@@ -46,6 +47,7 @@ def main(argv=None):
   config, trained = inference.load_run(args.checkpoint, seeds=not args.first_seed_only)
   n_seeds = {v: (len(m) if isinstance(m, list) else 1) for v, m in trained.items()}
   config = T.with_defaults(config)
+  from experiments.independent_set import GENERATOR_VERSION as generator
   from experiments.independent_set import ensure_independent_set
   path = args.data or (config.get("independent") or {}).get("path", "runs/data/independent-cpu.h5")
   data = ensure_independent_set(path, config["data"], args.sequences, args.frames, args.seed)
@@ -63,9 +65,11 @@ def main(argv=None):
   caption = (f"Models from `{args.checkpoint}` (the main job's CPU preset; each variant's "
              f"checkpoint chosen on validation; training seeds per variant: {seeds}, intervals "
              f"over sequences and seeds), evaluated on {args.sequences} sequences x "
-             f"{args.frames} frames of `experiments.independent_set` (rings, crosses, ellipses, "
-             "triangles, L-shapes, some dim; bouncing linear motion with depth oscillation, no "
-             "helix; a per-point renderer with exact distances and cosines; its own noise code), "
+             f"{args.frames} frames of `experiments.independent_set` (generator "
+             f"`{generator}`: stroke-font letters and digits, bar and dot charts, rings, "
+             "crosses, ellipses, triangles, L-shapes, some dim; bouncing linear motion with "
+             "depth oscillation, no helix; a per-point renderer with exact distances and "
+             "cosines; its own noise code), "
              "the run's Setup and detector ranges; classic methods on the interpolated "
              f"under-scanned input with {where}. Nothing is chosen on this file. "
              f"{time.perf_counter() - t0:.0f} s.")

@@ -162,6 +162,6 @@ def test_train_cli_seeds_flag_sets_the_config(monkeypatch):
   assert seen["config"]["train"]["seeds"] == 3 and seen["config"]["train"]["steps"] == 5
   assert seen["workdir"] == "runs/x"
   # The CPU preset scores its models on the independent set too.
-  assert seen["extra_test_sets"] == {"independent": "runs/data/independent-cpu-v3.h5"}
+  assert seen["extra_test_sets"] == {"independent": "runs/data/independent-cpu-v3-gen3.h5"}
   with pytest.raises(SystemExit):
     cli.main(["--seeds", "0"])
