@@ -2,6 +2,7 @@
 
     python -m experiments.real_undersampling                      # -> benchmarks/results/real.md
     python -m experiments.real_undersampling --data-dir DIR --checkpoint runs/real --out FILE.md
+    python -m experiments.real_undersampling --pretrained cpu --no-timing
 
 Protocol (the paper's under-scanning experiment, on measured data):
 
@@ -21,10 +22,13 @@ Protocol (the paper's under-scanning experiment, on measured data):
   linearly interpolated back to 64 x 64 (``nlosjax.evaluation.baselines.upsample_scan``), with
   the options these retroreflective scenes were published with (LCT snr 0.8
   and FBP with the t^2 falloff; f-k, phasor, RSD defaults);
-* the trained networks (Ours-S, Ours and, where trained, USM of ``--checkpoint``, default
-  ``runs/real``: ``python -m experiments.train --config real --workdir
+* the trained networks (Ours-S, Ours and, where trained, USM of ``--checkpoint``,
+  e.g. ``runs/real``: ``python -m experiments.train --config real --workdir
   runs/real``, trained on synthetic 64 x 64 scans of a 0.6 m wall at stride 4
-  with 64 ps bins; see ``experiments/configs/real.py``) read the sparse scan
+  with 64 ps bins; see ``experiments/configs/real.py``; without
+  ``--checkpoint``, the weights shipped inside the package under
+  ``--pretrained NAME``, default ``real``, each variant shipped under that
+  name; ``--checkpoint none``: classic methods only) read the sparse scan
   with time summed to the trained bin width (4 x 16 ps), the physics layer
   rebuilt for the scan's wall and grid
   (``nlosjax.inference.adapt_to_capture``). At their trained stride they
@@ -79,6 +83,8 @@ OPTIONS = {"fbp": {"falloff": "retroreflective"}, "lct": {"snr": 0.8, "falloff":
 REFERENCES = CLASSIC
 #: Bin width of the measured scans after the published preparation (s).
 CAPTURE_BIN_WIDTH = 16e-12
+#: Shipped weights used when neither --checkpoint nor --pretrained is given.
+DEFAULT_PRETRAINED = "real"
 
 
 def default_files(data_dir=None) -> list[pathlib.Path]:
@@ -145,14 +151,23 @@ def model_intensity(trained, transient, setup, stride: int) -> np.ndarray:
   raise ValueError(f"the network was trained on stride {mcfg.stride}; stride {stride} is not supported")
 
 
-def run(files, strides, checkpoint, log=print) -> dict:
-  """Every method on every scan and stride; returns the images and scores."""
-  from tqdm import tqdm
+def load_models(checkpoint=None, pretrained=None, log=print) -> dict:
+  """``variant -> (model_config, params)``: every variant of ``checkpoint``, else the shipped ``pretrained`` ones.
 
-  from nlosjax.data import io
+  ``checkpoint``: a training run (workdir, variant folder or checkpoints
+  folder); its variants that are not trained are skipped. Without it,
+  every variant shipped under ``pretrained`` (default :data:`DEFAULT_PRETRAINED`;
+  :func:`nlosjax.inference.load_pretrained`).
+
+  Raises:
+    ValueError: both given, or no weights shipped under ``pretrained`` (the
+      message lists the shipped names).
+  """
+  from nlosjax import inference as cio
   trained = {}
   if checkpoint is not None:
-    from nlosjax import inference as cio
+    if pretrained is not None:
+      raise ValueError(f"--checkpoint {checkpoint} and --pretrained {pretrained}: give one")
     for v in VARIANTS:
       try:
         mcfg, params, info = cio.load_trained(checkpoint, v)
@@ -161,6 +176,34 @@ def run(files, strides, checkpoint, log=print) -> dict:
         continue
       trained[v] = (mcfg, params)
       log(f"{LABELS[v]}: step {info['step']} of {info['checkpoint']}")
+    return trained
+  name = pretrained or DEFAULT_PRETRAINED
+  shipped = cio.pretrained_names()
+  variants = [v for v in VARIANTS if (name, v) in shipped]
+  if not variants:
+    have = ", ".join(f"{n} ({v})" for n, v in shipped) or "none"
+    raise ValueError(f"no shipped weights named {name!r} (shipped: {have}); pass --checkpoint WORKDIR"
+                     " (a run of python -m experiments.train), --pretrained cpu, or --checkpoint none"
+                     " for the classic methods alone")
+  for v in variants:
+    mcfg, params, prov = cio.load_pretrained(name, v)
+    trained[v] = (mcfg, params)
+    log(f"{LABELS[v]}: shipped weights {name}-{v} (step {prov.get('best_step')} of"
+        f" {prov.get('command')})")
+  return trained
+
+
+def run(files, strides, checkpoint, log=print, *, trained: dict | None = None) -> dict:
+  """Every method on every scan and stride; returns the images and scores.
+
+  The networks: ``trained`` (``variant -> (model_config, params)``, e.g.
+  :func:`load_models`), else every variant of ``checkpoint`` (None: none).
+  """
+  from tqdm import tqdm
+
+  from nlosjax.data import io
+  if trained is None:
+    trained = load_models(checkpoint, log=log) if checkpoint is not None else {}
   methods = CLASSIC + tuple(trained)
   results = {"strides": list(strides), "methods": list(methods), "scenes": {}, "trained": trained}
   jobs = [(f, m, s) for f in files for m in methods for s in (1,) + tuple(strides)
@@ -640,12 +683,25 @@ def training_data(checkpoint) -> str:
   return str(json.loads(config.read_text()).get("data", {}).get("path", default))
 
 
+def pretrained_data(name=None) -> str:
+  """The dataset the shipped weights ``name`` were validated on (their provenance's ``data.path``)."""
+  from nlosjax import pretrained
+  name = name or DEFAULT_PRETRAINED
+  variant = next(v for n, v in pretrained.shipped() if n == name)
+  prov = pretrained.read_provenance(pretrained.weights_folder(name, variant))
+  return str(prov["config"]["data"]["path"])
+
+
 def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--data-dir", default=None,
                       help="folder of real .mat scans (default ../shared/data/real, else the shipped scan)")
-  parser.add_argument("--checkpoint", default="runs/real",
-                      help="trained run (workdir of python -m experiments.train); 'none' for classic only")
+  parser.add_argument("--checkpoint", default=None,
+                      help="trained run (workdir of python -m experiments.train); 'none' for classic only;"
+                           " default: the shipped weights of --pretrained")
+  parser.add_argument("--pretrained", default=None, metavar="NAME",
+                      help=f"weights shipped in the package, used without --checkpoint (default"
+                           f" {DEFAULT_PRETRAINED!r}; nlosjax.inference.pretrained_names() lists them)")
   parser.add_argument("--strides", type=int, nargs="+", default=[4, 8])
   parser.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "real.md"))
   parser.add_argument("--no-timing", action="store_true", help="skip the CLI vs twin timing")
@@ -663,8 +719,13 @@ def main(argv=None):
   from experiments.provenance import provenance
   facts = provenance(command.strip())              # the commit the run starts from
   files = default_files(args.data_dir)
-  checkpoint = None if args.checkpoint.lower() == "none" else args.checkpoint
-  results = run(files, args.strides, checkpoint)
+  classic_only = args.checkpoint is not None and args.checkpoint.lower() == "none"
+  checkpoint = None if classic_only else args.checkpoint
+  try:
+    trained = {} if classic_only else load_models(checkpoint, args.pretrained)
+  except ValueError as e:
+    parser.error(str(e))
+  results = run(files, args.strides, checkpoint, trained=trained)
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
   figures = write_figures(results, out.parent)
@@ -674,7 +735,8 @@ def main(argv=None):
               "methods": time_cli(files[0], repeats=args.timing_repeats)}
     warm = time_warm(files[0])
   synthetic = None
-  synthetic_path = args.synthetic or training_data(checkpoint)
+  synthetic_path = args.synthetic or (training_data(checkpoint) if checkpoint or classic_only
+                                      else pretrained_data(args.pretrained))
   if synthetic_path.lower() != "none":
     synthetic = synthetic_check(synthetic_path, results["trained"])
   binned = binned_classic(results)

@@ -3,6 +3,7 @@
     python -m experiments.reconstruct FILE --method lct --out runs/recon/exit_lct
     python -m experiments.reconstruct FILE --method lct --snr 0.8 --falloff retroreflective --out DIR
     python -m experiments.reconstruct meas_10min.mat --method fk --spatial-factor 4 --out DIR
+    python -m experiments.reconstruct FILE --method ours --pretrained cpu --out DIR
     python -m experiments.reconstruct FILE --method model --checkpoint runs/default --out DIR
     python -m experiments.reconstruct FILE --method usm --checkpoint runs/table1 --out DIR
     python -m experiments.reconstruct FILE --method phasor --scan-stride 4 --depth-range 0.3 1.2 --out DIR
@@ -17,8 +18,16 @@ Methods: ``fbp``, ``lct``, ``fk``, ``phasor``, ``rsd`` (``nlosjax.physics``) and
 capture: the same parameters, the physics layer rebuilt for the capture's
 wall, grid and bins, time summed to about the trained bin width; a video is
 reconstructed frame by frame, "Ours" reading each frame with its neighbours);
-``usm`` is ``model`` with ``--variant usm``: the USM baseline of the same run
-(trained when the run's ``train.variants`` holds ``"usm"``).
+``ours``, ``ours_s`` and ``usm`` are ``model`` with ``--variant ours``,
+``ours_s`` or ``usm`` (USM: the baseline of the same run, trained when the
+run's ``train.variants`` holds ``"usm"``).
+
+The network's weights: ``--checkpoint`` (a training run of ``python -m
+experiments.train``: workdir, variant folder or checkpoints folder), else the
+weights shipped inside the package, ``--pretrained NAME`` (default ``real``;
+``nlosjax.inference.pretrained_names()`` lists them; ``cpu`` is trained on
+the cpu preset's 32 x 32 synthetic scans). Either way the model moves to the
+capture as described above (``nlosjax.inference.adapt_to_capture``).
 
 ``--scan-stride K`` under-scans the capture (interval sampling: scan points
 ``K // 2 + K i``, the network's convention): classic methods then run on the
@@ -47,8 +56,10 @@ import time
 
 import numpy as np
 
-METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "model", "usm")
-LEARNED = ("model", "usm")
+METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "model", "ours", "ours_s", "usm")
+LEARNED = ("model", "ours", "ours_s", "usm")
+#: Shipped weights used when neither --checkpoint nor --pretrained is given.
+DEFAULT_PRETRAINED = "real"
 #: Options each classic method takes (the CLI passes only those given).
 METHOD_OPTIONS = {"fbp": ("falloff", "operators", "oversample"),
                   "lct": ("snr", "falloff", "operators", "oversample"),
@@ -102,11 +113,15 @@ def build_parser() -> argparse.ArgumentParser:
   g.add_argument("--oversample", type=int, default=None,
                  help="lct, fbp, phasor with --operators refined: v-bins per time bin")
   g = p.add_argument_group("model options")
-  g.add_argument("--checkpoint", default="runs/default",
-                 help="training workdir, variant folder or checkpoints folder (default runs/default)")
+  g.add_argument("--checkpoint", default=None,
+                 help="training workdir, variant folder or checkpoints folder (default: the shipped"
+                      " weights of --pretrained)")
+  g.add_argument("--pretrained", default=None, metavar="NAME",
+                 help=f"weights shipped in the package when no --checkpoint is given (default"
+                      f" {DEFAULT_PRETRAINED!r}; nlosjax.inference.pretrained_names() lists them)")
   g.add_argument("--variant", choices=("ours", "ours_s", "usm"), default=None,
-                 help="which trained variant (default: the first trained of ours, ours_s, usm;"
-                      " --method usm: usm)")
+                 help="--method model: which trained variant (default: with --checkpoint the first"
+                      " trained of ours, ours_s, usm; shipped weights: ours)")
   g.add_argument("--model-bin-factor", type=int, default=None,
                  help="capture bins per network bin (default: nearest to the trained bin width)")
   p.add_argument("--no-cache", action="store_true",
@@ -268,11 +283,38 @@ def project(volume, setup, *, threshold: float = 0.1, background_depth: float = 
   return np.clip(intensity, 0.0, 1.0), depth.astype(np.float32)
 
 
+def trained_model(args):
+  """``(model_config, params, info)`` of ``--checkpoint``, else of the shipped ``--pretrained`` weights.
+
+  ``info`` holds ``variant``, ``checkpoint`` (where the parameters came from)
+  and ``step``, and for shipped weights ``pretrained`` and ``params_sha256``.
+
+  Raises:
+    ValueError: both options given, or shipped weights that do not exist
+      (the message lists the shipped ones).
+  """
+  from nlosjax import inference as cio
+  if args.checkpoint is not None:
+    if args.pretrained is not None:
+      raise ValueError(f"--checkpoint {args.checkpoint} and --pretrained {args.pretrained}: give one")
+    return cio.load_trained(args.checkpoint, args.variant)
+  name, variant = args.pretrained or DEFAULT_PRETRAINED, args.variant or "ours"
+  shipped = cio.pretrained_names()
+  if (name, variant) not in shipped:
+    have = ", ".join(f"{n} ({v})" for n, v in shipped) or "none"
+    raise ValueError(f"no shipped weights {name!r} of variant {variant!r} (shipped: {have}); pass"
+                     " --checkpoint WORKDIR (a run of python -m experiments.train) or --pretrained cpu")
+  mcfg, params, prov = cio.load_pretrained(name, variant)
+  return mcfg, params, {"variant": variant, "checkpoint": f"nlosjax/weights/{name}-{variant}",
+                        "step": prov.get("best_step"), "pretrained": name,
+                        "params_sha256": prov["params_sha256"]}
+
+
 def reconstruct_model(transient, setup, args, log):
   """``(volume, intensity, depth, model Setup, info)`` of the trained network on the capture."""
   from nlosjax import inference as cio
   from nlosjax.models.network import underscan
-  mcfg, params, info = cio.load_trained(args.checkpoint, args.variant)
+  mcfg, params, info = trained_model(args)
   if args.scan_stride is not None and args.scan_stride != mcfg.stride:
     raise ValueError(f"--scan-stride {args.scan_stride}: the network at {info['checkpoint']} was"
                      f" trained on stride {mcfg.stride}")
@@ -351,10 +393,11 @@ def main(argv=None) -> dict:
   try:
     if args.scan_stride is not None and args.scan_stride < 1:
       raise ValueError(f"--scan-stride must be >= 1, got {args.scan_stride}")
-    if args.method == "usm":
-      if args.variant not in (None, "usm"):
-        raise ValueError(f"--method usm reconstructs with the usm variant, not --variant {args.variant}")
-      args.variant = "usm"
+    if args.method in ("ours", "ours_s", "usm"):
+      if args.variant not in (None, args.method):
+        raise ValueError(f"--method {args.method} reconstructs with the {args.method} variant, not"
+                         f" --variant {args.variant}")
+      args.variant = args.method
     options = {} if args.method in LEARNED else classic_options(args)
     t0 = time.perf_counter()
     transient, setup, single, fmt = load(args)

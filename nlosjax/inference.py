@@ -8,6 +8,12 @@ trained network to a measured capture: the same parameters, the physics layer
 rebuilt for the capture's wall, grid and bins (the network's parameter tree
 does not depend on the Setup; see :mod:`nlosjax.models.network`), with time
 rebinned so the network sees bins of about its training width.
+
+:func:`load_pretrained` reads the weights shipped inside the package
+(``nlosjax/weights/<name>-<variant>/``, format in :mod:`nlosjax.pretrained`;
+:func:`pretrained_names` lists them) with the same checks, and
+:func:`restore_params` is the orbax reader both share with
+``python -m experiments.export_weights``.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import dataclasses
 import json
 import logging
 import pathlib
+import re
 
 import jax
 import jax.numpy as jnp
@@ -90,8 +97,6 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
   Raises:
     ValueError: naming the folder for a missing, unreadable or mismatched checkpoint.
   """
-  import orbax.checkpoint as ocp
-
   from nlosjax import train
 
   workdir, variant, ckpt = find_checkpoints(path, variant)
@@ -101,13 +106,86 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
       raise ValueError(f"{ckpt}: no checkpoint there")
   try:
     config = json.loads((workdir / "config.json").read_text())
-    data = config["data"]
-    grid = data["grid"]
-    train_setup = Setup(wall_size=data["wall_size"], grid=grid if isinstance(grid, int) else tuple(grid),
-                        bin_width=data["bin_width"], num_bins=data["num_bins"])
+    train_setup = training_setup(config)
   except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
     raise ValueError(f"{workdir / 'config.json'}: not a usable run config ({e})") from None
   mcfg = train.model_config_for(config, train_setup, variant)
+  params, restored = restore_params(ckpt, mcfg, step=step, config_file=workdir / "config.json")
+  where, step = restored["checkpoint"], restored["step"]
+  info = {"workdir": workdir, "variant": variant, "checkpoint": where, "step": int(step),
+          "config": config}
+  return mcfg, params, info
+
+
+def training_setup(config: dict) -> Setup:
+  """The full-grid Setup a run trained on, from its config's ``data`` section (wall, grid, bins).
+
+  Raises:
+    KeyError, TypeError, ValueError: a config without a usable ``data`` section
+    (callers name the file).
+  """
+  data = config["data"]
+  grid = data["grid"]
+  return Setup(wall_size=data["wall_size"], grid=grid if isinstance(grid, int) else tuple(grid),
+               bin_width=data["bin_width"], num_bins=data["num_bins"])
+
+
+def added_default_fields(recorded: str, model_config) -> list[str] | None:
+  """Fields of ``model_config`` that a recorded ``repr`` lacks, when that is its only difference.
+
+  A checkpoint written before a field was added to the model config records a
+  ``repr`` without it. Returns ``[]`` when ``recorded == repr(model_config)``;
+  the names of the fields absent from ``recorded`` when removing them (each at
+  its dataclass default) from ``repr(model_config)`` gives ``recorded``; else
+  None (another config).
+  """
+  now = repr(model_config)
+  if recorded == now:
+    return []
+  added = []
+  for f in dataclasses.fields(model_config):
+    if re.search(rf"[(, ]{f.name}=", recorded) or f.default is dataclasses.MISSING:
+      continue
+    value = getattr(model_config, f.name)
+    if value != f.default:
+      continue
+    text = f", {f.name}={value!r}"
+    if text in now:
+      now = now.replace(text, "", 1)
+      added.append(f.name)
+  return added if added and now == recorded else None
+
+
+def restore_params(ckpt, model_config, *, step: int | None = None, config_file=None,
+                   allow_added_fields: bool = False) -> tuple[dict, dict]:
+  """The parameters of one orbax checkpoint, checked against ``model_config``; compiles nothing.
+
+  Reads the ``state`` item (``{"params", "opt_state", "step"}``) and the
+  ``meta`` item (the run signature, :func:`nlosjax.train.run_signature`) of a
+  :class:`~nlosjax.train.Checkpointer` folder. The recorded model ``repr`` must
+  equal ``repr(model_config)`` (with ``allow_added_fields``: or differ only by
+  fields added to the config class since, at their defaults,
+  :func:`added_default_fields`); the parameter tree must have the shapes
+  ``model_config`` initialises; the recorded parameter fingerprint
+  (:func:`nlosjax.train.param_fingerprint`, when recorded) must match.
+
+  Args:
+    ckpt: an orbax checkpoint folder (``.../checkpoints`` or ``.../best_checkpoint``).
+    model_config: the config the checkpoint must have been written by.
+    step: the step to restore (default: the latest).
+    config_file: the file ``model_config`` was rebuilt from (named in errors).
+    allow_added_fields: see above.
+  Returns:
+    ``(params, info)``: params a nested dict of float32 ``jax.Array``; info
+    ``{"checkpoint": step folder, "step", "recorded_model": recorded repr or
+    None, "added_fields": [names]}``.
+  Raises:
+    ValueError: naming the folder for a missing step, an unreadable checkpoint or a mismatch.
+  """
+  import orbax.checkpoint as ocp
+
+  from nlosjax import train
+  ckpt = pathlib.Path(ckpt).absolute()            # orbax wants absolute paths
   absl_logger = logging.getLogger("absl")
   level = absl_logger.level
   absl_logger.setLevel(logging.ERROR)      # orbax warns that a read-only manager cannot save
@@ -133,22 +211,100 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
     absl_logger.setLevel(level)
   signature = _signature(meta.get("model_config") if isinstance(meta, dict) else None)
   recorded = signature.get("model")
-  if recorded is not None and recorded != repr(mcfg):
-    raise ValueError(f"checkpoint {where} was written by another model config than"
-                     f" {workdir / 'config.json'} gives:\n  checkpoint: {recorded}\n"
-                     f"  config.json: {mcfg!r}")
+  added = []
+  if recorded is not None and recorded != repr(model_config):
+    added = added_default_fields(recorded, model_config) if allow_added_fields else None
+    if added is None:
+      source = config_file if config_file is not None else "the run config"
+      label = pathlib.Path(config_file).name if config_file is not None else "run config"
+      raise ValueError(f"checkpoint {where} was written by another model config than"
+                       f" {source} gives:\n  checkpoint: {recorded}\n"
+                       f"  {label}: {model_config!r}")
   params = jax.tree.map(jnp.asarray, item["params"])
-  expected = jax.eval_shape(mcfg.module().init, jax.random.key(0),
-                            jax.ShapeDtypeStruct(mcfg.input_shape(), jnp.float32))["params"]
-  _check_tree(where, params, expected)
+  _check_tree(where, params, _expected_tree(model_config))
   fingerprint = getattr(train, "param_fingerprint", None)
   if fingerprint is not None and "params" in signature and signature["params"] != fingerprint(params):
     raise ValueError(f"checkpoint {where}: its parameter-tree fingerprint {signature['params']}"
                      f" differs from the restored tree's {fingerprint(params)} (written by another"
                      " version of the model code?)")
-  info = {"workdir": workdir, "variant": variant, "checkpoint": where, "step": int(step),
-          "config": config}
-  return mcfg, params, info
+  return params, {"checkpoint": where, "step": int(step), "recorded_model": recorded,
+                  "added_fields": added}
+
+
+def _expected_tree(model_config):
+  """The parameter tree's shapes ``model_config`` initialises (``jax.eval_shape``: traced, not compiled)."""
+  return jax.eval_shape(model_config.module().init, jax.random.key(0),
+                        jax.ShapeDtypeStruct(model_config.input_shape(), jnp.float32))["params"]
+
+
+def pretrained_names(root=None) -> list[tuple[str, str]]:
+  """``(name, variant)`` of every set of weights shipped in ``nlosjax/weights/`` (or ``root``), sorted."""
+  from nlosjax import pretrained
+  return pretrained.shipped(root)
+
+
+def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | None = None,
+                    root=None):
+  """Weights shipped inside the package: ``(model_config, params, provenance)``; compiles nothing.
+
+  Reads ``nlosjax/weights/<name>-<variant>/`` (:mod:`nlosjax.pretrained`:
+  ``params.npz`` and ``provenance.json``) and rebuilds the model config from
+  the provenance's run config as :func:`load_trained` does
+  (:func:`nlosjax.train.model_config_for` for the training Setup). Checked,
+  each a ValueError naming the file: the sha256 of ``params.npz``, that the
+  rebuilt config's ``repr`` equals the recorded ``model_config``, that the
+  parameter tree has the shapes the config initialises (``jax.eval_shape``),
+  and the recorded parameter-tree fingerprint.
+
+  Args:
+    name: the weights' name, e.g. ``"cpu"`` (trained on the cpu preset's data:
+      32 x 32 scans of a 2 m wall, 128 bins of 132 ps, input stride 4);
+      :func:`pretrained_names` lists them.
+    variant: ``"ours"`` (three frames), ``"ours_s"`` (one frame) or ``"usm"``.
+    setup: move the model to this full-grid Setup
+      (:meth:`~nlosjax.models.network.ModelConfig.with_setup`: the same
+      parameters, the physics layer rebuilt); default: the training Setup.
+      For a measured capture with other bins use :func:`adapt_to_capture`.
+    root: the folder holding the weights folders (default: the package's; tests).
+  Returns:
+    ``(ModelConfig, params, provenance)``: params a nested dict of float32
+    ``jax.Array`` (the Flax ``params`` collection); provenance the dict of
+    ``provenance.json`` (training command, commit, config, validation scores, ...).
+  Raises:
+    ValueError: unknown ``name``/``variant`` (listing the shipped ones), or a
+      file that fails a check above.
+  """
+  from nlosjax import pretrained, train
+  if variant not in VARIANTS:
+    raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+  folder = pretrained.weights_folder(name, variant, root)
+  if (name, variant) not in pretrained.shipped(root):
+    have = ", ".join(f"{n} ({v})" for n, v in pretrained.shipped(root)) or "none"
+    raise ValueError(f"no shipped weights {name!r} of variant {variant!r} ({folder}); shipped:"
+                     f" {have}")
+  params, prov = pretrained.read_weights(folder)
+  where = folder / pretrained.PROVENANCE_FILE
+  if (prov["name"], prov["variant"]) != (name, variant):
+    raise ValueError(f"{where}: records weights {prov['name']!r} of variant {prov['variant']!r}, but"
+                     f" lies in the folder of {name!r} ({variant!r})")
+  try:
+    config = prov["config"]
+    mcfg = train.model_config_for(config, training_setup(config), variant)
+  except (KeyError, TypeError, ValueError) as e:
+    raise ValueError(f"{where}: its config does not rebuild a model ({type(e).__name__}: {e})") from None
+  if repr(mcfg) != prov["model_config"]:
+    raise ValueError(f"{where}: the model config rebuilt from its config differs from the one"
+                     f" recorded (another version of nlosjax, or an edited file):\n  recorded: "
+                     f"{prov['model_config']}\n  rebuilt:  {mcfg!r}")
+  params = jax.tree.map(jnp.asarray, params)
+  _check_tree(folder / pretrained.PARAMS_FILE, params, _expected_tree(mcfg), what="weights")
+  fingerprint = train.param_fingerprint(params)
+  if prov["param_fingerprint"] != fingerprint:
+    raise ValueError(f"{where}: parameter-tree fingerprint {prov['param_fingerprint']} recorded, the"
+                     f" tree read has {fingerprint}")
+  if setup is not None and setup != mcfg.setup:
+    mcfg = mcfg.with_setup(setup)
+  return mcfg, params, prov
 
 
 def seed_folders(workdir, variant: str) -> list[str]:
@@ -217,7 +373,8 @@ def _signature(signature) -> dict:
   return out if isinstance(out, dict) else {}
 
 
-def _check_tree(where, params, expected) -> None:
+def _check_tree(where, params, expected, *, what: str = "checkpoint") -> None:
+  """ValueError naming ``where`` unless ``params`` has ``expected``'s paths and shapes."""
   got = {jax.tree_util.keystr(k): tuple(v.shape) for k, v in jax.tree_util.tree_leaves_with_path(params)}
   want = {jax.tree_util.keystr(k): tuple(v.shape)
           for k, v in jax.tree_util.tree_leaves_with_path(expected)}
@@ -225,7 +382,7 @@ def _check_tree(where, params, expected) -> None:
     missing = sorted(set(want) - set(got))[:3]
     extra = sorted(set(got) - set(want))[:3]
     shapes = [f"{k}: {got[k]} vs {want[k]}" for k in sorted(set(got) & set(want)) if got[k] != want[k]][:3]
-    raise ValueError(f"checkpoint {where}: parameters do not fit the model (missing {missing},"
+    raise ValueError(f"{what} {where}: parameters do not fit the model (missing {missing},"
                      f" unexpected {extra}, shape mismatches {shapes})")
 
 
