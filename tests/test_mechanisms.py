@@ -193,3 +193,8 @@ def test_a_run_on_other_data_than_its_budgets_finished_runs_is_refused(tmp_path)
   M.check_same_data(tmp_path, "tenth", {**cfg, "data": {**cfg["data"], "path": "other.h5"}})
   with pytest.raises(SystemExit, match="path: 'runs/data/cpu-v3.h5' there, 'runs/data/cpu-v4.h5' now"):
     M.check_same_data(tmp_path, "full", {**cfg, "data": {**cfg["data"], "path": "runs/data/cpu-v4.h5"}})
+
+
+def test_the_real_preset_trains_to_the_plateau_rule_of_the_study():
+  """experiments may not import benchmarks, so the real preset repeats the study's rule: kept equal."""
+  assert configs.get_config("real")["train"]["stop"] == M.STUDY_STOP

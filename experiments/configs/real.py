@@ -16,16 +16,21 @@ measured regime:
   input), 128 bins of 64 ps = 4 x the scans' 16 ps (so
   :func:`nlosjax.inference.adapt_to_capture` sums exactly 4 capture bins
   per network bin), maximum depth 1.23 m, the scans' 512 x 16 ps;
-* scenes: mostly planar targets (letters, digits, polygons, plates; textured
-  half of the time) 0.35-1.1 m away, 0.12-0.4 m across, anchored within
-  0.2 m of the wall centre, lightly tilted, slow motion;
+* scenes: mostly planar targets (letters and digits in bold and regular
+  strokes, bar and dot charts, polygons, plates; textured half of the time)
+  0.35-1.1 m away, 0.12-0.4 m across, anchored within 0.2 m of the wall
+  centre, lightly tilted, slow motion along helices and lines, the moving
+  target sometimes deforming (the scans' kinds: letters, charts, dots; the
+  paper's dynamic sequences: letters in rigid and non-rigid motion);
 * physics layer: at full time resolution, with a 5.7 cm virtual wavelength
   (see the comment in :func:`get_config`);
 * rendering: the transport renderer (not the light-cone operator the physics
   layer inverts); 80 % of objects retroreflective (``r^-2``), as the measured
   targets, the rest diffuse (``r^-4``);
 * detector: the measured jitter curve; 1e3-3e4 signal photons per scan point (the scans
-  hold 1.2k-5.6k counts per point).
+  hold 1.2k-5.6k counts per point);
+* training: to the validation plateau with the mechanism study's rule
+  (``benchmarks.mechanisms.STUDY_STOP``), not a fixed step count.
 
     python -m experiments.train --config real --workdir runs/real
     python -m experiments.real_undersampling --checkpoint runs/real
@@ -56,7 +61,9 @@ def get_config() -> dict:
       "falloff": "diffuse",
       "renderer": "transport",
       "retroreflective": 0.8,
-      "path": "runs/data/real-v2.h5",
+      # v3: charts, regular-weight glyphs, line motion and non-rigid motion (real-v2.h5: the
+      # scenes before them, which trained the models of real.md up to dd3d7fb).
+      "path": "runs/data/real-v3.h5",
   })
   data["scene"] = {
       **data["scene"],
@@ -64,16 +71,20 @@ def get_config() -> dict:
       "depth_range": (0.35, 1.1),
       "lateral_extent": 0.2,
       "size_range": (0.12, 0.4),
-      # Drawn uniformly from this tuple: planar kinds 4x as likely as boxes and bars.
-      "kinds": ("letter", "digit", "polygon", "plate", "letter", "digit", "polygon", "plate",
+      # Drawn uniformly from this tuple: planar kinds 4x as likely as boxes and bars, letters
+      # and digits as likely as the other planar kinds together (the scans' targets are
+      # letters and charts). Chosen for coverage of what the paper tests on, not on scores.
+      "kinds": ("letter", "digit", "polygon", "plate", "letter", "digit", "bars", "dots",
                 "box", "bar"),
-      "dynamic_kinds": ("letter", "digit", "polygon", "plate"),
+      "dynamic_kinds": ("letter", "digit", "letter", "digit", "polygon", "plate", "bars", "dots"),
+      "glyph_weights": ("bold", "regular"),
       "max_tilt_deg": 20.0,
       "helix_radius": (0.02, 0.1),
       "helix_pitch": (0.02, 0.1),
       "albedo_range": (0.5, 1.0),
-      "motions": ("helix",),
+      "motions": ("helix", "line"),
       "spin_speed": (0.0, 0.0),
+      "deform": (0.0, 0.3),
   }
   # Resolution: the phasor wavelet's virtual wavelength is 2 * sampling *
   # spacing, 3.8 cm at sampling 2 on this wall (1 cm spacing); the physics
@@ -86,4 +97,8 @@ def get_config() -> dict:
   config.pop("independent", None)
   config["model"]["volume_time_stride"] = 1
   config["model"]["wavelet_sampling"] = 3.0
+  # Trained until validation stops improving (the rule of benchmarks.mechanisms; the values
+  # are repeated here because experiments may not import benchmarks).
+  config["train"]["stop"] = {"rule": "plateau", "every": 50, "patience": 4, "min_delta_db": 0.05,
+                             "max_steps": 3000}
   return config
