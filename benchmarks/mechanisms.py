@@ -86,6 +86,14 @@ MAIN_ROWS = ("full", "ours_s", "no_ssm")
 EXTRA_ROWS = ("bidirectional", "no_pf")
 #: Photon budget -> divisor of the preset's ``data.photons`` and ``data.ambient``.
 BUDGETS = {"full": 1, "tenth": 10}
+#: Loss weights per budget over the config's ``train.loss``, chosen on validation. At a tenth
+#: of the photons the preset's recipe (object_intensity 3) validated best at step 50 (15.80 dB)
+#: and declined while the training loss fell; a screen of full/seed 0 runs to the plateau
+#: (``--budgets tenth --rows full --seeds 0`` with ``--workdir``/``--results`` elsewhere) gave
+#: the best validation PSNR 16.18 dB at step 350 with the depth weight alpha2 0.25, and 17.36 dB
+#: at step 400 with object_intensity 1, whose curve rose from the start: the tenth budget trains
+#: with object_intensity 1. The full budget keeps the preset's recipe.
+BUDGET_LOSS = {"full": {}, "tenth": {"object_intensity": 1.0}}
 SEEDS = (0, 1, 2)
 #: The stopping rule of every run (``train.stop``; :class:`nlosjax.train.StopRule`).
 STUDY_STOP = {"rule": "plateau", "every": 50, "patience": 4, "min_delta_db": 0.05, "max_steps": 3000}
@@ -114,7 +122,8 @@ def budget_config(base: dict, budget: str) -> dict:
   """``base`` at photon budget ``budget``: photons and ambient divided by :data:`BUDGETS` ``[budget]``.
 
   The divided budget reads its own dataset file: ``<stem>-exposure-<1/divisor>.h5``
-  beside the preset's (``runs/data/cpu-v3.h5`` -> ``runs/data/cpu-v3-exposure-0.1.h5``).
+  beside the preset's (``runs/data/cpu-v3.h5`` -> ``runs/data/cpu-v3-exposure-0.1.h5``),
+  and trains with :data:`BUDGET_LOSS` ``[budget]`` over the config's loss weights.
   """
   if budget not in BUDGETS:
     raise ValueError(f"budget must be one of {tuple(BUDGETS)}, got {budget!r}")
@@ -126,6 +135,9 @@ def budget_config(base: dict, budget: str) -> dict:
     data["ambient"] = tuple(float(a) / divisor for a in data["ambient"])
     path = pathlib.PurePosixPath(data["path"])
     data["path"] = str(path.with_name(f"{path.stem}-exposure-{1 / divisor:g}{path.suffix}"))
+  if BUDGET_LOSS[budget]:
+    train = cfg.setdefault("train", {})
+    train["loss"] = {**train.get("loss", {}), **BUDGET_LOSS[budget]}
   return cfg
 
 
@@ -159,21 +171,32 @@ def essentials(cfg: dict) -> dict:
 
 
 def check_same_data(results: pathlib.Path, budget: str, cfg: dict) -> None:
-  """Refuse a run whose data differ from those of the budget's finished runs (paired by sequence).
+  """Refuse a run whose data or recipe differ from those of the budget's finished runs.
 
-  Compares :func:`essentials` ``["data"]`` on the keys both records hold (a record
-  written before a key was recorded is not held to it). A preset whose data change
-  (another scene mix, another file) starts a study of its own: ``--results`` elsewhere.
+  The study pairs runs sequence by sequence and compares rows trained the same way.
+  Compares :func:`essentials` ``["data"]`` with every run of the budget and, when
+  ``cfg["_study_row"]`` names the run's row, ``["train"]`` (all but the seed) with
+  that row's runs, on the keys both records hold (a record written before a key was recorded is not held to
+  it). A preset whose data or recipe change starts a study of its own: ``--results``
+  elsewhere (or the budget's old records move away).
   """
-  want = json.loads(json.dumps(essentials(cfg)["data"]))
+  def flat(e, recipe: bool):
+    out = {f"data.{k}": v for k, v in e["data"].items()}
+    if recipe:      # a row's own changes (e.g. no_pf's loss) differ from the other rows'
+      out.update({f"train.{k}": v for k, v in e.get("train", {}).items() if k != "seed"})
+    return out
+
+  mine = json.loads(json.dumps(essentials(cfg)))
+  row_of = cfg.get("_study_row")
   for (b, row, seed), r in sorted(load_runs(results).items()):
     if b != budget:
       continue
-    have = r["config"]["data"]
+    same_row = row_of is not None and row == row_of
+    want, have = flat(mine, same_row), flat(r["config"], same_row)
     differ = sorted(k for k in set(want) & set(have) if want[k] != have[k])
     if differ:
       what = ", ".join(f"{k}: {have[k]!r} there, {want[k]!r} now" for k in differ)
-      raise SystemExit(f"mechanisms: the data of this run differ from those of {budget}/{row}-seed{seed}"
+      raise SystemExit(f"mechanisms: the data or recipe of this run differ from those of {budget}/{row}-seed{seed}"
                        f" in {results / 'mechanisms'} ({what});"
                        " the study pairs runs on the same sequences: keep the preset's data or give --results"
                        " another folder")
@@ -740,7 +763,7 @@ def main(argv=None) -> int:
     print(f"mechanisms: {len(jobs) - len(todo)} of {len(jobs)} runs already have their JSON "
           f"in {results / 'mechanisms'}; {len(todo)} to train")
     for budget, row, seed in todo:
-      check_same_data(results, budget, run_config(base, budget, row, seed, stop))
+      check_same_data(results, budget, {**run_config(base, budget, row, seed, stop), "_study_row": row})
     t0, trained = time.perf_counter(), 0
     for budget, row, seed in tqdm(todo, desc="mechanisms", unit="run"):
       if args.max_runs is not None and trained >= args.max_runs:

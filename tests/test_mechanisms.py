@@ -198,3 +198,17 @@ def test_a_run_on_other_data_than_its_budgets_finished_runs_is_refused(tmp_path)
 def test_the_real_preset_trains_to_the_plateau_rule_of_the_study():
   """experiments may not import benchmarks, so the real preset repeats the study's rule: kept equal."""
   assert configs.get_config("real")["train"]["stop"] == M.STUDY_STOP
+
+
+def test_a_run_with_another_recipe_than_its_rows_finished_runs_is_refused(tmp_path):
+  data = {"path": "runs/data/cpu-v3-exposure-0.1.h5"}
+  train = {"seed": 0, "batch_size": 4, "loss": {"object_intensity": 3.0}}
+  M.write_json(M.run_json(tmp_path, "tenth", "full", 0),
+               {"budget": "tenth", "row": "full", "seed": 0, "config": {"data": data, "train": train}})
+  cfg = M.budget_config({"data": {"path": "runs/data/cpu-v3.h5", "photons": (50.0, 2000.0),
+                                  "ambient": (50.0, 500.0)},
+                         "train": {"seed": 1, "batch_size": 4, "loss": {"object_intensity": 3.0}}}, "tenth")
+  assert cfg["train"]["loss"] == {"object_intensity": 1.0}          # BUDGET_LOSS over the preset's
+  M.check_same_data(tmp_path, "tenth", {**cfg, "_study_row": "no_pf"})   # another row: data only
+  with pytest.raises(SystemExit, match="train.loss"):
+    M.check_same_data(tmp_path, "tenth", {**cfg, "_study_row": "full"})
