@@ -29,7 +29,7 @@ Choices (classic settings and thresholds, the learned models' surface
 thresholds) are made on the first model's validation split; nothing is chosen
 on a test split. Means carry 95 % intervals over sequences
 (:mod:`nlosjax.stats`); each learned model's paired difference to the best
-classic method (by mean intensity PSNR on that set) is listed.
+classic method (by mean intensity PSNR on the validation split, as the main job picks it) is listed.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ def object_ratios(intensity, depth, gt_intensity, gt_depth) -> dict:
   from nlosjax import metrics
   inten = np.asarray(intensity, np.float64)
   gt_i = np.asarray(gt_intensity, np.float64)
-  obj = np.asarray(metrics.surface(np.asarray(gt_depth)), bool)
+  obj = np.asarray(gt_depth) > 0                 # the true object pixels (metrics._true_surface)
   pred = np.asarray(metrics.surface(np.asarray(depth)), bool)
   n_obj = obj.sum(axis=(1, 2)).astype(np.float64)
   true_sum = np.where(obj, gt_i, 0.0).sum(axis=(1, 2))
@@ -120,14 +120,13 @@ def score_set(config, path, models: dict, settings: dict, thresholds: dict, log=
           "n_frames": ev["n_frames"]}
 
 
-def tabulate(result: dict, models) -> tuple[list[str], dict]:
-  """Markdown rows and the JSON summary of one test set."""
+def tabulate(result: dict, models, best: str) -> tuple[list[str], dict]:
+  """Markdown rows and the JSON summary of one test set; ``best``: the classic method chosen on validation."""
   from nlosjax import stats
   seq = result["sequence"]
   per = result["per_frame"]
   summary = {m: {k: stats.summarize(_kfs(v, seq)) for k, v in s.items()} for m, s in per.items()}
   classic = [m for m in per if m not in models]
-  best = max(classic, key=lambda m: summary[m]["psnr"]["mean"])
 
   def cell(s, digits, signed=False):
     if s is None or not np.isfinite(s["mean"]):
@@ -153,8 +152,9 @@ def tabulate(result: dict, models) -> tuple[list[str], dict]:
   return lines, {"summary": summary, "best_classic": best, "differences": diffs}
 
 
+
 def plot(result: dict, models, best: str, path: pathlib.Path, n: int = 4) -> None:
-  """The first frame of up to ``n`` sequences: truth, best classic method, each model."""
+  """The middle frame of up to ``n`` sequences: truth, best classic method, each model."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
@@ -215,16 +215,17 @@ def main(argv=None) -> int:
   print("validation: tuning the classic methods and the models' surface thresholds ...")
   val_path = pathlib.Path(first["data"]["path"])
   settings = _tune_classic(first, val_path, print)
+  best = max(settings, key=lambda m: settings[m]["psnr"])     # chosen on validation, as the main job
   learned = protocol.tune_model_thresholds(first, val_path, {k: [v] for k, v in models.items()})
   thresholds = {v: c["threshold"] for v, c in learned.items()}
   preset = configs.get_config("cpu")["independent"]
   ind_path = args.independent or preset["path"]
   ind = ensure_independent_set(ind_path, first["data"], args.sequences, args.frames, args.seed)
-  sets = {"independent": ind}
+  sets = {"independent": (ind, first)}
   for label, cfg in configs_of.items():
     p = str(cfg["data"]["path"])
-    if p not in sets.values():
-      sets[f"test split of {label}'s data"] = p
+    if p not in [v[0] for v in sets.values()]:
+      sets[f"test split of {label}'s data"] = (p, cfg)    # read with the config it was made with
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
   cmd = "python -m benchmarks.generalisation " + " ".join(argv)
@@ -235,12 +236,13 @@ def main(argv=None) -> int:
            f"`{ind_path}` (`{GENERATOR_VERSION}`, {args.sequences} sequences x {args.frames} frames, "
            f"seed {args.seed}). Intervals: 95 % bootstrap over sequences. Ratios over the true object "
            "pixels: brightness = summed intensity / summed true intensity; extent = predicted surface "
-           "pixels / true object pixels (module docstring).", ""]
+           f"pixels / true object pixels (module docstring). Best classic method, chosen on validation "
+           f"intensity PSNR: {best}.", ""]
   record = {"models": specs, "sets": {}}
-  for name, path in sets.items():
+  for name, (path, cfg) in sets.items():
     print(f"scoring on {name}: {path} ...")
-    result = score_set(first, path, models, settings, thresholds)
-    lines, summary = tabulate(result, models)
+    result = score_set(cfg, path, models, settings, thresholds)
+    lines, summary = tabulate(result, models, best)
     figure = out.with_name(f"{out.stem}_{'independent' if name == 'independent' else len(record['sets'])}.png")
     plot(result, models, summary["best_classic"], figure)
     text += [f"## {name}: `{path}`", "", f"{result['n_frames']} frames. Figure: `{figure.name}`.", ""]

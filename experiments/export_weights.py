@@ -260,7 +260,7 @@ def export(run_path, name: str, variant: str, *, command: str | None = None, com
   recorded = run["recorded_val_psnr"]
   if recorded is None:
     log("note: the run recorded no validation score for this step; the recomputed one is recorded alone")
-  elif abs(val["psnr_db"] - recorded) > tolerance_db:
+  elif not abs(val["psnr_db"] - recorded) <= tolerance_db:      # a NaN score fails too
     raise ValueError(f"{run['source']}: the validation PSNR recomputed on {data_path} is"
                      f" {val['psnr_db']:.6f} dB, the run recorded {recorded:.6f} dB (difference"
                      f" {val['psnr_db'] - recorded:+.6f} dB > {tolerance_db:g} dB): the data or the"

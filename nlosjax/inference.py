@@ -263,8 +263,9 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
     variant: ``"ours"`` (three frames), ``"ours_s"`` (one frame) or ``"usm"``.
     setup: move the model to this full-grid Setup
       (:meth:`~nlosjax.models.network.ModelConfig.with_setup`: the same
-      parameters, the physics layer rebuilt); default: the training Setup.
-      For a measured capture with other bins use :func:`adapt_to_capture`.
+      parameters, the physics layer rebuilt); default: the training Setup. Its
+      bin width must be the trained one (ValueError otherwise); for a measured
+      capture with other bins use :func:`adapt_to_capture`, which rebins it.
     root: the folder holding the weights folders (default: the package's; tests).
   Returns:
     ``(ModelConfig, params, provenance)``: params a nested dict of float32
@@ -303,6 +304,13 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
     raise ValueError(f"{where}: parameter-tree fingerprint {prov['param_fingerprint']} recorded, the"
                      f" tree read has {fingerprint}")
   if setup is not None and setup != mcfg.setup:
+    if not isinstance(setup, Setup):
+      raise ValueError(f"setup must be a nlosjax.physics.Setup, got {type(setup).__name__}")
+    if not np.isclose(setup.bin_width, mcfg.setup.bin_width, rtol=1e-9, atol=0.0):
+      raise ValueError(f"{where}: trained on {mcfg.setup.bin_width:g} s bins, the setup has"
+                       f" {setup.bin_width:g} s ones; the network reads its trained bin width:"
+                       " use nlosjax.inference.adapt_to_capture(model_config, capture) to rebin"
+                       " a capture to it")
     mcfg = mcfg.with_setup(setup)
   return mcfg, params, prov
 

@@ -190,6 +190,10 @@ def test_load_pretrained_moves_to_another_setup():
   other = Setup(wall_size=1.0, grid=(16, 16), bin_width=132e-12, num_bins=128)
   mcfg, _, prov = inference.load_pretrained("cpu", "ours_s", setup=other)
   assert mcfg.setup == other and mcfg.frames == 1 and prov["variant"] == "ours_s"
+  # Other bins would be read as the trained ones: refused, pointing at adapt_to_capture.
+  with pytest.raises(ValueError, match="adapt_to_capture"):
+    inference.load_pretrained("cpu", "ours_s", setup=Setup(wall_size=1.0, grid=16, bin_width=33e-12,
+                                                           num_bins=512))
 
 
 # ------------------------------------------------------------ the commands

@@ -184,10 +184,12 @@ class SceneParams:
       speed is drawn from ``helix_speed``. ``(0, 0)``: rigid. Solids are
       never deformed.
 
-  The last five are drawn from streams of their own (the seed, spawn keys 4
-  and 5; the font weight after the glyph's character) and left out of
-  :meth:`to_dict` at their defaults, so a scene drawn with the defaults is
-  the one earlier versions drew.
+  The last five are left out of :meth:`to_dict` at their defaults and draw
+  nothing there, so a scene drawn with the defaults is the one earlier
+  versions drew. Motion, spin and deformation come from streams of their own
+  (the seed, spawn keys 4 and 5); the font weight, with more than one, from
+  the main stream right after the glyph's character, so the rest of such a
+  scene differs from the one-weight scene of the same seed.
   """
 
   num_static: tuple[int, int] = (1, 3)
@@ -700,6 +702,17 @@ def _shape(rng, kind, size, weights=("bold",)) -> tuple[dict, float]:
   raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
 
 
+def _scale_texture(texture: dict, k: float) -> dict:
+  """``texture`` for an object whose lengths were multiplied by ``k`` (patterns scale with it)."""
+  out = dict(texture)
+  for name in ("period", "offset"):
+    if name in out:
+      out[name] = out[name] * k
+  if "waves" in out:
+    out["waves"] = out["waves"] / k
+  return out
+
+
 def _scale_shape(shape: dict, k: float) -> dict:
   """``shape`` with every length multiplied by ``k``."""
   out = dict(shape)
@@ -814,7 +827,7 @@ def make_scene(seed: int, params: SceneParams | Mapping | None = None, num_frame
     if grown > cap:   # as _make_object: the (stretched) bounding sphere must fit the depth range
       k = cap / grown
       dyn = dataclasses.replace(dyn, shape=_scale_shape(dyn.shape, k), size=dyn.size * k,
-                                radius=dyn.radius * k)
+                                radius=dyn.radius * k, texture=_scale_texture(dyn.texture, k))
     dyn = dataclasses.replace(dyn, radius=dyn.radius * math.exp(deform["deform_amplitude"]))
   helix = _make_helix(rng, params, dyn.radius, duration)
   # Motion and spin come from a stream of their own: the default scenes stay as they were.

@@ -167,9 +167,10 @@ def render_scene(scene: scenes.Scene, setup: Setup, *, frames=None, spacing: flo
   materials = object_materials(scene, retroreflective)
   # Rigid objects: sample each once at its own pose, then move the patches per frame. A
   # deforming one (non-rigid motion) is sampled afresh at each frame's shape.
-  base = [object_samples(o, spacing, anchor=o.anchor, retroreflective=bool(materials[i]),
-                         object_id=i) for i, o in enumerate(scene.objects)]
   deforming = {i for i, o in enumerate(scene.objects) if o.dynamic and scene.deforms}
+  base = [None if i in deforming else
+          object_samples(o, spacing, anchor=o.anchor, retroreflective=bool(materials[i]), object_id=i)
+          for i, o in enumerate(scene.objects)]
   H, W = setup.grid
   out = np.empty((frames.size, setup.num_bins, H, W), np.float32)
   for n, f in enumerate(frames):
