@@ -104,6 +104,7 @@ def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch
     calls.append((budget, row, seed))
     assert stop == M.STUDY_STOP and base["train"]["stop"] == M.STUDY_STOP
     record = fake_record(budget, row, seed, [20.0, 21.0, 22.0, 23.0], seq, frames)
+    record["config"] = M.essentials(M.run_config(base, budget, row, seed, stop))   # as run_one records
     M.write_json(M.run_json(results, budget, row, seed), record)
     return record
 
