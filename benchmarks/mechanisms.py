@@ -512,8 +512,10 @@ def _budget_text(runs: dict, budget: str) -> str:
   if r is None:
     return f"`{budget}`"
   d = r["config"]["data"]
+  loss = (r["config"].get("train") or {}).get("loss")
+  recipe = f"; loss weights over the paper's: {json.dumps(loss, sort_keys=True)}" if loss else ""
   return (f"`{budget}` (signal photons {tuple(d.get('photons', ()))}, ambient {tuple(d.get('ambient', ()))}"
-          f" per scan point; `{d.get('path')}`)")
+          f" per scan point; `{d.get('path')}`{recipe})")
 
 
 def _verdict(pair: dict, budget: str, n_seeds: int, metric: str = "psnr") -> str:
