@@ -88,20 +88,6 @@ def load_model(spec: str):
   return mcfg, params, config
 
 
-def _kfs(values, sequence) -> np.ndarray:
-  """Per-frame scores ``[K, N]`` (or ``[N]``) -> ``[K, S, F]`` (NaN-padded), sequences in order."""
-  values = np.asarray(values, np.float64)
-  if values.ndim == 1:
-    values = values[None]
-  seqs = sorted(set(np.asarray(sequence).tolist()))
-  rows = [np.flatnonzero(np.asarray(sequence) == s) for s in seqs]
-  width = max(len(r) for r in rows)
-  out = np.full((values.shape[0], len(seqs), width), np.nan)
-  for i, r in enumerate(rows):
-    out[:, i, :len(r)] = values[:, r]
-  return out
-
-
 def score_set(config, path, models: dict, settings: dict, thresholds: dict, log=print) -> dict:
   """Every classic method and model on the test split of ``path``: per-frame scores and ratios."""
   from nlosjax.evaluation import protocol
@@ -123,9 +109,10 @@ def score_set(config, path, models: dict, settings: dict, thresholds: dict, log=
 def tabulate(result: dict, models, best: str) -> tuple[list[str], dict]:
   """Markdown rows and the JSON summary of one test set; ``best``: the classic method chosen on validation."""
   from nlosjax import stats
+  from nlosjax.evaluation import scores
   seq = result["sequence"]
   per = result["per_frame"]
-  summary = {m: {k: stats.summarize(_kfs(v, seq)) for k, v in s.items()} for m, s in per.items()}
+  summary = {m: {k: stats.summarize(scores.by_sequence(v, seq)) for k, v in s.items()} for m, s in per.items()}
   classic = [m for m in per if m not in models]
 
   def cell(s, digits, signed=False):
@@ -143,7 +130,7 @@ def tabulate(result: dict, models, best: str) -> tuple[list[str], dict]:
   diffs = {}
   lines.append("")
   for m in models:
-    d = {k: stats.paired_difference(_kfs(per[m][k], seq), _kfs(per[best][k], seq))
+    d = {k: stats.paired_difference(scores.by_sequence(per[m][k], seq), scores.by_sequence(per[best][k], seq))
          for k in ("psnr", "ssim", "recall")}
     diffs[m] = d
     verdict = "called" if stats.excludes_zero(d["psnr"]) else "not called (the interval holds 0)"
