@@ -549,6 +549,21 @@ def barely_trained(records: list[dict]) -> list[dict]:
           and r["best_step"] == r["validation_curve"][0]["step"]]
 
 
+def empty_output(records: list[dict]) -> list[dict]:
+  """The runs whose best model reconstructs no object pixel on any test frame (object recall 0).
+
+  Such a model outputs an empty image whatever its input (a collapse, not a plateau: its
+  validation curve sits at the empty image's score), so a difference against it measures
+  whether training collapsed, not what a mechanism adds.
+  """
+  out = []
+  for r in records:
+    recall = np.array([np.nan if v is None else v for v in r["test"]["scores"].get("recall", [])], float)
+    if recall.size and np.isfinite(recall).any() and np.nanmax(recall) == 0.0:
+      out.append(r)
+  return out
+
+
 def _steps_text(rs: list[dict]) -> str:
   return ", ".join(f"{r['steps_taken']} ({r['stop_reason']}, best {r['best_step']})" for r in rs)
 
@@ -688,6 +703,26 @@ def report(runs: dict, design: dict, command: str) -> str:
                 f" {early[0]['validation_curve'][0]['step']}) and never improved after it; their"
                 " scores are those of a model that has hardly started to learn, and a difference"
                 " involving them says little about the mechanism."]
+    budget_runs = {k: r for k, r in runs.items() if k[0] == budget and k[1] in rows}
+    empty = empty_output([r for _, r in sorted(budget_runs.items())])
+    if empty:
+      names = ", ".join(f"{r['row']}-seed{r['seed']}" for r in empty)
+      lines += ["", f"**Empty output**: {names} reconstruct no object pixel on any test frame (object"
+                " recall 0): training collapsed to an empty image, whose validation score the plateau"
+                " rule then saw as a plateau. Every row's seeds are kept in the tables above."]
+      learned = {k: r for k, r in budget_runs.items()
+                 if not any(r is e for e in empty)}
+      sub = summarise(learned, [budget], rows)[budget]["pairs"] if learned else []
+      sub = [p for p in sub if p["diff"] and p["a"] in rows and p["b"] in rows
+             and any(r["row"] in (p["a"], p["b"]) for r in empty)]
+      if sub:
+        lines += ["", "The same differences over the seeds where neither run collapsed (a reading of"
+                  " how the mechanism compares when both models learned, on fewer seeds):", "",
+                  "| difference | seeds | " + " | ".join(h for h, _ in COLUMNS.values()) + " |",
+                  "|---|---|" + "---|" * len(COLUMNS)]
+        for p in sub:
+          lines.append(f"| {p['a']} - {p['b']} | {', '.join(map(str, p['seeds']))} | "
+                       + " | ".join(_cell(p["diff"][m], d, True) for m, (_, d) in COLUMNS.items()) + " |")
     lines += _probe_lines(runs, budget)
     lines.append("")
   lines += [f"Validation curves: `{FIGURE}` (one panel per budget; a dot marks each run's best step).", ""]

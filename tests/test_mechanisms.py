@@ -96,6 +96,26 @@ def test_a_run_that_peaked_at_its_first_validation_is_named_barely_trained(tmp_p
   assert "**Barely trained**: ours_s-seed0 validated best at their first validation (step 50)" in text
 
 
+def test_a_run_with_no_object_pixel_is_flagged_and_compared_without_it(tmp_path):
+  seq, frames = np.repeat(np.arange(3), 2), np.tile([1, 2], 3)
+  for seed in (0, 1):
+    M.write_json(M.run_json(tmp_path, "tenth", "full", seed),
+                 fake_record("tenth", "full", seed, [18.0 + seed] * 6, seq, frames))
+    record = fake_record("tenth", "ours_s", seed, [16.0 + 2 * seed] * 6, seq, frames)
+    if seed == 0:                                         # collapsed: recall 0 on every frame
+      record["test"]["scores"]["recall"] = [None] + [0.0] * 5
+    M.write_json(M.run_json(tmp_path, "tenth", "ours_s", seed), record)
+  runs = M.load_runs(tmp_path)
+  assert [(r["row"], r["seed"]) for r in M.empty_output(list(runs.values()))] == [("ours_s", 0)]
+  assert M.main(["--report-only", "--results", str(tmp_path)]) == 0
+  text = (tmp_path / M.REPORT).read_text()
+  assert "**Empty output**: ours_s-seed0 reconstruct no object pixel" in text
+  # Over both seeds: (2 + 0) / 2 = +1 dB; over seed 1 alone (ours_s learned): 19 - 18 = +1 dB.
+  sub = text.split("neither run collapsed")[1]
+  row = next(x for x in sub.splitlines() if x.startswith("| full - ours_s"))
+  assert row.startswith("| full - ours_s | 1 | +1.00")
+
+
 def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch):
   seq, frames = [0, 0, 1, 1], [1, 2, 1, 2]
   calls = []
