@@ -180,7 +180,7 @@ def main(argv=None) -> int:
   from experiments.provenance import provenance
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
-  from nlosjax.main_job import _tune_classic
+  from nlosjax.main_job import tune_classic
   t0 = time.perf_counter()
   specs = {}
   for item in args.model:
@@ -201,7 +201,7 @@ def main(argv=None) -> int:
     T.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
   print("validation: tuning the classic methods and the models' surface thresholds ...")
   val_path = pathlib.Path(first["data"]["path"])
-  settings = _tune_classic(first, val_path, print)
+  settings = tune_classic(first, val_path, print)
   best = max(settings, key=lambda m: settings[m]["psnr"])     # chosen on validation, as the main job
   learned = protocol.tune_model_thresholds(first, val_path, {k: [v] for k, v in models.items()})
   thresholds = {v: c["threshold"] for v, c in learned.items()}

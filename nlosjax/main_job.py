@@ -61,7 +61,8 @@ def _training_length(tr: dict) -> str:
           "validation.json)")
 
 
-def _tune_classic(config: dict, data_path, log) -> dict:
+def tune_classic(config: dict, data_path, log) -> dict:
+  """Each classic method's settings chosen on ``data_path``'s validation split (``baselines.tune``)."""
   batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
   data = protocol.load_split(config, data_path, "val", batch_size=batch_size)
   data["loader"].close()
@@ -116,7 +117,7 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
   if not primary:                         # process 0 evaluates; the others are done
     return {}
   log("validation: tuning the classic methods ...")
-  settings = _tune_classic(config, data_path, log)
+  settings = tune_classic(config, data_path, log)
   best = max(settings, key=lambda m: settings[m]["psnr"])
   learned = protocol.tune_model_thresholds(config, data_path, trained, log=log)
   thresholds = {v: c["threshold"] for v, c in learned.items()}
