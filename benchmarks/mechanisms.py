@@ -118,12 +118,14 @@ assert all(v[0] in ABLATION_ROWS for v in ROWS.values())
 
 
 # ------------------------------------------------------------------ configs
-def budget_config(base: dict, budget: str) -> dict:
+def budget_config(base: dict, budget: str, keep_loss=()) -> dict:
   """``base`` at photon budget ``budget``: photons and ambient divided by :data:`BUDGETS` ``[budget]``.
 
   The divided budget reads its own dataset file: ``<stem>-exposure-<1/divisor>.h5``
   beside the preset's (``runs/data/cpu-v3.h5`` -> ``runs/data/cpu-v3-exposure-0.1.h5``),
-  and trains with :data:`BUDGET_LOSS` ``[budget]`` over the config's loss weights.
+  and trains with :data:`BUDGET_LOSS` ``[budget]`` over the config's loss weights,
+  except the weights named in ``keep_loss`` (those the user set on the command line:
+  an explicit ``--config.train.loss.K=V`` wins over the budget's recipe).
   """
   if budget not in BUDGETS:
     raise ValueError(f"budget must be one of {tuple(BUDGETS)}, got {budget!r}")
@@ -137,7 +139,8 @@ def budget_config(base: dict, budget: str) -> dict:
     data["path"] = str(path.with_name(f"{path.stem}-exposure-{1 / divisor:g}{path.suffix}"))
   if BUDGET_LOSS[budget]:
     train = cfg.setdefault("train", {})
-    train["loss"] = {**train.get("loss", {}), **BUDGET_LOSS[budget]}
+    budget_loss = {k: v for k, v in BUDGET_LOSS[budget].items() if k not in set(keep_loss)}
+    train["loss"] = {**train.get("loss", {}), **budget_loss}
   return cfg
 
 
@@ -150,11 +153,14 @@ def study_stop(base: dict) -> dict:
   return stop
 
 
-def run_config(base: dict, budget: str, row: str, seed: int, stop: dict) -> dict:
-  """The config of one run: ``base`` at ``budget``, the row's changes, ``seed``, the stopping rule."""
+def run_config(base: dict, budget: str, row: str, seed: int, stop: dict, keep_loss=()) -> dict:
+  """The config of one run: ``base`` at ``budget``, the row's changes, ``seed``, the stopping rule.
+
+  ``keep_loss``: loss weights the user set, kept over :data:`BUDGET_LOSS` (:func:`budget_config`).
+  """
   from nlosjax.train import StopRule
   ablation_row, variant, _ = ROWS[row]
-  cfg = row_config(budget_config(base, budget), ablation_row, StopRule(**stop).max_steps, seed)
+  cfg = row_config(budget_config(base, budget, keep_loss), ablation_row, StopRule(**stop).max_steps, seed)
   cfg["train"]["stop"] = dict(stop)
   cfg["train"]["variants"] = (variant,)
   return cfg
@@ -200,6 +206,27 @@ def check_same_data(results: pathlib.Path, budget: str, cfg: dict) -> None:
                        f" in {results / 'mechanisms'} ({what});"
                        " the study pairs runs on the same sequences: keep the preset's data or give --results"
                        " another folder")
+
+
+def check_consistent(runs: dict) -> None:
+  """Refuse records that :func:`check_same_data` would have refused to train beside each other.
+
+  At report time, for JSON files copied in from another machine or folder: within a
+  budget every record's ``config["data"]`` must agree, and within a row its ``config["train"]``
+  (all but the seed), on the keys both hold. Raises ``ValueError`` naming the two runs.
+  """
+  first: dict = {}
+  for (b, row, seed), r in sorted(runs.items()):
+    for scope, part, key in (("budget", "data", b), ("row", "train", (b, row))):
+      here = {k: v for k, v in r["config"].get(part, {}).items() if not (part == "train" and k == "seed")}
+      if key not in first:
+        first[key] = (f"{b}/{row}-seed{seed}", here)
+        continue
+      name, there = first[key]
+      differ = sorted(k for k in set(here) & set(there) if here[k] != there[k])
+      if differ:
+        raise ValueError(f"mechanisms: {b}/{row}-seed{seed} and {name} share a {scope} but differ in "
+                         f"{part}: " + ", ".join(f"{k} ({there[k]!r} against {here[k]!r})" for k in differ))
 
 
 def run_json(results: pathlib.Path, budget: str, row: str, seed: int) -> pathlib.Path:
@@ -341,10 +368,10 @@ def run_record(cfg: dict, budget: str, row: str, seed: int, folder: pathlib.Path
 
 
 def run_one(base: dict, budget: str, row: str, seed: int, stop: dict, workdir: pathlib.Path,
-            results: pathlib.Path, log: Callable[[str], None] = print) -> dict:
+            results: pathlib.Path, log: Callable[[str], None] = print, keep_loss=()) -> dict:
   """Train, score and (for :data:`PROBE`) probe one run; writes and returns its JSON record."""
   from nlosjax import train as T
-  cfg = run_config(base, budget, row, seed, stop)
+  cfg = run_config(base, budget, row, seed, stop, keep_loss)
   data_path = pathlib.Path(cfg["data"]["path"])
   T.ensure_dataset(cfg, data_path, log=log)
   folder = run_dir(workdir, budget, row, seed)
@@ -733,6 +760,7 @@ def write_report(results: pathlib.Path, design: dict, command: str) -> str:
   """Rewrite ``RESULTS/mechanisms.md`` and ``RESULTS/mechanisms_curves.png`` from the JSON files alone."""
   results = pathlib.Path(results)
   runs = load_runs(results)
+  check_consistent(runs)
   text = report(runs, design, command)
   results.mkdir(parents=True, exist_ok=True)
   (results / REPORT).write_text(text)
@@ -772,7 +800,9 @@ def main(argv=None) -> int:
                       help="probe the SSMs of a finished run folder, store it in its JSON, rewrite the report")
   parser.add_argument("--tiny", action="store_true", help="the tiny config of tests/tiny_run.py (a smoke run)")
   argv = sys.argv[1:] if argv is None else list(argv)
-  args, base, _ = parse_config(parser, argv)
+  args, base, overrides = parse_config(parser, argv)
+  from experiments.cli import override_key
+  keep_loss = tuple(k[2] for k, _ in map(override_key, overrides) if k[:2] == ("train", "loss") and len(k) == 3)
   command = "python -m benchmarks.mechanisms " + " ".join(argv)
   workdir = pathlib.Path(args.workdir or ("runs/mechanisms-tiny" if args.tiny else "runs/mechanisms"))
   results = pathlib.Path(args.results or (workdir / "results" if args.tiny else "benchmarks/results"))
@@ -800,7 +830,8 @@ def main(argv=None) -> int:
     print(f"mechanisms: {len(jobs) - len(todo)} of {len(jobs)} runs already have their JSON "
           f"in {results / 'mechanisms'}; {len(todo)} to train")
     for budget, row, seed in todo:
-      check_same_data(results, budget, {**run_config(base, budget, row, seed, stop), "_study_row": row})
+      check_same_data(results, budget,
+                      {**run_config(base, budget, row, seed, stop, keep_loss), "_study_row": row})
     t0, trained = time.perf_counter(), 0
     for budget, row, seed in tqdm(todo, desc="mechanisms", unit="run"):
       if args.max_runs is not None and trained >= args.max_runs:
@@ -809,7 +840,7 @@ def main(argv=None) -> int:
       if args.time_limit_s is not None and time.perf_counter() - t0 > args.time_limit_s:
         tqdm.write(f"mechanisms: --time-limit-s {args.time_limit_s:g} passed; no new run starts")
         break
-      rec = run_one(base, budget, row, seed, stop, workdir, results, log=tqdm.write)
+      rec = run_one(base, budget, row, seed, stop, workdir, results, log=tqdm.write, keep_loss=keep_loss)
       trained += 1
       tqdm.write(f"mechanisms: {budget}/{row}-seed{seed}: {rec['steps_taken']} steps "
                  f"({rec['stop_reason']}), best step {rec['best_step']}, test PSNR "

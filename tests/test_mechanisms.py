@@ -43,6 +43,34 @@ def test_the_tenth_budget_is_derived_from_the_preset():
   assert base["data"]["photons"] == (5e1, 2e3)                       # the preset is left as it was
 
 
+def test_the_report_refuses_records_of_other_data_or_another_recipe(tmp_path):
+  seq, frames = [0, 0, 1, 1], [1, 2, 1, 2]
+  for seed in (0, 1):
+    M.write_json(M.run_json(tmp_path, "full", "full", seed), fake_record("full", "full", seed, [20.0] * 4, seq, frames))
+  other = fake_record("full", "no_ssm", 0, [20.0] * 4, seq, frames)
+  other["config"]["data"]["photons"] = [5.0, 200.0]              # copied from another study
+  M.write_json(M.run_json(tmp_path, "full", "no_ssm", 0), other)
+  with pytest.raises(ValueError, match="differ in data: photons"):
+    M.main(["--report-only", "--results", str(tmp_path)])
+  other = fake_record("full", "no_ssm", 0, [20.0] * 4, seq, frames)
+  M.write_json(M.run_json(tmp_path, "full", "no_ssm", 0), other)
+  assert M.main(["--report-only", "--results", str(tmp_path)]) == 0   # rows may differ in their recipe
+  late = fake_record("full", "full", 2, [20.0] * 4, seq, frames)
+  late["config"]["train"]["stop"] = {**M.STUDY_STOP, "patience": 8}   # the same row, another rule
+  M.write_json(M.run_json(tmp_path, "full", "full", 2), late)
+  with pytest.raises(ValueError, match="share a row but differ in train: stop"):
+    M.main(["--report-only", "--results", str(tmp_path)])
+
+
+def test_a_loss_weight_set_by_the_user_wins_over_the_budget_recipe():
+  base = configs.get_config("cpu")
+  assert M.budget_config(base, "tenth")["train"]["loss"]["object_intensity"] == 1.0    # BUDGET_LOSS
+  base["train"]["loss"]["object_intensity"] = 2.5                 # as --config.train.loss... sets it
+  kept = M.run_config(base, "tenth", "full", 0, M.STUDY_STOP, keep_loss=("object_intensity",))
+  assert kept["train"]["loss"]["object_intensity"] == 2.5
+  assert M.run_config(base, "tenth", "full", 0, M.STUDY_STOP)["train"]["loss"]["object_intensity"] == 1.0
+
+
 def test_each_row_trains_its_variant_with_the_plateau_rule():
   base = configs.get_config("cpu")
   full = M.run_config(base, "full", "full", 1, M.STUDY_STOP)
@@ -120,8 +148,9 @@ def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch
   seq, frames = [0, 0, 1, 1], [1, 2, 1, 2]
   calls = []
 
-  def fake_run_one(base, budget, row, seed, stop, workdir, results, log=print):
+  def fake_run_one(base, budget, row, seed, stop, workdir, results, log=print, keep_loss=()):
     calls.append((budget, row, seed))
+    assert keep_loss == ()
     assert stop == M.STUDY_STOP and base["train"]["stop"] == M.STUDY_STOP
     record = fake_record(budget, row, seed, [20.0, 21.0, 22.0, 23.0], seq, frames)
     record["config"] = M.essentials(M.run_config(base, budget, row, seed, stop))   # as run_one records
