@@ -186,3 +186,24 @@ def test_training_data_is_found_from_a_workdir_a_variant_folder_or_its_checkpoin
   for where in (tmp_path, tmp_path / "ours_s", tmp_path / "ours_s" / "checkpoints"):
     assert training_data(where) == "runs/data/mine.h5", where
   assert training_data(None).startswith("runs/data/cpu") and training_data(None).endswith(".h5")
+
+
+def test_every_variant_of_the_real_preset_can_build_its_loss_wavelet():
+  """USM trained with Ours' loss takes Ours' wavelet: at the real preset's 64 ps bins the default
+  sampling 2 gives a carrier of under 2 bins, which ``illumination_wavelet`` refuses (USM's
+  training failed on it before the USM config inherited it)."""
+  from experiments.configs import get_config
+  from nlosjax import train as T
+  from nlosjax.data.dataset import DatasetSpec
+  from nlosjax.physics.wavelet import illumination_wavelet
+
+  config = T.with_defaults(get_config("real"))
+  setup = DatasetSpec.from_config(config["data"]).setup
+  for variant in ("ours", "ours_s", "usm"):
+    m = T.model_config_for(config, setup, variant)
+    assert m.wavelet_sampling == config["model"]["wavelet_sampling"] == 3.0
+    illumination_wavelet(m.setup, cycles=m.wavelet_cycles, sampling_coeff=m.wavelet_sampling)
+  with pytest.raises(ValueError, match="not resolved"):       # what USM had before
+    illumination_wavelet(setup, cycles=5.0, sampling_coeff=2.0)
+  config["usm"]["model"]["wavelet_sampling"] = 4.0            # USM's own setting wins
+  assert T.model_config_for(config, setup, "usm").wavelet_sampling == 4.0

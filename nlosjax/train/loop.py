@@ -63,7 +63,11 @@ def model_config_for(config: dict, setup, variant: str):
 
   ``"ours"`` / ``"ours_s"``: a :class:`~nlosjax.models.network.ModelConfig` from
   ``config["model"]``; ``"usm"``: a :class:`~nlosjax.models.usm.USMConfig`
-  from ``config["usm"]["model"]`` (USM's published widths where absent).
+  from ``config["usm"]["model"]`` (USM's published widths where absent). USM's
+  phasor-field loss wavelet (``wavelet_cycles``, ``wavelet_sampling``) is Ours'
+  from ``config["model"]`` unless ``config["usm"]["model"]`` sets it, so both
+  train with the same loss (and a preset that needs a longer wavelet for its
+  bins, as ``real``, gives USM one too).
   """
   from nlosjax.models.network import ModelConfig
   if variant not in VARIANT_FRAMES:
@@ -71,8 +75,11 @@ def model_config_for(config: dict, setup, variant: str):
   if variant == "usm":
     from nlosjax.models.usm import USMConfig
     usm = config.get("usm", {})
-    return USMConfig(setup=setup, stride=int(config["data"]["input_stride"]),
-                     **dict(usm.get("model", {})))
+    usm_model = dict(usm.get("model", {}))
+    for key in ("wavelet_cycles", "wavelet_sampling"):
+      if key in config.get("model", {}):
+        usm_model.setdefault(key, config["model"][key])
+    return USMConfig(setup=setup, stride=int(config["data"]["input_stride"]), **usm_model)
   overrides = dict(config.get("model", {}))
   overrides["frames"] = VARIANT_FRAMES[variant]
   return ModelConfig(setup=setup, stride=int(config["data"]["input_stride"]), **overrides)
