@@ -187,10 +187,8 @@ def check_same_data(results: pathlib.Path, budget: str, cfg: dict) -> None:
   elsewhere (or the budget's old records move away).
   """
   def flat(e, recipe: bool):
-    out = {f"data.{k}": v for k, v in e["data"].items()}
-    if recipe:      # a row's own changes (e.g. no_pf's loss) differ from the other rows'
-      out.update({f"train.{k}": v for k, v in e.get("train", {}).items() if k != "seed"})
-    return out
+    parts = ("data", "train") if recipe else ("data",)   # a row's own changes (no_pf's loss) differ
+    return {f"{part}.{k}": v for part in parts for k, v in _shared(e, part).items()}
 
   mine = json.loads(json.dumps(essentials(cfg)))
   row_of = cfg.get("_study_row")
@@ -199,13 +197,23 @@ def check_same_data(results: pathlib.Path, budget: str, cfg: dict) -> None:
       continue
     same_row = row_of is not None and row == row_of
     want, have = flat(mine, same_row), flat(r["config"], same_row)
-    differ = sorted(k for k in set(want) & set(have) if want[k] != have[k])
+    differ = _differing(want, have)
     if differ:
       what = ", ".join(f"{k}: {have[k]!r} there, {want[k]!r} now" for k in differ)
       raise SystemExit(f"mechanisms: the data or recipe of this run differ from those of {budget}/{row}-seed{seed}"
                        f" in {results / 'mechanisms'} ({what});"
                        " the study pairs runs on the same sequences: keep the preset's data or give --results"
                        " another folder")
+
+
+def _shared(config: dict, part: str) -> dict:
+  """``config[part]`` as runs that are compared must share it: ``"train"`` without its seed."""
+  return {k: v for k, v in config.get(part, {}).items() if not (part == "train" and k == "seed")}
+
+
+def _differing(a: dict, b: dict) -> list[str]:
+  """The keys both dicts hold with different values, sorted (a key one lacks is not compared)."""
+  return sorted(k for k in set(a) & set(b) if a[k] != b[k])
 
 
 def check_consistent(runs: dict) -> None:
@@ -218,12 +226,12 @@ def check_consistent(runs: dict) -> None:
   first: dict = {}
   for (b, row, seed), r in sorted(runs.items()):
     for scope, part, key in (("budget", "data", b), ("row", "train", (b, row))):
-      here = {k: v for k, v in r["config"].get(part, {}).items() if not (part == "train" and k == "seed")}
+      here = _shared(r["config"], part)
       if key not in first:
         first[key] = (f"{b}/{row}-seed{seed}", here)
         continue
       name, there = first[key]
-      differ = sorted(k for k in set(here) & set(there) if here[k] != there[k])
+      differ = _differing(here, there)
       if differ:
         raise ValueError(f"mechanisms: {b}/{row}-seed{seed} and {name} share a {scope} but differ in "
                          f"{part}: " + ", ".join(f"{k} ({there[k]!r} against {here[k]!r})" for k in differ))
@@ -585,8 +593,8 @@ def empty_output(records: list[dict]) -> list[dict]:
   """
   out = []
   for r in records:
-    recall = np.array([np.nan if v is None else v for v in r["test"]["scores"].get("recall", [])], float)
-    if recall.size and np.isfinite(recall).any() and np.nanmax(recall) == 0.0:
+    recall = _array(r["test"]["scores"].get("recall", []))
+    if np.isfinite(recall).any() and np.nanmax(recall) == 0.0:
       out.append(r)
   return out
 
@@ -737,11 +745,10 @@ def report(runs: dict, design: dict, command: str) -> str:
       lines += ["", f"**Empty output**: {names} reconstruct no object pixel on any test frame (object"
                 " recall 0): training collapsed to an empty image, whose validation score the plateau"
                 " rule then saw as a plateau. Every row's seeds are kept in the tables above."]
-      learned = {k: r for k, r in budget_runs.items()
-                 if not any(r is e for e in empty)}
-      sub = summarise(learned, [budget], rows)[budget]["pairs"] if learned else []
-      sub = [p for p in sub if p["diff"] and p["a"] in rows and p["b"] in rows
-             and any(r["row"] in (p["a"], p["b"]) for r in empty)]
+      collapsed = {(r["budget"], r["row"], int(r["seed"])) for r in empty}
+      learned = {k: r for k, r in budget_runs.items() if k not in collapsed}
+      sub = [p for p in summarise(learned, [budget], rows)[budget]["pairs"]
+             if p["diff"] and any(r["row"] in (p["a"], p["b"]) for r in empty)]
       if sub:
         lines += ["", "The same differences over the seeds where neither run collapsed (a reading of"
                   " how the mechanism compares when both models learned, on fewer seeds):", "",

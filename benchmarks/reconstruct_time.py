@@ -71,9 +71,8 @@ def main(argv=None) -> int:
   shape = next((r["shape"] for rs in runs.values() for r in rs if r["shape"]), None)
   best = {m: min(r["wall_s"] for r in rs) for m, rs in runs.items()}
   command = "python -m benchmarks.reconstruct_time" + "".join(
-      f" --{k} {v}" for k, v in (("capture", args.capture), ("pretrained", args.pretrained),
-                                 ("repeats", args.repeats))
-      if v != {"capture": DEFAULT_CAPTURE, "pretrained": "cpu", "repeats": 2}[k])
+      f" --{k} {getattr(args, k)}" for k in ("capture", "pretrained", "repeats")
+      if getattr(args, k) != parser.get_default(k))
   lines = ["# Reconstructing a capture from a cold process, shipped model beside classic methods", ""]
   lines += _machine.provenance(command) + [""]
   lines += [f"Capture `{args.capture}`" + (f", (T, H, W) = {shape}" if shape else "") + f"; learned"
