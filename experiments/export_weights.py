@@ -16,7 +16,9 @@ RUN is one of
   benchmarks.mechanisms --budgets <budget> --rows <row> --seeds <k>``;
 * a main-job workdir (``python -m experiments.train``: ``config.json`` and
   ``<variant>/checkpoints``, ``<variant>/selection.json``), or one of its
-  variant folders. The main job records no commit: pass ``--commit``.
+  variant folders. The command, commit and machine come from the workdir's
+  ``invocations.jsonl`` (written by ``python -m experiments.train``); for a
+  workdir from before that file existed pass ``--commit``.
 
 The selected step (``selection.json``; the latest checkpoint without one) is
 restored with :func:`nlosjax.inference.restore_params` (parameters only), the
@@ -132,9 +134,36 @@ def main_job_run(path, variant: str | None) -> dict:
           "recorded_val_psnr": None if recorded is None else float(recorded),
           "steps_taken": int(selection.get("steps_taken", tr.get("steps", step))),
           "stop_reason": selection.get("stop_reason", "steps"), "best_step": step,
-          "machine": {}, "machine_source": None, "commit": "unknown", "date": _mtime(stamp),
-          "command": f"python -m experiments.train --workdir {_shown(workdir)}"
-                     " (config: the run's config.json)"}
+          **_invocations(workdir), "date": _mtime(stamp)}
+
+
+def _invocations(workdir: pathlib.Path) -> dict:
+  """``machine``, ``machine_source``, ``commit`` and ``command`` from ``workdir/invocations.jsonl``.
+
+  ``python -m experiments.train`` appends one record per invocation
+  (:func:`experiments.train.record_invocation`). The first record names the
+  command, the commit and the machine; a run resumed at other commits says so
+  in ``commit``. Without the file (runs from before it existed): commit
+  ``"unknown"``, no machine, and a command built from the workdir.
+  """
+  from experiments.train import INVOCATIONS
+  path = workdir / INVOCATIONS
+  records = []
+  if path.is_file():
+    try:
+      records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    except json.JSONDecodeError as e:
+      raise ValueError(f"{path}: not JSON lines ({e})") from None
+  if not records:
+    return {"machine": {}, "machine_source": None, "commit": "unknown",
+            "command": f"python -m experiments.train --workdir {_shown(workdir)}"
+                       " (config: the run's config.json)"}
+  first = records[0]
+  commits = list(dict.fromkeys(r.get("commit", "unknown") for r in records))
+  commit = commits[0] + (f" (resumed at {', '.join(commits[1:])})" if len(commits) > 1 else "")
+  machine = {k: v for k, v in first.items() if k != "command"}
+  return {"machine": machine, "machine_source": _shown(path), "commit": commit,
+          "command": first.get("command", "python -m experiments.train")}
 
 
 def find_run(path, variant: str, results) -> dict:

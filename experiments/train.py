@@ -36,6 +36,31 @@ the known ones, before any data is made or model trained.
 
 from experiments.cli import config_parser, parse_config
 
+#: One JSON line per invocation of this command on a workdir (experiments.provenance.run_record).
+INVOCATIONS = "invocations.jsonl"
+
+
+def record_invocation(workdir, argv=None) -> dict:
+  """Append where and from which commit this process trains to ``<workdir>/invocations.jsonl``.
+
+  A resumed run adds a line, so the file says every commit and machine the
+  run's steps came from; ``experiments.export_weights`` records them with the
+  weights. Returns the record written.
+  """
+  import json
+  import pathlib
+  import shlex
+  import sys
+
+  from experiments.provenance import run_record
+  argv = sys.argv[1:] if argv is None else list(argv)
+  record = run_record(" ".join(["python -m experiments.train", *map(shlex.quote, argv)]))
+  workdir = pathlib.Path(workdir)
+  workdir.mkdir(parents=True, exist_ok=True)
+  with open(workdir / INVOCATIONS, "a") as f:
+    f.write(json.dumps(record) + "\n")
+  return record
+
 
 def main(argv=None):
   parser = config_parser(__doc__.split("\n\n")[0])
@@ -66,6 +91,8 @@ def main(argv=None):
     print(format_plan(dry_run(config, measure=not args.no_measure)))
     return
   from nlosjax.main_job import train_and_evaluate
+  if args.process_id == 0:
+    record_invocation(args.workdir, argv)
   extra = {}
   spec = config.get("independent")
   if spec:
