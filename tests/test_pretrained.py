@@ -26,7 +26,7 @@ from nlosjax.data import scenes
 from nlosjax.evaluation import protocol
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-SHIPPED = (("cpu", "ours"), ("cpu", "ours_s"))
+SHIPPED = (("cpu", "ours"), ("cpu", "ours_s"), ("real", "ours"), ("real", "ours_s"))
 #: The study run the shipped ``cpu`` Ours was exported from (not in a fresh clone).
 RUN = ROOT / "runs" / "mechanisms" / "full" / "full-seed0"
 #: Tolerance of the reproduced per-sequence validation PSNR (dB). On the machine that
@@ -41,7 +41,7 @@ RUN = ROOT / "runs" / "mechanisms" / "full" / "full-seed0"
 TOL_DB = 0.02
 
 
-def test_the_cpu_models_are_shipped_small_and_packaged():
+def test_the_models_are_shipped_small_and_packaged():
   assert set(SHIPPED) <= set(inference.pretrained_names())
   with open(ROOT / "pyproject.toml", "rb") as f:
     globs = tomllib.load(f)["tool"]["setuptools"]["package-data"]["nlosjax"]
@@ -70,13 +70,12 @@ def test_provenance_records_what_the_weights_came_from(name, variant):
   assert sum(frames.values()) == val["n_frames"] and mean == pytest.approx(val["psnr_db"], abs=1e-4)
 
 
-@pytest.fixture(scope="module")
-def regenerated(tmp_path_factory):
-  """Val sequence 0 of the shipped Ours' recorded data specification, simulated into a new file.
+def _regenerate(name, variant, folder):
+  """Val sequence 0 of the data specification recorded with the shipped ``name-variant``, simulated into ``folder``.
 
   Returns ``(model_config, params, provenance, config pointing at the file, path)``.
   """
-  mcfg, params, prov = inference.load_pretrained("cpu", "ours")
+  mcfg, params, prov = inference.load_pretrained(name, variant)
   if prov["dataset"]["generator_version"] != scenes.GENERATOR_VERSION:
     pytest.fail(f"the scene generator is version {scenes.GENERATOR_VERSION}, the weights were validated"
                 f" on version {prov['dataset']['generator_version']}: their data cannot be regenerated;"
@@ -86,25 +85,50 @@ def regenerated(tmp_path_factory):
   # so a file of one val sequence holds the val-00000 the weights were scored on.
   spec = D.DatasetSpec.from_config(config["data"], num_train=0, num_val=1, num_test=0)
   assert spec.generation_key() == D.DatasetSpec.from_config(prov["data_spec"]).generation_key()
-  path = tmp_path_factory.mktemp("val") / "val.h5"
+  path = folder / "val.h5"
   D.write_dataset(path, spec, progress=False)
   config["data"]["path"] = str(path)
   return mcfg, params, prov, config, path
 
 
-def test_shipped_weights_reproduce_their_recorded_validation_score(regenerated):
-  mcfg, params, prov, config, path = regenerated
-  bs = int(config["train"]["eval_batch_size"])
-  data = protocol.load_split(config, path, "val", batch_size=bs)
+def _val_sequence_psnr(mcfg, params, config, path) -> float:
+  """Mean intensity PSNR (dB) of the model over the frames of the one val sequence in ``path``."""
+  data = protocol.load_split(config, path, "val", batch_size=int(config["train"]["eval_batch_size"]))
   try:
     images = protocol.model_images(mcfg, params, data["loader"])
     assert data["loader"].names == ["val-00000"]
   finally:
     data["loader"].close()
-  psnr = np.asarray(metrics.psnr(images["intensity"], data["intensity"]))
+  return np.asarray(metrics.psnr(images["intensity"], data["intensity"]))
+
+
+@pytest.fixture(scope="module")
+def regenerated(tmp_path_factory):
+  """The shipped ``cpu`` Ours and its regenerated val sequence (:func:`_regenerate`)."""
+  return _regenerate("cpu", "ours", tmp_path_factory.mktemp("val"))
+
+
+def _check_reproduced(mcfg, params, prov, config, path):
+  psnr = _val_sequence_psnr(mcfg, params, config, path)
   assert psnr.size == prov["validation"]["frames_per_sequence"]["val-00000"]
   recorded = prov["validation"]["per_sequence_psnr_db"]["val-00000"]
   assert abs(float(np.mean(psnr)) - recorded) <= TOL_DB, (float(np.mean(psnr)), recorded)
+
+
+def test_shipped_weights_reproduce_their_recorded_validation_score(regenerated):
+  _check_reproduced(*regenerated)
+
+
+def test_shipped_real_weights_reproduce_their_recorded_validation_scores(tmp_path):
+  """Every shipped ``real`` variant, on one regenerated transport-rendered val sequence (about a minute)."""
+  variants = [v for n, v in inference.pretrained_names() if n == "real"]
+  assert {"ours", "ours_s"} <= set(variants)
+  _, _, first, config, path = _regenerate("real", variants[0], tmp_path)
+  for variant in variants:
+    mcfg, params, prov = inference.load_pretrained("real", variant)
+    # One file serves every variant only if they were validated on the same data.
+    assert prov["data_spec"] == first["data_spec"], variant
+    _check_reproduced(mcfg, params, prov, config, path)
 
 
 def test_load_pretrained_equals_the_model_restored_from_its_run(regenerated):
@@ -179,10 +203,10 @@ def test_tampered_weights_fail_by_name(tamper, tmp_path):
 
 
 def test_unknown_weights_list_the_shipped_ones():
-  for name, variant in (("real", "ours"), ("cpu", "usm")):
+  for name, variant in (("nope", "ours"), ("cpu", "usm")):
     with pytest.raises(ValueError, match="shipped: ") as e:
       inference.load_pretrained(name, variant)
-    assert "cpu (ours)" in str(e.value) and "cpu (ours_s)" in str(e.value)
+    assert "cpu (ours)" in str(e.value) and "cpu (ours_s)" in str(e.value) and "real (ours)" in str(e.value)
 
 
 def test_load_pretrained_moves_to_another_setup():
@@ -216,20 +240,25 @@ def test_reconstruct_uses_the_shipped_weights(tmp_path, capsys):
   with h5py.File(tmp_path / "out" / "volume.h5", "r") as f:
     info = json.loads(f.attrs["model"])
   assert info["pretrained"] == "cpu" and info["variant"] == "ours"
-  # Without --pretrained the default, "real", is not shipped: the error lists what is.
+  # Weights that are not shipped: the error lists what is.
   with pytest.raises(SystemExit):
-    reconstruct.main([str(path), "--method", "ours", "--no-cache", "--quiet", "--out", str(tmp_path / "x")])
+    reconstruct.main([str(path), "--method", "ours", "--pretrained", "nope", "--no-cache", "--quiet",
+                      "--out", str(tmp_path / "x")])
   err = capsys.readouterr().err
-  assert "'real'" in err and "cpu (ours)" in err and "--checkpoint" in err and "--pretrained cpu" in err
+  assert "'nope'" in err and "cpu (ours)" in err and "real (ours)" in err and "--checkpoint" in err
 
 
 def test_real_undersampling_loads_every_shipped_variant_of_a_name():
   from experiments import real_undersampling as R
-  with pytest.raises(ValueError, match=r"cpu \(ours\).*--pretrained cpu"):
-    R.load_models(pretrained="real", log=lambda s: None)
+  with pytest.raises(ValueError, match=r"cpu \(ours\)"):
+    R.load_models(pretrained="nope", log=lambda s: None)
   trained = R.load_models(pretrained="cpu", log=lambda s: None)
   assert set(trained) == {"ours", "ours_s"}
   assert trained["ours"][0].frames == 3 and trained["ours_s"][0].frames == 1
+  # Without a name, the default: every variant shipped under "real".
+  trained = R.load_models(log=lambda s: None)
+  assert {"ours", "ours_s"} <= set(trained)
+  assert {m.setup.bin_width for m, _ in trained.values()} == {64e-12}
 
 
 def test_export_weights_from_a_main_job_workdir(regenerated, tmp_path):
@@ -266,3 +295,24 @@ def test_export_weights_from_a_main_job_workdir(regenerated, tmp_path):
   assert written["validation"]["per_sequence_psnr_db"] == {"val-00000": score}
   assert written["param_fingerprint"] == prov["param_fingerprint"]
   jax.tree.map(np.testing.assert_array_equal, got, params)
+
+
+def test_main_job_workdir_records_where_it_trained(tmp_path, monkeypatch):
+  """experiments.train appends one record per invocation; the exporter names the first and every resume."""
+  from experiments import export_weights, provenance, train
+  first = train.record_invocation(tmp_path, ["--config", "real", "--workdir", str(tmp_path)])
+  assert first["command"] == f"python -m experiments.train --config real --workdir {tmp_path}"
+  assert first["commit"] == provenance.git_commit() and first["cores"] == provenance.usable_cores()
+  got = export_weights._invocations(tmp_path)
+  assert got["commit"] == first["commit"] and got["command"] == first["command"]
+  assert got["machine"]["cpu"] == provenance.cpu_model() and "command" not in got["machine"]
+  # A resume at another commit is named; the first record still gives command and machine.
+  monkeypatch.setattr(provenance, "git_commit", lambda repo=None: "0123abcd")
+  train.record_invocation(tmp_path, ["--workdir", str(tmp_path)])
+  got = export_weights._invocations(tmp_path)
+  assert got["commit"] == f"{first['commit']} (resumed at 0123abcd)" and got["command"] == first["command"]
+  # Without the file: unknown, as before it existed.
+  assert export_weights._invocations(tmp_path / "none")["commit"] == "unknown"
+  (tmp_path / train.INVOCATIONS).write_text("{not json\n")
+  with pytest.raises(ValueError, match="invocations.jsonl"):
+    export_weights._invocations(tmp_path)
