@@ -19,6 +19,7 @@ rebinned so the network sees bins of about its training width.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import pathlib
@@ -88,16 +89,20 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
 
   Args:
     path, variant: see :func:`find_checkpoints`.
-    step: checkpoint step (default: the latest).
+    step: checkpoint step (default: the step the run chose on validation,
+      ``selection.json`` of the model folder, restored from ``checkpoints`` or,
+      when pruned there, ``best_checkpoint``; without a selection the latest).
     folder: the model's folder in the workdir when it is not the variant's own,
       e.g. ``"ours-seed1"`` (another training seed, :func:`seed_folders`).
   Returns:
     ``(ModelConfig, params, info)``; ``info`` holds ``workdir``, ``variant``,
-    ``checkpoint`` (folder), ``step`` and ``config`` (the run config dict).
+    ``checkpoint`` (folder), ``step``, ``config`` (the run config dict) and
+    ``selected_on_validation`` (the step came from ``selection.json``).
   Raises:
     ValueError: naming the folder for a missing, unreadable or mismatched checkpoint.
   """
   from nlosjax import train
+  from nlosjax.train.stopping import BEST_FOLDER
 
   workdir, variant, ckpt = find_checkpoints(path, variant)
   if folder is not None:
@@ -110,10 +115,18 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
   except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
     raise ValueError(f"{workdir / 'config.json'}: not a usable run config ({e})") from None
   mcfg = train.model_config_for(config, train_setup, variant)
+  selected = None
+  if step is None:
+    selection = train.read_selection(ckpt.parent)
+    if selection and "step" in selection:
+      step = selected = int(selection["step"])
+      best = ckpt.parent / BEST_FOLDER
+      if not (ckpt / str(step)).is_dir() and (best / str(step)).is_dir():
+        ckpt = best
   params, restored = restore_params(ckpt, mcfg, step=step, config_file=workdir / "config.json")
   where, step = restored["checkpoint"], restored["step"]
   info = {"workdir": workdir, "variant": variant, "checkpoint": where, "step": int(step),
-          "config": config}
+          "config": config, "selected_on_validation": selected is not None}
   return mcfg, params, info
 
 
@@ -351,16 +364,13 @@ def load_run(path, *, setup: Setup | None = None, seeds: bool = False,
   workdir, first, _ = find_checkpoints(p)
   wanted = [first] if p.name in VARIANTS or p.name == "checkpoints" else list(VARIANTS)
   trained, config = {}, None
-  from nlosjax.train import read_selection
   for variant in wanted:
     folders = seed_folders(workdir, variant)
     if not seeds:
       folders = folders[:1] if folders and folders[0] == variant else []
     models = []
     for folder in folders:
-      selection = read_selection(workdir / folder)    # the checkpoint chosen on validation
-      mcfg, params, info = load_trained(workdir, variant, folder=folder,
-                                        step=selection["step"] if selection else None)
+      mcfg, params, info = load_trained(workdir, variant, folder=folder)   # the step chosen on validation
       log(f"[{folder}] restored step {info['step']} from {workdir / folder / 'checkpoints'}")
       config = info["config"]
       models.append((mcfg if setup is None or setup == mcfg.setup else mcfg.with_setup(setup),
@@ -486,6 +496,19 @@ def triplets(frames: np.ndarray, num_frames: int) -> np.ndarray:
   return frames[idx]
 
 
+@functools.lru_cache(maxsize=8)
+def _checked_forward(model_config):
+  """The jitted, checked forward of ``model_config`` (NaN / negative counts raise), kept per config.
+
+  Kept so that :func:`run_model` called again with the same config (the next
+  capture of a setup, the next chunk of a video) reuses the compiled program
+  instead of tracing a new closure. The physics operators enter it as an argument.
+  """
+  from nlosjax.physics.checks import checked
+  model = model_config.module()
+  return checked(lambda p, b: model.apply({"params": p}, b), operators=model_config.physics_operators())
+
+
 def run_model(model_config, params, frames, *, batch_size: int = 4):
   """Apply a network to under-scanned frames, one output per frame.
 
@@ -499,11 +522,8 @@ def run_model(model_config, params, frames, *, batch_size: int = 4):
     ``volume [F, Z, H, W]``, ``transient [F, T, H, W]`` (counts: the network's
     output times its input scale).
   """
-  from nlosjax.physics.checks import checked
   x = triplets(np.asarray(frames, np.float32), model_config.frames)
-  model = model_config.module()
-  apply = checked(lambda p, b: model.apply({"params": p}, b),     # NaN / negative counts raise
-                  operators=model_config.physics_operators())        # physics operators as an argument
+  apply = _checked_forward(model_config)
   out = {k: [] for k in ("intensity", "depth", "volume", "transient")}
   for s in range(0, len(x), batch_size):
     o = apply(params, jnp.asarray(x[s:s + batch_size]))

@@ -187,6 +187,34 @@ def test_load_trained_restores_the_parameters(trained_run):
     cio.load_trained(workdir, "ours_s")
 
 
+def test_load_trained_defaults_to_the_step_chosen_on_validation(trained_run, tmp_path):
+  """selection.json's step, not the latest, and from best_checkpoint when checkpoints/ pruned it."""
+  from nlosjax import train
+  workdir, mcfg, params, _ = trained_run
+  run = tmp_path / "run"
+  (run / "ours").mkdir(parents=True)
+  (run / "config.json").write_text((workdir / "config.json").read_text())
+  later = jax.tree.map(lambda a: a + 1.0, params)
+  signature = json.dumps({"model": repr(mcfg)})
+  for folder, steps in (("checkpoints", ((3, later), (9, later))), ("best_checkpoint", ((2, params),))):
+    ckpt = train.Checkpointer(run / "ours" / folder, signature, every=1)
+    for step, p in steps:
+      ckpt.save(train.TrainState.create(apply_fn=None, params=p, tx=optax.sgd(0.1)).replace(step=step),
+                0, force=True)
+    ckpt.close()
+  _, got, info = cio.load_trained(run)                   # no selection: the latest
+  assert info["step"] == 9 and not info["selected_on_validation"]
+  (run / "ours" / "selection.json").write_text(json.dumps({"select": "plateau", "step": 2}))
+  _, got, info = cio.load_trained(run)                   # pruned from checkpoints/: best_checkpoint
+  assert info["step"] == 2 and info["selected_on_validation"] and info["checkpoint"].parent.name == "best_checkpoint"
+  jax.tree.map(np.testing.assert_array_equal, got, params)
+  (run / "ours" / "selection.json").write_text(json.dumps({"select": "val", "step": 3}))
+  _, got, info = cio.load_trained(run)
+  assert info["step"] == 3 and info["checkpoint"].parent.name == "checkpoints"
+  _, got, info = cio.load_trained(run, step=9)           # an explicit step wins
+  assert info["step"] == 9 and not info["selected_on_validation"]
+
+
 def test_load_trained_refuses_another_config(trained_run, tmp_path):
   workdir, _, _, _ = trained_run
   other = tmp_path / "other"
