@@ -207,3 +207,18 @@ def test_every_variant_of_the_real_preset_can_build_its_loss_wavelet():
     illumination_wavelet(setup, cycles=5.0, sampling_coeff=2.0)
   config["usm"]["model"]["wavelet_sampling"] = 4.0            # USM's own setting wins
   assert T.model_config_for(config, setup, "usm").wavelet_sampling == 4.0
+
+
+def test_time_lines_separate_the_compiling_first_call_from_the_compiled_ones():
+  from experiments import real_undersampling as R
+  times = {"a": (9.0, 1.0), "b": (1.0, 2.0), "c": (3.0, 4.0), "d": (2.0, 8.0)}
+  results = {"strides": [4], "methods": ["lct", "ours"],
+             "scenes": {sc: {"scores": {("lct", 4): {"time_s": t, "again_s": a},
+                                        ("ours", 4): {"time_s": 10 * t, "again_s": 10 * a}}}
+                        for sc, (t, a) in times.items()}}
+  lines = R._time_lines(results)
+  assert "first call on a" in lines[0]
+  assert "| LCT | 9.00 | 3.00 |" in lines and "| Ours | 90.00 | 30.00 |" in lines
+  del results["scenes"]["a"]["scores"][("ours", 4)]
+  results["scenes"]["b"]["scores"][("ours", 4)].pop("again_s")
+  assert "| Ours | 10.00 | 60.00 |" in R._time_lines(results)
