@@ -9,8 +9,8 @@ def test_report_gives_ratios_to_lct_and_the_goal_verdict(tmp_path, monkeypatch):
 
   def fake(capture, method, pretrained, out):
     calls.append((method, pretrained))
-    return {"wall_s": walls[method] * (1.5 if pretrained == "real" else 1.0) + len(calls) * 0.01, "timings": {"reconstruct_s": walls[method] / 2},
-            "shape": (512, 64, 64)}
+    wall = walls[method] * (1.5 if pretrained == "real" else 1.0) + len(calls) * 0.01
+    return {"wall_s": wall, "timings": {"reconstruct_s": walls[method] / 2}, "shape": (512, 64, 64)}
 
   monkeypatch.setattr(R, "time_one", fake)
   out = tmp_path / "r.md"
