@@ -49,6 +49,11 @@ test split of ``--synthetic``, default the checkpoint's own dataset when present
 scored against its ground truth), to tell a reading or adaptation bug from the
 synthetic-to-real gap.
 
+To tell what the networks' learned parts give or take on measured scans, each
+ST-Mamba network also runs with its refinement zeroed, and with both its
+spreading residual and its refinement zeroed (the interpolated scan through its
+physics layer; :func:`ablated_models`; ``--no-ablation`` skips it).
+
 Each method's seconds per scan, as the run above measured them (the first
 scene with tracing and compilation, then the median over the others), go in a
 table under the scores. Also times ``python -m experiments.reconstruct`` against the NumPy/SciPy twins
@@ -195,18 +200,20 @@ def load_models(checkpoint=None, pretrained=None, log=print) -> dict:
   return trained
 
 
-def run(files, strides, checkpoint, log=print, *, trained: dict | None = None) -> dict:
+def run(files, strides, checkpoint, log=print, *, trained: dict | None = None,
+        classic: bool = True) -> dict:
   """Every method on every scan and stride; returns the images and scores.
 
   The networks: ``trained`` (``variant -> (model_config, params)``, e.g.
   :func:`load_models`), else every variant of ``checkpoint`` (None: none).
+  ``classic=False`` runs the networks alone (the full-scan references still).
   """
   from tqdm import tqdm
 
   from nlosjax.data import io
   if trained is None:
     trained = load_models(checkpoint, log=log) if checkpoint is not None else {}
-  methods = CLASSIC + tuple(trained)
+  methods = (CLASSIC if classic else ()) + tuple(trained)
   results = {"strides": list(strides), "methods": list(methods), "scenes": {}, "trained": trained}
   jobs = [(f, m, s) for f in files for m in methods for s in (1,) + tuple(strides)
           if not (s == 1 and m in trained)]
@@ -326,6 +333,72 @@ def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict
   return {"file": str(shown), "frames": len(scores[CLASSIC[0]]["psnr"]), "stride": stride,
           "options": {m: B.default_options(m, setup) for m in CLASSIC},
           "scores": {m: {k: float(np.mean(v)) for k, v in d.items()} for m, d in scores.items()}}
+
+
+# ------------------------------------------------------------------ ablation
+#: What each ablation zeroes in an ST-Mamba network (parameter path prefixes). With
+#: ``spread/to_transient`` zero the recovered transient is the skip alone: the sparse
+#: scan bilinearly interpolated (times ``skip_gain``); with ``volume/refine/to_volume``
+#: zero the volume is the physics layer's normalised reconstruction of that transient.
+ABLATIONS = {"no_refinement": ("volume/refine/to_volume",),
+             "physics_only": ("spread/to_transient", "volume/refine/to_volume")}
+ABLATION_TEXT = {"no_refinement": "refinement zeroed",
+                 "physics_only": "spreading residual and refinement zeroed (interpolated scan, physics layer)"}
+
+
+def _zeroed(params, prefixes):
+  """``params`` with every leaf under one of ``prefixes`` (``/``-joined paths) set to 0; None if none is."""
+  import jax
+  hit = []
+
+  def leaf(path, v):
+    name = "/".join(str(getattr(k, "key", k)) for k in path)
+    if name.startswith(prefixes):
+      hit.append(name)
+      return np.zeros_like(v)
+    return v
+  out = jax.tree_util.tree_map_with_path(leaf, params)
+  return out if {p for p in prefixes if any(h.startswith(p) for h in hit)} == set(prefixes) else None
+
+
+def ablated_models(trained: dict) -> dict:
+  """``"<variant>|<ablation>" -> (model_config, params)`` for each network that has the ablated parts.
+
+  USM has no such parts and is skipped. The ablations (:data:`ABLATIONS`) ask how
+  much of a network's score on measured scans its learned residuals give or take.
+  """
+  out = {}
+  for v, (mcfg, params) in trained.items():
+    for name, prefixes in ABLATIONS.items():
+      zeroed = _zeroed(params, prefixes)
+      if zeroed is not None:
+        out[f"{v}|{name}"] = (mcfg, zeroed)
+  return out
+
+
+def _ablation_lines(results, ablation) -> list[str]:
+  """Mean intensity PSNR / SSIM of each network as trained and with its residuals zeroed."""
+  if not ablation:
+    return []
+  cols = list(ABLATIONS)
+  lines = ["What the networks' learned residuals do on these scans: each network as trained, and with"
+           " parts of it zeroed (" + "; ".join(f"*{c}*: {ABLATION_TEXT[c]}" for c in cols)
+           + "; means over scenes of the mean over references, PSNR (dB) / SSIM):", "",
+           "| network | input | as trained | " + " | ".join(cols) + " |",
+           "|---|---|---|" + "---|" * len(cols)]
+
+  def mean(res, m, stride):
+    vals = [e["scores"][(m, stride)] for e in res["scenes"].values() if (m, stride) in e["scores"]]
+    return (f"{np.mean([v['psnr'] for v in vals]):.2f} / {np.mean([v['ssim'] for v in vals]):.3f}"
+            if vals else "–")
+  for v in [m for m in results["methods"] if m not in CLASSIC]:
+    if not any(f"{v}|{c}" in ablation["methods"] for c in cols):
+      continue
+    for stride in results["strides"]:
+      g = 64 // stride
+      lines.append(f"| {LABELS[v]} | {g} × {g} | {mean(results, v, stride)} | "
+                   + " | ".join(mean(ablation, f"{v}|{c}", stride) for c in cols) + " |")
+  return lines + [""]
 
 
 # ------------------------------------------------------------------ timing
@@ -632,7 +705,7 @@ def _binned_lines(results, binned) -> list[str]:
 
 
 def write_report(results, out: pathlib.Path, *, timing=None, warm=None, synthetic=None,
-                 binned=None, facts: list[str], elapsed: float, figures: list[str],
+                 binned=None, ablation=None, facts: list[str], elapsed: float, figures: list[str],
                  notes: str = "") -> None:
   lines = ["# Under-scanning on measured scans", ""] + facts + [
       f"- Wall time: {elapsed / 60:.1f} min; numpy {np.__version__}",
@@ -653,6 +726,7 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
   if wl:
     lines += ["Does the trained network beat every classic method (means over scenes)?", "", *wl, ""]
   lines += _binned_lines(results, binned)
+  lines += _ablation_lines(results, ablation)
   if synthetic:
     lines += [
         f"In-domain check (same code, the networks' own data): {synthetic['frames']} frames of"
@@ -747,6 +821,8 @@ def main(argv=None):
                            " checkpoint's config.json, else runs/data/cpu.h5; 'none' to skip;"
                            " skipped if absent)")
   parser.add_argument("--notes", default=None, help="a Markdown file whose text is added after the tables")
+  parser.add_argument("--no-ablation", action="store_true",
+                      help="skip the networks with their learned residuals zeroed (ablated_models)")
   args = parser.parse_args(argv)
   t0 = time.perf_counter()
   command = "python -m experiments.real_undersampling " + " ".join(
@@ -775,15 +851,20 @@ def main(argv=None):
   if synthetic_path.lower() != "none":
     synthetic = synthetic_check(synthetic_path, results["trained"])
   binned = binned_classic(results)
+  ablated = {} if args.no_ablation else ablated_models(results["trained"])
+  ablation = run(files, args.strides, None, trained=ablated, classic=False) if ablated else None
   notes = pathlib.Path(args.notes).read_text() if args.notes else ""
   write_report(results, out, timing=timing, warm=warm, synthetic=synthetic, binned=binned,
-               facts=facts, elapsed=time.perf_counter() - t0, figures=figures,
+               ablation=ablation, facts=facts, elapsed=time.perf_counter() - t0, figures=figures,
                notes=notes)
   if args.json:
     scores = {sc: {f"{m}@{s}": v for (m, s), v in e["scores"].items()}
               for sc, e in results["scenes"].items()}
     binned_json = None if binned is None else {
         **binned, "scores": {f"{m}@{s}": v for (m, s), v in binned["scores"].items()}}
+    if ablation:
+      scores["ablation"] = {sc: {f"{m}@{s}": v for (m, s), v in e["scores"].items()}
+                            for sc, e in ablation["scenes"].items()}
     pathlib.Path(args.json).write_text(json.dumps({"scores": scores, "timing": timing, "warm": warm,
                                                    "synthetic": synthetic, "binned": binned_json},
                                                   indent=2) + "\n")

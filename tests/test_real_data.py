@@ -222,3 +222,38 @@ def test_time_lines_separate_the_compiling_first_call_from_the_compiled_ones():
   del results["scenes"]["a"]["scores"][("ours", 4)]
   results["scenes"]["b"]["scores"][("ours", 4)].pop("again_s")
   assert "| Ours | 10.00 | 60.00 |" in R._time_lines(results)
+
+
+def test_ablated_models_zero_exactly_the_named_parts_and_skip_networks_without_them():
+  import jax
+
+  from experiments import real_undersampling as R
+  from nlosjax import inference
+  mcfg, params, _ = inference.load_pretrained("real", "ours_s")
+  usm_like = {"decoder": {"kernel": np.ones((2, 2), np.float32)}}
+  out = R.ablated_models({"ours_s": (mcfg, params), "usm": (mcfg, usm_like)})
+  assert set(out) == {"ours_s|no_refinement", "ours_s|physics_only"}
+  for key, prefixes in (("ours_s|no_refinement", ("volume/refine/to_volume",)),
+                        ("ours_s|physics_only", ("spread/to_transient", "volume/refine/to_volume"))):
+    got, zeroed = out[key][1], []
+    for (path, a), (_, b) in zip(jax.tree_util.tree_flatten_with_path(params)[0],
+                                 jax.tree_util.tree_flatten_with_path(got)[0]):
+      name = "/".join(k.key for k in path)
+      if name.startswith(prefixes):
+        zeroed.append(name)
+        assert not np.any(np.asarray(b))
+      else:
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert {z.rsplit("/", 1)[0] for z in zeroed} == set(prefixes)      # kernel and bias of each
+  # The table: one row per network and input, the ablations beside the trained score.
+  score = lambda p: {"psnr": p, "ssim": 0.5, "vs": {}}
+  results = {"strides": [4], "methods": ["lct", "ours_s"],
+             "scenes": {"a": {"scores": {("lct", 4): score(17.0), ("ours_s", 4): score(16.0)}},
+                        "b": {"scores": {("lct", 4): score(19.0), ("ours_s", 4): score(18.0)}}}}
+  ablation = {"methods": ["ours_s|no_refinement", "ours_s|physics_only"],
+              "scenes": {sc: {"scores": {("ours_s|no_refinement", 4): score(p),
+                                         ("ours_s|physics_only", 4): score(p + 1)}}
+                         for sc, p in (("a", 15.0), ("b", 16.0))}}
+  lines = R._ablation_lines(results, ablation)
+  assert "| Ours-S | 16 × 16 | 17.00 / 0.500 | 15.50 / 0.500 | 16.50 / 0.500 |" in lines
+  assert R._ablation_lines(results, None) == []
