@@ -54,11 +54,12 @@ ST-Mamba network also runs with its refinement zeroed, and with both its
 spreading residual and its refinement zeroed (the interpolated scan through its
 physics layer; :func:`ablated_models`; ``--no-ablation`` skips it).
 
-Each method's seconds per scan, as the run above measured them (the first
-scene with tracing and compilation, then the median over the others), go in a
-table under the scores. Also times ``python -m experiments.reconstruct`` against the NumPy/SciPy twins
-of the public algorithms (``experiments/numpy_twins.py``) for LCT, f-k and
-phasor on one 64 x 64 x 512 scan (``--no-timing`` skips it).
+Each method's seconds per scan, as the run above measured them (its first call,
+with tracing and compilation, and the median over scenes of a second call on the
+same scan), go in a table under the scores. Also times ``python -m
+experiments.reconstruct`` against the NumPy/SciPy twins of the public
+algorithms (``experiments/numpy_twins.py``) for LCT, f-k and phasor on one
+64 x 64 x 512 scan (``--no-timing`` skips it).
 
 Writes the Markdown report (``--out``) and, beside it, ``real_<scene>.png``
 (one image row per method, columns full scan / 16 x 16 / 8 x 8) and
@@ -201,12 +202,14 @@ def load_models(checkpoint=None, pretrained=None, log=print) -> dict:
 
 
 def run(files, strides, checkpoint, log=print, *, trained: dict | None = None,
-        classic: bool = True) -> dict:
+        classic: bool = True, references: dict | None = None) -> dict:
   """Every method on every scan and stride; returns the images and scores.
 
   The networks: ``trained`` (``variant -> (model_config, params)``, e.g.
   :func:`load_models`), else every variant of ``checkpoint`` (None: none).
-  ``classic=False`` runs the networks alone (the full-scan references still).
+  ``classic=False`` runs the networks alone. ``references``: ``scene -> {method:
+  [H, W] full-scan image}`` of an earlier run of the same files (its
+  ``results["scenes"][scene]["references"]``), used instead of reconstructing them again.
   """
   from tqdm import tqdm
 
@@ -215,16 +218,18 @@ def run(files, strides, checkpoint, log=print, *, trained: dict | None = None,
     trained = load_models(checkpoint, log=log) if checkpoint is not None else {}
   methods = (CLASSIC if classic else ()) + tuple(trained)
   results = {"strides": list(strides), "methods": list(methods), "scenes": {}, "trained": trained}
-  jobs = [(f, m, s) for f in files for m in methods for s in (1,) + tuple(strides)
-          if not (s == 1 and m in trained)]
-  bar = tqdm(total=len(jobs), desc="reconstructions", unit="recon", dynamic_ncols=True)
+  jobs = len(files) * ((0 if references else len(REFERENCES)) + len(methods) * len(strides))
+  bar = tqdm(total=jobs, desc="reconstructions", unit="recon", dynamic_ncols=True)
   for path in files:
     transient, setup = io.load_measurement(path)
     scene = scene_name(path)
-    refs = {}
-    for m in REFERENCES:
-      refs[m] = classic_intensity(transient, setup, m, 1)
-      bar.update(1)
+    if references:
+      refs = references[scene]
+    else:
+      refs = {}
+      for m in REFERENCES:
+        refs[m] = classic_intensity(transient, setup, m, 1)
+        bar.update(1)
     entry = {"file": str(path), "setup": repr(setup), "references": refs, "images": {},
              "scores": {}}
     for method in methods:
@@ -347,7 +352,10 @@ ABLATION_TEXT = {"no_refinement": "refinement zeroed",
 
 
 def _zeroed(params, prefixes):
-  """``params`` with every leaf under one of ``prefixes`` (``/``-joined paths) set to 0; None if none is."""
+  """``params`` with every leaf under one of ``prefixes`` (``/``-joined paths) set to 0.
+
+  None unless every prefix names at least one leaf (a network without those parts).
+  """
   import jax
   hit = []
 
@@ -388,7 +396,7 @@ def _ablation_lines(results, ablation) -> list[str]:
            "|---|---|---|" + "---|" * len(cols)]
 
   def mean(res, m, stride):
-    vals = [e["scores"][(m, stride)] for e in res["scenes"].values() if (m, stride) in e["scores"]]
+    vals = _over_scenes(res, m, stride)
     return (f"{np.mean([v['psnr'] for v in vals]):.2f} / {np.mean([v['ssim'] for v in vals]):.3f}"
             if vals else "–")
   for v in [m for m in results["methods"] if m not in CLASSIC]:
@@ -548,6 +556,12 @@ def _table(results) -> list[str]:
   return lines
 
 
+def _over_scenes(results, method: str, stride: int) -> list[dict]:
+  """The score records of ``method`` at ``stride``, one per scene that has one, in scene order."""
+  return [e["scores"][(method, stride)] for e in results["scenes"].values()
+          if (method, stride) in e["scores"]]
+
+
 def _time_lines(results) -> list[str]:
   """Seconds per scan of each method and input, as :func:`run` measured them (one frame each).
 
@@ -569,8 +583,7 @@ def _time_lines(results) -> list[str]:
   for m in results["methods"]:
     cells = []
     for stride in results["strides"]:
-      rows = [results["scenes"][sc]["scores"][(m, stride)] for sc in scenes
-              if (m, stride) in results["scenes"][sc]["scores"]]
+      rows = _over_scenes(results, m, stride)
       again = [r["again_s"] for r in rows if "again_s" in r]
       cells += [f"{rows[0]['time_s']:.2f}" if rows else "–",
                 f"{np.median(again):.2f}" if again else "–"]
@@ -585,8 +598,7 @@ def _winner_lines(results) -> list[str]:
   for stride in results["strides"]:
     means = {}
     for m in results["methods"]:
-      vals = [results["scenes"][sc]["scores"][(m, stride)] for sc in results["scenes"]
-              if (m, stride) in results["scenes"][sc]["scores"]]
+      vals = _over_scenes(results, m, stride)
       if vals:
         means[m] = (np.mean([v["psnr"] for v in vals]), np.mean([v["ssim"] for v in vals]))
     if not classic or not means:
@@ -652,7 +664,7 @@ def write_figures(results, out_dir: pathlib.Path) -> list[str]:
   for k, s in enumerate(strides):
     ps, ss = [], []
     for m in methods:
-      vals = [e["scores"][(m, s)] for e in results["scenes"].values() if (m, s) in e["scores"]]
+      vals = _over_scenes(results, m, s)
       ps.append(np.mean([v["psnr"] for v in vals]) if vals else np.nan)
       ss.append(np.mean([v["ssim"] for v in vals]) if vals else np.nan)
     x = np.arange(len(methods)) + (k - (len(strides) - 1) / 2) * width
@@ -697,7 +709,7 @@ def _binned_lines(results, binned) -> list[str]:
       + " means over scenes, PSNR (dB) / SSIM: mean over the same references):", "",
       f"| method | input | at 16 ps | at {width} |", "|---|---|---|---|"]
   for (m, stride), r in binned["scores"].items():
-    vals = [e["scores"][(m, stride)] for e in results["scenes"].values()]
+    vals = _over_scenes(results, m, stride)
     p16, s16 = np.mean([v["psnr"] for v in vals]), np.mean([v["ssim"] for v in vals])
     g = 64 // stride
     lines.append(f"| {LABELS[m]} | {g} × {g} | {p16:.2f} / {s16:.3f} | {r['psnr']:.2f} / {r['ssim']:.3f} |")
@@ -852,7 +864,10 @@ def main(argv=None):
     synthetic = synthetic_check(synthetic_path, results["trained"])
   binned = binned_classic(results)
   ablated = {} if args.no_ablation else ablated_models(results["trained"])
-  ablation = run(files, args.strides, None, trained=ablated, classic=False) if ablated else None
+  ablation = None
+  if ablated:
+    ablation = run(files, args.strides, None, trained=ablated, classic=False,
+                   references={sc: e["references"] for sc, e in results["scenes"].items()})
   notes = pathlib.Path(args.notes).read_text() if args.notes else ""
   write_report(results, out, timing=timing, warm=warm, synthetic=synthetic, binned=binned,
                ablation=ablation, facts=facts, elapsed=time.perf_counter() - t0, figures=figures,
