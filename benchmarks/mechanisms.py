@@ -59,12 +59,10 @@ runs of a few steps, seconds each once compiled) into ``--workdir`` (default
 from __future__ import annotations
 
 import copy
-import datetime
 import json
 import math
 import os
 import pathlib
-import platform
 import sys
 import time
 from typing import Callable
@@ -263,15 +261,10 @@ def code_at_start() -> dict:
 
 
 def machine() -> dict:
-  """Where and from which code a run's numbers came (experiments.provenance helpers; code as at start)."""
-  import jax
-
+  """Where and from which code a run's numbers came (:func:`experiments.provenance.machine_record`;
+  the commit and code digest as at the start of the process)."""
   from experiments import provenance as P
-  return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-          "cpu": P.cpu_model(), "cores": P.usable_cores(), "memory": P.memory_text(),
-          "backend": jax.default_backend(), "device": jax.devices()[0].device_kind,
-          "python": platform.python_version(), "jax": jax.__version__,
-          **code_at_start(), "load_average": P.load_average(", ")}
+  return {**P.machine_record(), **code_at_start()}
 
 
 # --------------------------------------------------------------- JSON I/O

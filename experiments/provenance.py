@@ -110,23 +110,31 @@ def provenance(command: str) -> list[str]:
           f"- Load average (1, 5, 15 min) when written: {load_average(', ')}"]
 
 
-def run_record(command: str) -> dict:
-  """Where and from which code a training process starts: a JSON-ready dict.
+def machine_record() -> dict:
+  """Where and from which code this process runs, JSON-ready.
 
-  ``command``, ``date`` (UTC), ``commit`` (:func:`git_commit`), ``cpu``,
-  ``cores``, ``memory``, ``backend``, ``device``, ``python``, ``jax`` and
-  ``load_average``. ``python -m experiments.train`` appends one per invocation
-  to ``<workdir>/invocations.jsonl``; ``experiments.export_weights`` reads it.
+  ``date`` (UTC, now), ``commit`` (:func:`git_commit`), ``cpu``, ``cores``,
+  ``memory``, ``backend``, ``device``, ``python``, ``jax`` and ``load_average``.
+  A training run's record (:func:`run_record`) and a mechanism-study run's
+  ``machine`` are this.
   """
   import datetime
 
   import jax
-  return {"command": command,
-          "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+  return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
           "commit": git_commit(), "cpu": cpu_model(), "cores": usable_cores(), "memory": memory_text(),
           "backend": jax.default_backend(), "device": jax.devices()[0].device_kind,
           "python": platform.python_version(), "jax": jax.__version__,
           "load_average": load_average(", ")}
+
+
+def run_record(command: str) -> dict:
+  """:func:`machine_record` with the ``command`` that starts a training process.
+
+  ``python -m experiments.train`` appends one per invocation to
+  ``<workdir>/invocations.jsonl``; ``experiments.export_weights`` reads it.
+  """
+  return {"command": command, **machine_record()}
 
 
 # --- What a results file's numbers depend on: the project's code, by content -----------------
