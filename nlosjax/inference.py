@@ -496,13 +496,15 @@ def triplets(frames: np.ndarray, num_frames: int) -> np.ndarray:
   return frames[idx]
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=2)
 def _checked_forward(model_config):
   """The jitted, checked forward of ``model_config`` (NaN / negative counts raise), kept per config.
 
   Kept so that :func:`run_model` called again with the same config (the next
   capture of a setup, the next chunk of a video) reuses the compiled program
-  instead of tracing a new closure. The physics operators enter it as an argument.
+  instead of tracing a new closure. The physics operators enter it as an argument
+  and stay bound to it (136 MB at the paper preset), so only the last two configs
+  are kept.
   """
   from nlosjax.physics.checks import checked
   model = model_config.module()

@@ -91,8 +91,8 @@ def _regenerate(name, variant, folder):
   return mcfg, params, prov, config, path
 
 
-def _val_sequence_psnr(mcfg, params, config, path) -> float:
-  """Mean intensity PSNR (dB) of the model over the frames of the one val sequence in ``path``."""
+def _val_sequence_psnr(mcfg, params, config, path) -> np.ndarray:
+  """``[F]`` intensity PSNR (dB) of the model on each frame of the one val sequence in ``path``."""
   data = protocol.load_split(config, path, "val", batch_size=int(config["train"]["eval_batch_size"]))
   try:
     images = protocol.model_images(mcfg, params, data["loader"])
