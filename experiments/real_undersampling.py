@@ -267,7 +267,7 @@ def score_against(image, references: dict, method: str) -> dict:
           "ssim": float(np.mean([v["ssim"] for v in vs.values()]))}
 
 
-def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
+def binned_classic(results, methods=("phasor", "rsd"), refined=("phasor",)) -> dict | None:
   """Classic methods on the sparse scans summed to the networks' time bins (mean scores over scenes).
 
   Tells what the networks' coarser bins cost from what the networks do: the
@@ -276,6 +276,13 @@ def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
   uses, and phasor / RSD with the wavelength raised
   to 3 bins per period where their default is unresolved on those bins
   (``nlosjax.evaluation.baselines.default_options``).
+
+  ``refined``: methods also run with ``variant="refined"``, the operators of
+  the networks' physics layer (``nlosjax.models.blocks.FeatureTransform``:
+  the centred wavelet, plain bin averaging from t to v), keyed
+  ``"<method>/refined"``, at the capture's bins as well (``psnr_16``,
+  ``ssim_16``): with the public operators beside them, what the layer's
+  operators cost on these scans, apart from the learned parts.
 
   Returns ``None`` without a trained network, else ``{"bin_factor": k,
   "bin_width": s, "scores": {(method, stride): {"psnr": dB, "ssim": ...}},
@@ -288,11 +295,11 @@ def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
   from nlosjax.evaluation.baselines import default_options as classic_options
   from nlosjax.inference import adapt_to_capture
   mcfg = next(iter(trained.values()))[0]
-  rows, options = {}, {}
+  rows, options, extra = {}, {}, {}
   for entry in results["scenes"].values():
-    transient, capture = io.load_measurement(entry["file"])
+    full, capture = io.load_measurement(entry["file"])
     adapted = adapt_to_capture(mcfg, capture)                  # the networks' time binning
-    transient, setup = np.asarray(adapted.prepare(transient)), adapted.setup
+    transient, setup = np.asarray(adapted.prepare(full)), adapted.setup
     for method in methods:
       opts = {**OPTIONS[method], **classic_options(method, setup)}
       options.setdefault(method, []).append(opts)
@@ -300,8 +307,18 @@ def binned_classic(results, methods=("phasor", "rsd")) -> dict | None:
         image = classic_intensity(transient, setup, method, stride, opts)
         sc = score_against(image, entry["references"], method)
         rows.setdefault((method, stride), []).append((sc["psnr"], sc["ssim"]))
+        if method in refined:
+          fine = {**OPTIONS[method], "variant": "refined"}      # as run() at 16 ps
+          for key, (x, s, o) in (("", (transient, setup, dict(opts, variant="refined"))),
+                                 ("_16", (full, capture, fine))):
+            sc = score_against(classic_intensity(x, s, method, stride, o), entry["references"], method)
+            extra.setdefault((f"{method}/refined", stride), {}).setdefault(key, []).append(
+                (sc["psnr"], sc["ssim"]))
   scores = {k: {"psnr": float(np.mean([v[0] for v in vals])), "ssim": float(np.mean([v[1] for v in vals]))}
             for k, vals in rows.items()}
+  for k, by in extra.items():
+    scores[k] = {f"{q}{key}": float(np.mean([v[i] for v in vals]))
+                 for key, vals in by.items() for i, q in enumerate(("psnr", "ssim"))}
   return {"bin_factor": adapted.bin_factor, "bin_width": setup.bin_width, "scores": scores,
           "options": options}
 
@@ -706,13 +723,21 @@ def _binned_lines(results, binned) -> list[str]:
       + "".join(f" {LABELS[m]} sampling_coeff per scene "
                 + " / ".join(f"{o.get('sampling_coeff', 2.0):.3g}" for o in opts) + ";"
                 for m, opts in binned["options"].items())
-      + " means over scenes, PSNR (dB) / SSIM: mean over the same references):", "",
+      + " means over scenes, PSNR (dB) / SSIM: mean over the same references). A *refined operators*"
+      " row is that method with the operators of the networks' physics layer (`variant=\"refined\"`:"
+      " centred wavelet, plain bin averaging from t to v) in place of the public ones: on the same"
+      " input, what the layer's operators cost or gain before anything learned acts:", "",
       f"| method | input | at 16 ps | at {width} |", "|---|---|---|---|"]
   for (m, stride), r in binned["scores"].items():
-    vals = _over_scenes(results, m, stride)
-    p16, s16 = np.mean([v["psnr"] for v in vals]), np.mean([v["ssim"] for v in vals])
+    base, _, variant = m.partition("/")
+    if variant:     # its own scores at 16 ps
+      p16, s16 = r["psnr_16"], r["ssim_16"]
+      label = f"{LABELS[base]}, {variant} operators (the networks' physics layer)"
+    else:
+      vals = _over_scenes(results, m, stride)
+      p16, s16, label = np.mean([v["psnr"] for v in vals]), np.mean([v["ssim"] for v in vals]), LABELS[m]
     g = 64 // stride
-    lines.append(f"| {LABELS[m]} | {g} × {g} | {p16:.2f} / {s16:.3f} | {r['psnr']:.2f} / {r['ssim']:.3f} |")
+    lines.append(f"| {label} | {g} × {g} | {p16:.2f} / {s16:.3f} | {r['psnr']:.2f} / {r['ssim']:.3f} |")
   return lines + [""]
 
 

@@ -146,6 +146,7 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
 
   from experiments import real_undersampling as R
   from nlosjax import metrics
+  from nlosjax.evaluation import baselines as B
   from nlosjax.models.network import ModelConfig
   transient, setup = scan
 
@@ -177,6 +178,15 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
   assert two["scores"][("phasor", 4)]["psnr"] != pytest.approx(same["scores"][("phasor", 4)]["psnr"])
   table = "\n".join(R._binned_lines(results, two))
   assert f"{entry['scores'][('phasor', 4)]['psnr']:.2f}" in table and f"{expected['psnr']:.2f}" in table
+  # The physics layer's operators ("refined"), by hand at both bin widths.
+  opts = {**B.default_options("phasor", coarse), "variant": "refined"}
+  refined = two["scores"][("phasor/refined", 4)]
+  by_hand = score(R.classic_intensity(pairs, coarse, "phasor", 4, opts))
+  at_16 = score(R.classic_intensity(transient, setup, "phasor", 4, {"variant": "refined"}))
+  assert refined == pytest.approx({**by_hand, **{k + "_16": v for k, v in at_16.items()}}, rel=1e-6)
+  assert refined["psnr"] != pytest.approx(expected["psnr"])     # other operators, another image
+  assert "Phasor, refined operators (the networks' physics layer)" in table
+  assert f"{at_16['psnr']:.2f} / {at_16['ssim']:.3f} | {by_hand['psnr']:.2f}" in table
 
 
 def test_training_data_is_found_from_a_workdir_a_variant_folder_or_its_checkpoints(tmp_path):
