@@ -451,10 +451,13 @@ def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = N
     wavelength could fall below two bins (unresolved), and in any case the
     layers around the physics layer learned features whose carrier spans a
     fixed number of bins. So ``wavelet_sampling`` is rescaled to keep the
-    wavelength in (coarse) bins what it was in training.
+    wavelength in (coarse) bins what it was in training. A model without a
+    phasor physics layer (USM, whose wavelet is only its training loss's)
+    keeps its ``wavelet_sampling``.
 
   Args:
-    model_config: the trained :class:`~nlosjax.models.network.ModelConfig`.
+    model_config: the trained :class:`~nlosjax.models.network.ModelConfig`
+      (or :class:`~nlosjax.models.usm.USMConfig`).
     capture: the capture's full-grid Setup (its depth range is kept).
     bin_factor: override the time binning.
   """
@@ -471,6 +474,9 @@ def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = N
   setup = Setup(wall_size=capture.wall_size, grid=capture.grid,
                 bin_width=capture.bin_width * bin_factor, num_bins=num_bins,
                 depth_range=capture.depth_range, aperture=capture.aperture)
+  if getattr(model_config, "physics", None) != "phasor":
+    return CaptureAdaptation(bin_factor=bin_factor, setup=setup,
+                             model_config=dataclasses.replace(model_config, setup=setup))
   # Wavelength in coarse bins, as trained.
   stride = model_config.volume_time_stride
   trained_coarse = dataclasses.replace(trained.ungated(), bin_width=trained.bin_width * stride)

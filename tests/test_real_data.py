@@ -88,6 +88,8 @@ def test_reconstruct_cli_images_match_public_reference(scan, method, tmp_path):
 def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(scan):
   """The ``real`` preset builds its model, and ``adapt_to_capture`` maps it onto the shipped scan
   with whole capture bins per network bin and the trained wavelength in bins (same depth range)."""
+  import dataclasses
+
   from experiments.configs import get_config
   from nlosjax import inference as cio
   from nlosjax import train as T
@@ -113,6 +115,14 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
   trained = wavelength_in_bins(mcfg)
   assert 2.5 <= trained <= 4.0
   assert wavelength_in_bins(adapted.model_config) == pytest.approx(trained, rel=1e-6)
+
+  # USM has no phasor layer: the same time binning and geometry, its (loss) wavelet kept as
+  # trained. Rescaled as Ours' would be, its carrier on the coarse bins raised "not resolved".
+  usm = T.model_config_for(config, spec.setup, "usm")
+  moved = cio.adapt_to_capture(usm, capture)
+  assert moved.bin_factor == 4 and moved.setup == adapted.setup
+  assert moved.model_config == dataclasses.replace(usm, setup=adapted.setup)
+  assert moved.model_config.input_shape(1) == (1, 1, capture.num_bins // 4, 16, 16)
 
 
 def test_classic_baselines_resolve_the_phasor_wavelet_on_coarse_synthetic_bins():
