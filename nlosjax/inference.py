@@ -265,7 +265,8 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
   the provenance's run config as :func:`load_trained` does
   (:func:`nlosjax.train.model_config_for` for the training Setup). Checked,
   each a ValueError naming the file: the sha256 of ``params.npz``, that the
-  rebuilt config's ``repr`` equals the recorded ``model_config``, that the
+  rebuilt config's ``repr`` equals the recorded ``model_config`` (or differs
+  only by fields added since, at their defaults), that the
   parameter tree has the shapes the config initialises (``jax.eval_shape``),
   and the recorded parameter-tree fingerprint.
 
@@ -306,7 +307,7 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
     mcfg = train.model_config_for(config, training_setup(config), variant)
   except (KeyError, TypeError, ValueError) as e:
     raise ValueError(f"{where}: its config does not rebuild a model ({type(e).__name__}: {e})") from None
-  if repr(mcfg) != prov["model_config"]:
+  if added_default_fields(prov["model_config"], mcfg) is None:     # [] when equal
     raise ValueError(f"{where}: the model config rebuilt from its config differs from the one"
                      f" recorded (another version of nlosjax, or an edited file):\n  recorded: "
                      f"{prov['model_config']}\n  rebuilt:  {mcfg!r}")

@@ -9,6 +9,8 @@ mirrored parameters, scale invariance of the input normalisation).
 Everything runs at tiny shapes (8 x 8 scan grid, 32 bins).
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -268,6 +270,42 @@ def test_feature_transform_is_the_physics(method, depth_range):
   np.testing.assert_allclose(win, ref, atol=1e-5 * ref.max(), rtol=1e-4)
   with pytest.raises(ValueError, match="reads"):
     layer.apply({}, jnp.asarray(x)[None, a + 1:b, ..., None], time_offset=a + 1)
+
+
+@pytest.mark.parametrize("method", ["phasor", "lct"])
+def test_feature_transform_with_public_operators_is_the_public_physics(method):
+  """``variant="public"``: the layer gives ``nlosjax.physics``' public volume (its resampling
+  matrix and wavelet, every bin read), and reads every bin; another image than the refined one."""
+  setup = Setup(0.5, (8, 8), 64e-12, 48, depth_range=(0.09, 0.2))
+  x = point_scene(setup)
+  ref = np.asarray(physics.reconstruct(x, setup, method, variant="public"))
+  layer = FeatureTransform(setup, method, variant="public")
+  assert layer.window() == (0, setup.num_bins)
+  out = layer.apply({}, jnp.asarray(x)[None, ..., None])[0, ..., 0]
+  assert out.shape == ref.shape == (setup.num_depth_bins, 8, 8)
+  np.testing.assert_allclose(out, ref, atol=1e-5 * ref.max(), rtol=1e-4)
+  refined = np.asarray(physics.reconstruct(x, setup, method, variant="refined", oversample=1))
+  assert np.abs(refined / refined.max() - ref / ref.max()).max() > 1e-2
+  with pytest.raises(ValueError, match="oversample"):
+    FeatureTransform(setup, method, variant="public", oversample=2).apply({}, jnp.asarray(x)[None, ..., None])
+
+
+def test_model_config_physics_variant_reaches_the_layer_and_is_checked():
+  """``ModelConfig.physics_variant`` builds the public layer (reading every bin) and the
+  refined one by default; bad values fail when the config is made."""
+  base = tiny_config()
+  public = dataclasses.replace(base, physics_variant="public")
+  assert base.physics_variant == "refined"
+  assert public.volume_kwargs()["variant"] == "public"
+  assert public.time_window == (0, public.setup.num_bins)
+  x = jnp.zeros(public.input_shape(1), jnp.float32).at[..., 0, 0].set(1.0)
+  a = public.module().init(jax.random.key(0), x)["params"]
+  b = base.module().init(jax.random.key(0), x)["params"]
+  assert jax.tree.map(jnp.shape, a) == jax.tree.map(jnp.shape, b)     # the same parameters
+  with pytest.raises(ValueError, match="physics_variant"):
+    dataclasses.replace(base, physics_variant="published")
+  with pytest.raises(ValueError, match="physics_oversample"):
+    dataclasses.replace(base, physics_variant="public", physics_oversample=2)
 
 
 def test_volume_stage_physics_channel_is_the_physics_of_the_pooled_transient():

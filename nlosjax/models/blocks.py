@@ -53,9 +53,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from nlosjax.physics import operator_args
-from nlosjax.physics.operators import check_falloff, lct_apply, lct_filter, lct_operators, to_depth
+from nlosjax.physics.operators import (
+  check_falloff,
+  check_variant,
+  lct_apply,
+  lct_filter,
+  lct_operators,
+  public_lct_operators,
+  to_depth,
+)
 from nlosjax.physics.setup import Setup
-from nlosjax.physics.wavelet import convolve_time, illumination_wavelet
+from nlosjax.physics.wavelet import convolve_time, illumination_wavelet, public_wavelet
 
 PHYSICS_METHODS = ("phasor", "lct")
 _TINY = 1e-12  # guard of every data-dependent normalisation (all-zero input gives zeros, not NaN)
@@ -527,15 +535,18 @@ def coarsen_setup(setup: Setup, time_stride: int) -> Setup:
 
 
 def physics_window(setup: Setup, method: str, *, cycles: float = 5.0,
-                   sampling_coeff: float = 2.0) -> tuple[int, int]:
+                   sampling_coeff: float = 2.0, variant: str = "refined") -> tuple[int, int]:
   """``(a, b)``: the time bins of ``setup`` that :class:`FeatureTransform` reads.
 
   LCT: ``setup.time_bins`` (the bins that can hold returns from the depth
   range). Phasor: those widened by half the wavelet on each side, as
-  :func:`nlosjax.physics.phasor` convolves them.
+  :func:`nlosjax.physics.phasor` convolves them. ``variant="public"``: every
+  bin, ``(0, T)`` (the public operators do not gate).
   """
   if method not in PHYSICS_METHODS:
     raise ValueError(f"method must be one of {PHYSICS_METHODS}, got {method!r}")
+  if check_variant(variant) == "public":
+    return (0, setup.num_bins)
   t0, t1 = setup.time_bins
   if method == "lct":
     return (t0, t1)
@@ -544,14 +555,14 @@ def physics_window(setup: Setup, method: str, *, cycles: float = 5.0,
 
 
 def volume_window(setup: Setup, time_stride: int, method: str, *, cycles: float = 5.0,
-                  sampling_coeff: float = 2.0) -> tuple[int, int]:
+                  sampling_coeff: float = 2.0, variant: str = "refined") -> tuple[int, int]:
   """``(a, b)``: time bins of ``setup`` that :class:`VolumeReconstruction` reads.
 
   The :func:`physics_window` of ``coarsen_setup(setup, time_stride)`` in fine
   bins: ``a`` is a multiple of ``time_stride``, ``(0, T)`` without a depth range.
   """
   ca, cb = physics_window(coarsen_setup(setup, time_stride), method, cycles=cycles,
-                          sampling_coeff=sampling_coeff)
+                          sampling_coeff=sampling_coeff, variant=variant)
   return (ca * time_stride, min(setup.num_bins, cb * time_stride))
 
 
@@ -591,6 +602,10 @@ class FeatureTransform(nn.Module):
       ``nlosjax.physics.lct``/``phasor``; 1 is their default and the public grid).
     chunk: transform this many ``(b, c)`` slices at a time (``jax.lax.map``;
       bounds the FFT memory); None transforms all at once (``vmap``).
+    variant: the operators, as ``variant`` of ``nlosjax.physics.phasor`` /
+      ``lct``: ``"refined"`` (ours: gated, linear convolution, centred
+      wavelet) or ``"public"`` (the public code's: its resampling matrix and
+      wavelet, every bin read, the full circular box; ``oversample`` 1).
 
   Args of ``__call__``:
     x: ``[B, Nt, H, W, C]`` real, time bins ``[time_offset, time_offset + Nt)``
@@ -608,11 +623,12 @@ class FeatureTransform(nn.Module):
   sampling_coeff: float = 2.0
   oversample: int = 1
   chunk: int | None = None
+  variant: str = "refined"
 
   def window(self) -> tuple[int, int]:
     """``(a, b)``: time bins of ``capture`` that the transform reads."""
     return physics_window(self.capture, self.method, cycles=self.cycles,
-                          sampling_coeff=self.sampling_coeff)
+                          sampling_coeff=self.sampling_coeff, variant=self.variant)
 
   def operators(self):
     """The :class:`~nlosjax.physics.operators.LCTOperators` of this layer.
@@ -621,6 +637,15 @@ class FeatureTransform(nn.Module):
     :func:`nlosjax.physics.operator_args.bind`, the same operators as its argument.
     """
     power = float(check_falloff(self.falloff)) if self.method == "lct" else 0.0
+    if check_variant(self.variant) == "public":
+      if self.oversample != 1:
+        raise ValueError(f"oversample={self.oversample} needs variant='refined' (the public grid has 1)")
+      time_power = int(power) + 1 if power else 0       # as nlosjax.physics.lct / phasor
+
+      def build():
+        with jax.ensure_compile_time_eval():
+          return public_lct_operators(self.capture, time_power, dtype=jnp.float32)
+      return operator_args.lookup(("public_lct_operators", self.capture, time_power), build)
 
     def build():
       # Built eagerly even when called inside a trace: the cache must hold arrays, not tracers.
@@ -651,8 +676,8 @@ class FeatureTransform(nn.Module):
     xs = jnp.moveaxis(x[:, a - time_offset:b - time_offset].astype(jnp.float32), -1, 1)
     xs = xs.reshape((bsz * C, b - a, H, W))
     if self.method == "phasor":
-      wavelet = illumination_wavelet(self.capture, cycles=self.cycles,
-                                     sampling_coeff=self.sampling_coeff)
+      make = public_wavelet if self.variant == "public" else illumination_wavelet
+      wavelet = make(self.capture, cycles=self.cycles, sampling_coeff=self.sampling_coeff)
       filt = None                                    # lct_apply's backprojection conj(F)
 
       def one(xi):
@@ -818,7 +843,7 @@ class VolumeReconstruction(nn.Module):
     time_stride: temporal downsampling before the physics layer (power of 2).
     features: feature channels entering the physics layer (>= 1).
     refine_width: channels of the refinement.
-    method, snr, cycles, sampling_coeff, oversample, chunk: of the physics layer.
+    method, snr, cycles, sampling_coeff, oversample, chunk, variant: of the physics layer.
     depth_temperature, depth_threshold, depth_softness, background_depth: of
       :func:`soft_projection`.
 
@@ -850,6 +875,7 @@ class VolumeReconstruction(nn.Module):
   dtype: Any = jnp.float32
   param_dtype: Any = jnp.float32
   conv_impl: str = "fold"
+  variant: str = "refined"
 
   @property
   def coarse_setup(self) -> Setup:
@@ -858,12 +884,12 @@ class VolumeReconstruction(nn.Module):
   def window(self) -> tuple[int, int]:
     """``(a, b)``: time bins of ``capture`` this stage reads (see :func:`volume_window`)."""
     return volume_window(self.capture, self.time_stride, self.method, cycles=self.cycles,
-                         sampling_coeff=self.sampling_coeff)
+                         sampling_coeff=self.sampling_coeff, variant=self.variant)
 
   def _transform(self) -> FeatureTransform:
     return FeatureTransform(self.coarse_setup, self.method, snr=self.snr, cycles=self.cycles,
                             sampling_coeff=self.sampling_coeff, oversample=self.oversample,
-                            chunk=self.chunk, name="transform")
+                            chunk=self.chunk, variant=self.variant, name="transform")
 
   @nn.compact
   def __call__(self, transient):
