@@ -278,11 +278,13 @@ def binned_classic(results, methods=("phasor", "rsd"), refined=("phasor",)) -> d
   (``nlosjax.evaluation.baselines.default_options``).
 
   ``refined``: methods also run with ``variant="refined"``, the operators of
-  the networks' physics layer (``nlosjax.models.blocks.FeatureTransform``:
-  the centred wavelet, plain bin averaging from t to v), keyed
-  ``"<method>/refined"``, at the capture's bins as well (``psnr_16``,
-  ``ssim_16``): with the public operators beside them, what the layer's
-  operators cost on these scans, apart from the learned parts.
+  a physics layer with ``ModelConfig.physics_variant="refined"`` (the
+  default; ``nlosjax.models.blocks.FeatureTransform``: the centred wavelet,
+  plain bin averaging from t to v), keyed ``"<method>/refined"``, at the
+  capture's bins as well (``psnr_16``, ``ssim_16``). With the public
+  operators (the classic rows, and ``physics_variant="public"``) beside
+  them: what a physics layer's operators cost on these scans, apart from
+  anything learned.
 
   Returns ``None`` without a trained network, else ``{"bin_factor": k,
   "bin_width": s, "scores": {(method, stride): {"psnr": dB, "ssim": ...}},
@@ -712,6 +714,16 @@ def _network_text(results) -> str:
           f" scans of a {s.wall_size:g} m wall at stride {mcfg.stride}).")
 
 
+def _layer_variants(results) -> str:
+  """Which operators each network's physics layer uses (``physics_variant``; USM: refined LCT)."""
+  parts = []
+  for v, (mcfg, _) in (results.get("trained") or {}).items():
+    variant = getattr(mcfg, "physics_variant", "refined")
+    method = getattr(mcfg, "physics", "lct")
+    parts.append(f"{LABELS[v]} {variant} {'phasor' if method == 'phasor' else 'LCT'}")
+  return ", ".join(parts) or "none"
+
+
 def _binned_lines(results, binned) -> list[str]:
   """The table of :func:`binned_classic`: classic scores at 16 ps beside those at the networks' bins."""
   if not binned:
@@ -724,15 +736,16 @@ def _binned_lines(results, binned) -> list[str]:
                 + " / ".join(f"{o.get('sampling_coeff', 2.0):.3g}" for o in opts) + ";"
                 for m, opts in binned["options"].items())
       + " means over scenes, PSNR (dB) / SSIM: mean over the same references). A *refined operators*"
-      " row is that method with the operators of the networks' physics layer (`variant=\"refined\"`:"
-      " centred wavelet, plain bin averaging from t to v) in place of the public ones: on the same"
-      " input, what the layer's operators cost or gain before anything learned acts:", "",
+      " row is that method with the refined operators (`variant=\"refined\"`: centred wavelet, plain"
+      " bin averaging from t to v) in place of the public ones: on the same input, what a physics"
+      " layer's operators cost or gain before anything learned acts. The networks' physics layers: "
+      + _layer_variants(results) + ":", "",
       f"| method | input | at 16 ps | at {width} |", "|---|---|---|---|"]
   for (m, stride), r in binned["scores"].items():
     base, _, variant = m.partition("/")
     if variant:     # its own scores at 16 ps
       p16, s16 = r["psnr_16"], r["ssim_16"]
-      label = f"{LABELS[base]}, {variant} operators (the networks' physics layer)"
+      label = f"{LABELS[base]}, {variant} operators"
     else:
       vals = _over_scenes(results, m, stride)
       p16, s16, label = np.mean([v["psnr"] for v in vals]), np.mean([v["ssim"] for v in vals]), LABELS[m]

@@ -186,7 +186,8 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
   expected = score(R.classic_intensity(pairs, coarse, "phasor", 4))
   assert two["scores"][("phasor", 4)] == pytest.approx(expected, rel=1e-6)
   assert two["scores"][("phasor", 4)]["psnr"] != pytest.approx(same["scores"][("phasor", 4)]["psnr"])
-  table = "\n".join(R._binned_lines(results, two))
+  net = {"ours_s": (ModelConfig(setup=coarse, stride=4), None)}
+  table = "\n".join(R._binned_lines({**results, "trained": net}, two))
   assert f"{entry['scores'][('phasor', 4)]['psnr']:.2f}" in table and f"{expected['psnr']:.2f}" in table
   # The physics layer's operators ("refined"), by hand at both bin widths.
   opts = {**B.default_options("phasor", coarse), "variant": "refined"}
@@ -195,7 +196,7 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
   at_16 = score(R.classic_intensity(transient, setup, "phasor", 4, {"variant": "refined"}))
   assert refined == pytest.approx({**by_hand, **{k + "_16": v for k, v in at_16.items()}}, rel=1e-6)
   assert refined["psnr"] != pytest.approx(expected["psnr"])     # other operators, another image
-  assert "Phasor, refined operators (the networks' physics layer)" in table
+  assert "| Phasor, refined operators |" in table and "Ours-S refined phasor" in table
   assert f"{at_16['psnr']:.2f} / {at_16['ssim']:.3f} | {by_hand['psnr']:.2f}" in table
 
 
