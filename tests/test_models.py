@@ -291,21 +291,36 @@ def test_feature_transform_with_public_operators_is_the_public_physics(method):
 
 
 def test_model_config_physics_variant_reaches_the_layer_and_is_checked():
-  """``ModelConfig.physics_variant`` builds the public layer (reading every bin) and the
-  refined one by default; bad values fail when the config is made."""
-  base = tiny_config()
-  public = dataclasses.replace(base, physics_variant="public")
-  assert base.physics_variant == "refined"
+  """``ModelConfig.physics_variant`` builds the public layer (reading every bin, its own
+  operators, another output from the same parameters) and the refined one by default; bad
+  values fail when the config is made; a refined run's signature is the one written before
+  the field existed, a public run's names it."""
+  from nlosjax.train import checkpoint
+  gated = ModelConfig.cpu(TINY.with_depth_range(0.08, 0.25), **TINY_KW)
+  public = dataclasses.replace(gated, physics_variant="public")
+  assert gated.physics_variant == "refined"
   assert public.volume_kwargs()["variant"] == "public"
-  assert public.time_window == (0, public.setup.num_bins)
-  x = jnp.zeros(public.input_shape(1), jnp.float32).at[..., 0, 0].set(1.0)
-  a = public.module().init(jax.random.key(0), x)["params"]
-  b = base.module().init(jax.random.key(0), x)["params"]
-  assert jax.tree.map(jnp.shape, a) == jax.tree.map(jnp.shape, b)     # the same parameters
+  assert public.time_window == (0, TINY.num_bins)
+  lct = {v: dataclasses.replace(gated, physics="lct", physics_variant=v) for v in ("refined", "public")}
+  assert lct["public"].time_window == (0, TINY.num_bins) != lct["refined"].time_window   # gated
+  assert [k[0] for k in public.physics_operators().keys] == ["public_lct_operators"]
+  assert [k[0] for k in gated.physics_operators().keys] == ["lct_operators"]
+  x = jnp.zeros(public.input_shape(1), jnp.float32).at[..., 20, :, :].set(1.0)
+  params = gated.module().init(jax.random.key(0), x)["params"]
+  assert jax.tree.map(jnp.shape, public.module().init(jax.random.key(0), x)["params"]) == \
+      jax.tree.map(jnp.shape, params)                               # the same parameters
+  a = gated.module().apply({"params": params}, x)["volume"]
+  b = public.module().apply({"params": params}, x)["volume"]
+  assert np.isfinite(np.asarray(b)).all() and not np.allclose(a, b, atol=1e-3)
+  with pytest.raises(ValueError, match="not resolved"):   # checked for the public wavelet too
+    dataclasses.replace(public, setup=Setup(0.6, (8, 8), 256e-12, 32), wavelet_sampling=1.0)
   with pytest.raises(ValueError, match="physics_variant"):
-    dataclasses.replace(base, physics_variant="published")
+    dataclasses.replace(gated, physics_variant="published")
   with pytest.raises(ValueError, match="physics_oversample"):
-    dataclasses.replace(base, physics_variant="public", physics_oversample=2)
+    dataclasses.replace(gated, physics_variant="public", physics_oversample=2)
+  assert checkpoint.model_repr(gated) == repr(gated).replace(", physics_variant='refined'", "")
+  assert "physics_variant" not in checkpoint.model_repr(gated)
+  assert checkpoint.model_repr(public) == repr(public) and "physics_variant='public'" in repr(public)
 
 
 def test_volume_stage_physics_channel_is_the_physics_of_the_pooled_transient():

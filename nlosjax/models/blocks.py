@@ -546,6 +546,8 @@ def physics_window(setup: Setup, method: str, *, cycles: float = 5.0,
   if method not in PHYSICS_METHODS:
     raise ValueError(f"method must be one of {PHYSICS_METHODS}, got {method!r}")
   if check_variant(variant) == "public":
+    if method == "phasor":      # the wavelet must be buildable on these bins (raises if not)
+      public_wavelet(setup, cycles=cycles, sampling_coeff=sampling_coeff)
     return (0, setup.num_bins)
   t0, t1 = setup.time_bins
   if method == "lct":
@@ -559,7 +561,8 @@ def volume_window(setup: Setup, time_stride: int, method: str, *, cycles: float 
   """``(a, b)``: time bins of ``setup`` that :class:`VolumeReconstruction` reads.
 
   The :func:`physics_window` of ``coarsen_setup(setup, time_stride)`` in fine
-  bins: ``a`` is a multiple of ``time_stride``, ``(0, T)`` without a depth range.
+  bins: ``a`` is a multiple of ``time_stride``, ``(0, T)`` without a depth range
+  or with ``variant="public"``.
   """
   ca, cb = physics_window(coarsen_setup(setup, time_stride), method, cycles=cycles,
                           sampling_coeff=sampling_coeff, variant=variant)
@@ -581,12 +584,16 @@ class FeatureTransform(nn.Module):
   illumination wavelet ``P(t) = exp(i Omega t) exp(-t^2 / 2 sigma^2)``,
   resample ``t -> v``, FFT, multiply by ``conj(PSF)``, inverse FFT, modulus,
   ``u -> z``) or :func:`nlosjax.physics.lct` (``method="lct"``: ``t^4``-weighted
-  resampling, Wiener filter ``conj(F) / (|F|^2 + 1/snr)``), both clamped at 0.
-  Operators come from :func:`~nlosjax.physics.operators.lct_operators` (cached
-  per Setup; they are constants, not parameters, so the same weights run on
-  another Setup by building the module with it). Only ``capture.time_bins``
-  (plus the wavelet's half-length) are read and only the depth range is
-  produced.
+  resampling, Wiener filter ``conj(F) / (|F|^2 + 1/snr)``), both clamped at 0,
+  with that function's ``variant``. ``"refined"``: operators from
+  :func:`~nlosjax.physics.operators.lct_operators` and
+  :func:`~nlosjax.physics.wavelet.illumination_wavelet`; only
+  ``capture.time_bins`` (plus the wavelet's half-length) are read.
+  ``"public"``: :func:`~nlosjax.physics.operators.public_lct_operators` and
+  :func:`~nlosjax.physics.wavelet.public_wavelet`; every bin is read. Either
+  way the operators are cached per Setup and are constants, not parameters,
+  so the same weights run on another Setup by building the module with it;
+  only the depth range is produced.
 
   Gradients: the modulus uses a guarded square root (gradient 0 where the
   field is exactly 0, instead of NaN).

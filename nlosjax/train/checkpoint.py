@@ -113,15 +113,29 @@ def param_fingerprint(params) -> str:
   return hashlib.sha256(desc.encode()).hexdigest()[:16]
 
 
+def model_repr(mcfg) -> str:
+  """``repr(mcfg)`` less each field added later (``metadata["added"]``) that is at its default.
+
+  So a checkpoint written before such a field existed keeps resuming, as long
+  as the run leaves the field at its default.
+  """
+  text = repr(mcfg)
+  if dataclasses.is_dataclass(mcfg):
+    for f in dataclasses.fields(mcfg):
+      if f.metadata.get("added") and getattr(mcfg, f.name) == f.default:
+        text = text.replace(f", {f.name}={f.default!r}", "", 1)
+  return text
+
+
 def run_signature(mcfg, params, optim: OptimConfig, weights: losses.LossWeights, batch_size: int,
                   seed: int) -> str:
   """What a checkpoint must have been trained with to be resumed or restored.
 
-  The model config, the parameter tree (:func:`param_fingerprint`), the
+  The model config (:func:`model_repr`), the parameter tree (:func:`param_fingerprint`), the
   optimiser, the loss weights (:meth:`~nlosjax.losses.LossWeights.to_dict`:
   a weight added later is absent at its default, so older checkpoints still
   resume), the batch size and the seed, as sorted JSON.
   """
-  return json.dumps({"model": repr(mcfg), "params": param_fingerprint(params),
+  return json.dumps({"model": model_repr(mcfg), "params": param_fingerprint(params),
                      "optim": dataclasses.asdict(optim), "loss": weights.to_dict(),
                      "batch_size": int(batch_size), "seed": int(seed)}, sort_keys=True)
