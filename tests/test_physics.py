@@ -17,7 +17,7 @@ import scipy.ndimage
 
 from nlosjax import physics
 from nlosjax.physics import Setup, reconstruct, render, render_points
-from nlosjax.physics.operators import linear_axis_matrix, squared_axis_matrix
+from nlosjax.physics.operators import linear_axis_matrix, public_time_power, squared_axis_matrix
 from tests.xla_options import xla_optimizations
 
 
@@ -568,3 +568,17 @@ def test_sparse_resampling_equals_the_dense_product():
     got = np.asarray(apply_axis_matrix(jnp.asarray(m), sparse, jnp.asarray(x)))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
   assert sparse_rows(np.ones((8, 8))) is None              # dense stays dense
+
+
+def test_public_time_power_is_the_public_codes_falloff():
+  """The public LCT scales by ``grid_z.^4`` (diffuse) and ``grid_z.^2`` (retroreflective)
+  (O'Toole's ``cnlos_reconstruction.m``), and phasor's plain backprojection by nothing;
+  the public grid has one v-bin per time bin."""
+  from nlosjax.physics.operators import check_falloff
+  assert public_time_power(float(check_falloff("diffuse"))) == 4
+  assert public_time_power(float(check_falloff("retroreflective"))) == 2
+  assert public_time_power(0.0) == 0
+  with pytest.raises(ValueError, match="oversample=2 needs variant='refined'"):
+    public_time_power(3.0, oversample=2)
+  with pytest.raises(ValueError, match="whole number"):
+    public_time_power(1.5)

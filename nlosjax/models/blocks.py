@@ -60,6 +60,7 @@ from nlosjax.physics.operators import (
   lct_filter,
   lct_operators,
   public_lct_operators,
+  public_time_power,
   to_depth,
 )
 from nlosjax.physics.setup import Setup
@@ -645,9 +646,7 @@ class FeatureTransform(nn.Module):
     """
     power = float(check_falloff(self.falloff)) if self.method == "lct" else 0.0
     if check_variant(self.variant) == "public":
-      if self.oversample != 1:
-        raise ValueError(f"oversample={self.oversample} needs variant='refined' (the public grid has 1)")
-      time_power = int(power) + 1 if power else 0       # as nlosjax.physics.lct / phasor
+      time_power = public_time_power(power, self.oversample)   # as nlosjax.physics.lct / phasor
 
       def build():
         with jax.ensure_compile_time_eval():

@@ -42,7 +42,8 @@ import numpy as np
 from nlosjax.models import blocks
 from nlosjax.models.stmamba import VARIANTS, CrossSTMambaBlock, STMambaBlock
 from nlosjax.physics import _validate, operator_args
-from nlosjax.physics.operators import lct_domain
+from nlosjax.physics.operators import VARIANTS as OPERATOR_VARIANTS
+from nlosjax.physics.operators import check_variant, lct_domain
 from nlosjax.physics.setup import Setup
 from nlosjax.ssm import resolve_method
 
@@ -270,9 +271,11 @@ class ModelConfig(ScanInputConfig):
     object.__setattr__(self, "dilations", tuple(self.dilations))
     if self.physics not in blocks.PHYSICS_METHODS:
       raise ValueError(f"ModelConfig.physics must be one of {blocks.PHYSICS_METHODS}, got {self.physics!r}")
-    if self.physics_variant not in ("refined", "public"):
-      raise ValueError("ModelConfig.physics_variant must be 'refined' or 'public', got"
-                       f" {self.physics_variant!r}")
+    try:
+      check_variant(self.physics_variant)
+    except ValueError:
+      raise ValueError(f"ModelConfig.physics_variant must be one of {OPERATOR_VARIANTS}, got"
+                       f" {self.physics_variant!r}") from None
     if self.physics_variant == "public" and self.physics_oversample != 1:
       raise ValueError("ModelConfig.physics_variant='public' needs physics_oversample=1, got"
                        f" {self.physics_oversample!r}")

@@ -427,6 +427,21 @@ def check_variant(variant: str) -> str:
   return variant
 
 
+def public_time_power(power: float, oversample: int = 1) -> int:
+  """The public operators' ``t_n`` exponent for a refined ``v^{power/2}`` falloff ``power``.
+
+  The public code multiplies each time bin by ``t_n^{power + 1}`` (``t_n^0``
+  for ``power`` 0: no falloff) on its single v-grid, so ``oversample`` must be 1.
+  :func:`public_lct_operators` takes the result. Raises ValueError for another
+  ``oversample`` or a ``power`` that is not a whole number >= 0.
+  """
+  if oversample != 1:
+    raise ValueError(f"oversample={oversample} needs variant='refined' (the public grid has 1)")
+  if not (power >= 0 and float(power) == int(power)):
+    raise ValueError(f"power must be a whole number >= 0 for the public operators, got {power!r}")
+  return int(power) + 1 if power else 0
+
+
 def public_resampling_matrix(num_bins: int) -> np.ndarray:
   """``[T, T]`` float64: the public ``mtx`` (rows v-bins, columns t-bins), any ``T``.
 

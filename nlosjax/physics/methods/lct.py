@@ -21,6 +21,7 @@ from nlosjax.physics.operators import (
   lct_filter,
   lct_operators,
   public_lct_operators,
+  public_time_power,
   to_depth,
 )
 from nlosjax.physics.setup import Setup
@@ -40,9 +41,7 @@ def _lct_problem(setup: Setup, power: float, snr: float | None, z_margin: int, o
   if oversample not in (1, 2, 3, 4):
     raise ValueError(f"oversample must be 1, 2, 3 or 4, got {oversample!r}")
   if check_variant(variant) == "public":
-    if oversample != 1:
-      raise ValueError(f"oversample={oversample} needs variant='refined' (the public grid has 1)")
-    ops = public_lct_operators(setup, int(power) + 1 if power else 0, z_margin=z_margin,
+    ops = public_lct_operators(setup, public_time_power(power, oversample), z_margin=z_margin,
                                dtype=dtype)
     return ops, (None if snr is None else jax.jit(lct_filter, static_argnums=1)(ops, snr))
   # The depth margin (FBP's -LoG taps) needs the time bins of its returns too.
