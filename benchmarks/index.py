@@ -49,6 +49,8 @@ GOALS = {
                "at 64² and 128² (issue 20)",
     "real": "the network ahead of every classic method against every other method's full scan "
             "(issue 18)",
+    "real_public": "a network whose physics layer has the public operators, beside the refined one it "
+                   "would replace, on the measured scans (issue 38)",
     "reconstruct_time": "`experiments.reconstruct` with the shipped model on a 64 x 64 x 512 capture in "
                         "under 10 s on 2 cores, compile included (issue 38)",
     "scan": "associative <= 4x / <= 10x the exp floor (forward / fwd+bwd), best <= 2x / <= 6x, "

@@ -61,9 +61,10 @@ experiments.reconstruct`` against the NumPy/SciPy twins of the public
 algorithms (``experiments/numpy_twins.py``) for LCT, f-k and phasor on one
 64 x 64 x 512 scan (``--no-timing`` skips it).
 
-Writes the Markdown report (``--out``) and, beside it, ``real_<scene>.png``
+Writes the Markdown report (``--out``, say ``real.md``) and, beside it, ``real_<scene>.png``
 (one image row per method, columns full scan / 16 x 16 / 8 x 8) and
-``real_summary.png`` (mean PSNR and SSIM per method and input).
+``real_summary.png`` (mean PSNR and SSIM per method and input), named after the
+report's stem (``real_public.md`` writes ``real_public_<scene>.png``).
 """
 
 from __future__ import annotations
@@ -637,7 +638,7 @@ def _winner_lines(results) -> list[str]:
   return lines
 
 
-def write_figures(results, out_dir: pathlib.Path) -> list[str]:
+def write_figures(results, out_dir: pathlib.Path, prefix: str = "real") -> list[str]:
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
@@ -673,7 +674,7 @@ def write_figures(results, out_dir: pathlib.Path) -> list[str]:
     fig.suptitle(f"{scene}: intensity per method (PSNR / SSIM: mean vs the other methods' full-scan images)",
                  fontsize=8)
     fig.tight_layout()
-    name = f"real_{scene}.png"
+    name = f"{prefix}_{scene}.png"
     fig.savefig(out_dir / name, dpi=100)
     plt.close(fig)
     names.append(name)
@@ -695,9 +696,9 @@ def write_figures(results, out_dir: pathlib.Path) -> list[str]:
     ax.set_title(t, fontsize=9)
   axes[0].legend(fontsize=8)
   fig.tight_layout()
-  fig.savefig(out_dir / "real_summary.png", dpi=100)
+  fig.savefig(out_dir / f"{prefix}_summary.png", dpi=100)
   plt.close(fig)
-  return names + ["real_summary.png"]
+  return names + [f"{prefix}_summary.png"]
 
 
 def _network_text(results) -> str:
@@ -889,7 +890,7 @@ def main(argv=None):
   results = run(files, args.strides, checkpoint, trained=trained)
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
-  figures = write_figures(results, out.parent)
+  figures = write_figures(results, out.parent, prefix=out.stem)   # beside another report: its own names
   timing = warm = None
   if not args.no_timing:
     timing = {"file": files[0].name, "repeats": args.timing_repeats,

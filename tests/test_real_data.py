@@ -278,3 +278,19 @@ def test_ablated_models_zero_exactly_the_named_parts_and_skip_networks_without_t
   lines = R._ablation_lines(results, ablation)
   assert "| Ours-S | 16 × 16 | 17.00 / 0.500 | 15.50 / 0.500 | 16.50 / 0.500 |" in lines
   assert R._ablation_lines(results, None) == []
+
+
+def test_figures_take_the_reports_name_so_a_second_report_keeps_the_firsts(tmp_path):
+  """``write_figures`` names its files after the report's stem: ``real_public.md`` beside
+  ``real.md`` must not overwrite ``real_<scene>.png``."""
+  from experiments import real_undersampling as ru
+  img = np.linspace(0.0, 1.0, 64 * 64, dtype=np.float32).reshape(64, 64)
+  score = {"psnr": 15.0, "ssim": 0.5}
+  results = {"strides": [4], "methods": ["lct", "ours"],
+             "scenes": {"s_u": {"images": {("lct", 1): img, ("lct", 4): img, ("ours", 4): img},
+                                "scores": {("lct", 4): score, ("ours", 4): score}}}}
+  first = ru.write_figures(results, tmp_path)
+  second = ru.write_figures(results, tmp_path, prefix="real_public")
+  assert first == ["real_s_u.png", "real_summary.png"]
+  assert second == ["real_public_s_u.png", "real_public_summary.png"]
+  assert sorted(p.name for p in tmp_path.iterdir()) == sorted(first + second)
