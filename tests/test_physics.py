@@ -582,3 +582,21 @@ def test_public_time_power_is_the_public_codes_falloff():
     public_time_power(3.0, oversample=2)
   with pytest.raises(ValueError, match="whole number"):
     public_time_power(1.5)
+
+
+def test_public_lct_domain_is_the_box_of_the_public_psf_and_crops_only_depths():
+  """The public code convolves on the box of its cone PSF (``psf = zeros(2M, 2N, 2N)``) and
+  reads every bin; a depth range (widened by ``z_margin``, clipped) crops the output only."""
+  from nlosjax.physics.operators import public_cone_psf, public_lct_domain, public_lct_operators
+  setup = Setup(0.6, (8, 8), 64e-12, 64).with_depth_range(0.2, 0.5)
+  dom = public_lct_domain(setup)
+  assert dom.fft_shape == public_cone_psf(setup).shape == (128, 16, 16)
+  assert dom.t == dom.v == dom.u == (0, 64) and dom.oversample == 1
+  assert dom.z == setup.depth_bins
+  k0, k1 = setup.depth_bins
+  assert public_lct_domain(setup, z_margin=3).z == (max(0, k0 - 3), min(64, k1 + 3))
+  assert public_lct_domain(setup, z_margin=100).z == (0, 64)
+  assert public_lct_operators(setup, 0, z_margin=3).domain == public_lct_domain(setup, z_margin=3)
+  for bad in (-1, 1.5, True):
+    with pytest.raises(ValueError, match="z_margin"):
+      public_lct_domain(setup, z_margin=bad)

@@ -43,7 +43,7 @@ from nlosjax.models import blocks
 from nlosjax.models.stmamba import VARIANTS, CrossSTMambaBlock, STMambaBlock
 from nlosjax.physics import _validate, operator_args
 from nlosjax.physics.operators import VARIANTS as OPERATOR_VARIANTS
-from nlosjax.physics.operators import check_variant, lct_domain
+from nlosjax.physics.operators import check_variant, lct_domain, public_lct_domain
 from nlosjax.physics.setup import Setup
 from nlosjax.ssm import resolve_method
 
@@ -598,11 +598,11 @@ def _analytic_flops(config: ModelConfig, batch: int) -> tuple[float, float]:
   """FFT and selective-scan FLOPs of one forward pass that XLA's cost analysis misses."""
   cs = config.coarse_setup
   if config.physics_variant == "public":                     # the public full circular box
-    n = 8 * cs.num_bins * cs.grid[0] * cs.grid[1]
+    dom = public_lct_domain(cs)
   else:
     dom = lct_domain(cs, oversample=config.physics_oversample,
                      fft_length=blocks.physics_fft_length(config.physics))
-    n = math.prod(dom.fft_shape)
+  n = math.prod(dom.fft_shape)
   per_apply = 2 * 2.5 * n * math.log2(n)                     # rfftn + irfftn
   applies = 2 if config.physics == "phasor" else 1
   fft = batch * config.volume_features * applies * per_apply

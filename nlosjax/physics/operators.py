@@ -494,6 +494,22 @@ def public_cone_psf(setup: Setup, dtype=np.float64) -> np.ndarray:
 
 
 @_validate.cached_operators(maxsize=8)
+def public_lct_domain(setup: Setup, *, z_margin: int = 0) -> LCTDomain:
+  """The :class:`LCTDomain` of the public pipeline: every bin, the full ``(2T, 2H, 2W)`` box.
+
+  Time, v- and u-bins are all ``(0, T)`` (the public code does not gate and has
+  one v-bin per time bin); the output depths are the Setup's ``depth_bins``
+  widened by ``z_margin`` (an integer >= 0) on each side, clipped to ``(0, T)``.
+  """
+  if isinstance(z_margin, bool) or not (isinstance(z_margin, (int, np.integer)) and z_margin >= 0):
+    raise ValueError(f"z_margin must be an integer >= 0, got {z_margin!r}")
+  T = setup.num_bins
+  H, W = setup.grid
+  k0, k1 = setup.depth_bins
+  z = (max(0, k0 - z_margin), min(T, k1 + z_margin))
+  return LCTDomain((0, T), (0, T), z, (0, T), (2 * T, 2 * H, 2 * W), 1)
+
+
 def public_lct_operators(setup: Setup, time_power: int, *, z_margin: int = 0,
                          dtype=jnp.float32) -> LCTOperators:
   """Operators of the public LCT pipeline, in :class:`LCTOperators` form for :func:`lct_apply`.
@@ -512,11 +528,8 @@ def public_lct_operators(setup: Setup, time_power: int, *, z_margin: int = 0,
   """
   if not (isinstance(time_power, int) and time_power >= 0):
     raise ValueError(f"time_power must be an integer >= 0, got {time_power!r}")
-  T = setup.num_bins
-  H, W = setup.grid
-  k0, k1 = setup.depth_bins
-  z = (max(0, k0 - z_margin), min(T, k1 + z_margin))
-  dom = LCTDomain((0, T), (0, T), z, (0, T), (2 * T, 2 * H, 2 * W), 1)
+  dom = public_lct_domain(setup, z_margin=z_margin)
+  T, z = setup.num_bins, dom.z
   mtx = public_resampling_matrix(T)
   t_n = np.linspace(0.0, 1.0, T)
   cdtype = jnp.complex128 if jnp.dtype(dtype) == jnp.float64 else jnp.complex64
