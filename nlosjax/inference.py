@@ -226,8 +226,8 @@ def restore_params(ckpt, model_config, *, step: int | None = None, config_file=N
   recorded = signature.get("model")
   added = []
   # A run's signature leaves out fields added later at their defaults (train.checkpoint.model_repr).
-  from nlosjax.train.checkpoint import model_repr
-  if recorded is not None and recorded not in (repr(model_config), model_repr(model_config)):
+  if recorded is not None and recorded not in (repr(model_config),
+                                               train.checkpoint.model_repr(model_config)):
     added = added_default_fields(recorded, model_config) if allow_added_fields else None
     if added is None:
       source = config_file if config_file is not None else "the run config"
