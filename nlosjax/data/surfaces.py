@@ -148,6 +148,7 @@ def scene_samples(scene: scenes.Scene, frame: int, spacing: float, *,
 
 def render_scene(scene: scenes.Scene, setup: Setup, *, frames=None, spacing: float | None = None,
                  retroreflective: float = 0.0, occlusion: bool = True,
+                 falloff_power=None, cosine_power: float | None = None,
                  progress=None) -> np.ndarray:
   """Noise-free transients ``[F', T, H, W]`` float32 of ``scene``'s frames by light transport.
 
@@ -159,12 +160,22 @@ def render_scene(scene: scenes.Scene, setup: Setup, *, frames=None, spacing: flo
       :func:`nlosjax.physics.transport.default_spacing`).
     retroreflective: probability that an object is retroreflective.
     occlusion: per-scan-point visibility (False: every facing patch counts).
+    falloff_power: ``[num_objects]`` falloff exponent ``p`` of each object's
+      return (``r^-p``, in ``[2, 4]``), or ``None`` (``retroreflective`` draws
+      2 or 4 per object).
+    cosine_power: exponent ``kappa`` of the cosines (``None``: 1, Lambertian);
+      see :func:`nlosjax.physics.transport.render_surfaces`.
     progress: optional callable ``progress(done, total)`` after each frame.
   Units as :func:`nlosjax.physics.transport.render_surfaces`.
   """
   spacing = default_spacing(setup) if spacing is None else float(spacing)
   frames = np.arange(scene.num_frames) if frames is None else np.asarray(frames).reshape(-1)
   materials = object_materials(scene, retroreflective)
+  if falloff_power is not None:
+    falloff_power = np.asarray(falloff_power, np.float64).reshape(-1)
+    if falloff_power.shape != (len(scene.objects),):
+      raise ValueError(f"falloff_power must hold one exponent per object ({len(scene.objects)}),"
+                       f" got shape {falloff_power.shape}")
   # Rigid objects: sample each once at its own pose, then move the patches per frame. A
   # deforming one (non-rigid motion) is sampled afresh at each frame's shape.
   deforming = {i for i, o in enumerate(scene.objects) if o.dynamic and scene.deforms}
@@ -183,8 +194,11 @@ def render_scene(scene: scenes.Scene, setup: Setup, *, frames=None, spacing: flo
         continue
       turn = scene.rotation(i, int(f)) @ o.rotation.T
       parts.append(b.moved(turn, o.anchor, scene.anchor(i, int(f))))
-    out[n] = render_surfaces(SurfaceSamples.concatenate(parts), setup.ungated(),
-                             occlusion=occlusion, spacing=spacing)
+    samples = SurfaceSamples.concatenate(parts)
+    out[n] = render_surfaces(samples, setup.ungated(), occlusion=occlusion, spacing=spacing,
+                             falloff_power=(None if falloff_power is None
+                                            else falloff_power[samples.object_id]),
+                             cosine_power=cosine_power)
     if progress is not None:
       progress(n + 1, frames.size)
   return out

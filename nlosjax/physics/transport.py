@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -174,10 +175,15 @@ def _gnomonic_grid(points: np.ndarray, scan: np.ndarray, cell: float):
   return lo, cell, (_padded_cells(n[0]), _padded_cells(n[1]))
 
 
-@functools.partial(jax.jit, static_argnames=("num_bins", "cells", "occlusion", "wall_cosine"))
+@functools.partial(jax.jit, static_argnames=("num_bins", "cells", "occlusion", "wall_cosine",
+                                             "general"))
 def _render_chunk(scan, s, origin, cell, bin_length, pixel_area, spacing, *, num_bins, cells,
-                  occlusion, wall_cosine):
-  """Histograms ``[S, T]`` for scan points ``scan`` ``[S, 3]`` (one chunk)."""
+                  occlusion, wall_cosine, general=False):
+  """Histograms ``[S, T]`` for scan points ``scan`` ``[S, 3]`` (one chunk).
+
+  ``general``: the material of each patch is ``s["power"]`` (falloff ``p``) and
+  ``s["kappa"]`` (cosine power ``kappa``): ``(cos_w cos_p)^(kappa p / 2) / r^p``.
+  """
   nx, ny = cells
 
   def one(sp):
@@ -188,9 +194,14 @@ def _render_chunk(scan, s, origin, cell, bin_length, pixel_area, spacing, *, num
     facing = cos_p > _MIN_COS
     cos_p = jnp.where(facing, cos_p, 0.0)
     cw = v[:, 2] / r if wall_cosine else 1.0
-    out_leg = cw * cos_p / (r * r)                # the wall spot's light reaching the patch
-    back_leg = jnp.where(s["retro"], 1.0, cw * cos_p / (r * r))
-    w = s["scale"] * out_leg * back_leg / pixel_area
+    if general:   # out leg (cw cos_p)^kappa / r^2, back leg the same to the power (p - 2) / 2
+      p = s["power"]
+      w = jnp.where(facing, s["scale"] * jnp.power(jnp.maximum(cw * cos_p, 1e-12), 0.5 * s["kappa"] * p)
+                    * jnp.power(r, -p) / pixel_area, 0.0)
+    else:
+      out_leg = cw * cos_p / (r * r)              # the wall spot's light reaching the patch
+      back_leg = jnp.where(s["retro"], 1.0, cw * cos_p / (r * r))
+      w = s["scale"] * out_leg * back_leg / pixel_area
     if occlusion:
       g = v[:, :2] / v[:, 2:3]
       # Cells 1..n of a grid with a border of one empty cell. A patch is compared with the
@@ -221,7 +232,8 @@ def _render_chunk(scan, s, origin, cell, bin_length, pixel_area, spacing, *, num
 
 def render_surfaces(samples: SurfaceSamples, setup: Setup, *, occlusion: bool = True,
                     wall_cosine: bool = True, cell: float | None = None,
-                    spacing: float | None = None, chunk: int = 16) -> np.ndarray:
+                    spacing: float | None = None, chunk: int = 16,
+                    falloff_power=None, cosine_power: float | None = None) -> np.ndarray:
   """Noise-free confocal transient of surface patches (module docstring for the model).
 
   Args:
@@ -230,6 +242,15 @@ def render_surfaces(samples: SurfaceSamples, setup: Setup, *, occlusion: bool = 
     occlusion: test visibility per scan point (False: every facing patch
       counts, as if alone).
     wall_cosine: include the relay wall's ``cos_w`` factors.
+    falloff_power, cosine_power: a material model other than diffuse or
+      retroreflective (both ``None``: ``samples.retroreflective`` decides).
+      With either given, a patch returns ``albedo * area * (cos_w cos_p)^(kappa
+      p / 2) / r^p`` per wall pixel area: ``falloff_power`` ``p`` per patch
+      (``[P]`` or a scalar, in ``[2, 4]``; default 2 for retroreflective
+      patches, 4 for diffuse ones) and ``cosine_power`` ``kappa >= 0`` (default
+      1; 0: no cosines, an isotropic point scatterer that still only lights
+      its facing side). ``p = 4, kappa = 1`` is the diffuse patch and ``p =
+      2, kappa = 1`` the retroreflective one.
     cell: z-buffer cell in gnomonic units (default: 3/4 of the patch spacing
       over the nearest patch's distance).
     spacing: patch side in metres used for the visibility tolerance (default:
@@ -245,6 +266,16 @@ def render_surfaces(samples: SurfaceSamples, setup: Setup, *, occlusion: bool = 
     raise ValueError(f"setup must be a nlosjax.physics.Setup, got {type(setup).__name__}")
   H, W = setup.grid
   T = setup.num_bins
+  general = falloff_power is not None or cosine_power is not None
+  if general:
+    default = np.where(samples.retroreflective, 2.0, 4.0)
+    power = default if falloff_power is None else np.broadcast_to(
+        np.asarray(falloff_power, np.float64), (len(samples),))
+    kappa = 1.0 if cosine_power is None else float(cosine_power)
+    if not np.all(np.isfinite(power)) or np.any(power < 2) or np.any(power > 4):
+      raise ValueError(f"falloff_power must lie in [2, 4], got {falloff_power!r}")
+    if not (math.isfinite(kappa) and kappa >= 0):
+      raise ValueError(f"cosine_power must be a finite number >= 0, got {cosine_power!r}")
   if len(samples) == 0:
     return np.zeros((T, H, W), np.float32)
   # Drop patches that cannot return light: zero albedo or area, or one-sided and facing away
@@ -271,6 +302,9 @@ def render_surfaces(samples: SurfaceSamples, setup: Setup, *, occlusion: bool = 
        "two_sided": jnp.asarray(padded(samples.two_sided[keep], False)),
        "retro": jnp.asarray(padded(samples.retroreflective[keep], False)),
        "scale": jnp.asarray(padded((samples.albedo * samples.area)[keep], 0.0), jnp.float32)}
+  if general:
+    s["power"] = jnp.asarray(padded(power[keep], 4.0), jnp.float32)
+    s["kappa"] = jnp.float32(kappa)
   dy, dx = setup.spacing
   chunk = max(1, int(chunk))
   pad = (-scan.shape[0]) % chunk
@@ -281,6 +315,6 @@ def render_surfaces(samples: SurfaceSamples, setup: Setup, *, occlusion: bool = 
         jnp.asarray(scan_p[start:start + chunk]), s, jnp.asarray(origin, jnp.float32),
         jnp.float32(cell), jnp.float32(setup.bin_length), jnp.float32(dy * dx),
         jnp.float32(spacing), num_bins=T, cells=cells, occlusion=bool(occlusion),
-        wall_cosine=bool(wall_cosine))))
+        wall_cosine=bool(wall_cosine), general=general)))
   hist = np.concatenate(out)[: H * W]                          # [H W, T]
   return np.ascontiguousarray(hist.T.reshape(T, H, W)).astype(np.float32)
