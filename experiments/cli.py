@@ -28,7 +28,7 @@ config overrides:
   --config.SECTION.KEY=VALUE   override one entry of the config (a Python literal or a bare string),
                                e.g. --config.train.steps=100 --config.data.renderer=lct
                                '--config.data.photons=(50.0, 2000.0)'; sections: data (data.scene,
-                               data.loader, data.num_sequences), model, train (train.optim,
+                               data.loader, data.num_sequences, data.physics), model, train (train.optim,
                                train.loss, train.stop), usm (usm.model, usm.optim), independent.
                                An unknown key or section exits with the known ones.
 """
@@ -95,8 +95,11 @@ def _schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
     # DatasetSpec.from_config: the Setup's keys, the spec's fields (counts as num_sequences)
     # and the load-time keys; the loaders read "loader".
     keys = {"wall_size", "grid", "bin_width", "num_bins", "input_stride", "input_offset", "path"}
-    return keys | _fields(DatasetSpec, ("setup", "num_train", "num_test", "num_val", "scene")), \
-        {"scene", "loader", "num_sequences"}
+    return keys | _fields(DatasetSpec, ("setup", "num_train", "num_test", "num_val", "scene", "physics")), \
+        {"scene", "loader", "num_sequences", "physics"}
+  if path == ("data", "physics"):
+    from nlosjax.data.dataset.physics import PhysicsMix
+    return _fields(PhysicsMix), set()
   if path == ("data", "scene"):
     from nlosjax.data.scenes import SceneParams
     return _fields(SceneParams) | {"max_tilt_deg"}, set()

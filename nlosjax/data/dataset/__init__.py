@@ -11,7 +11,10 @@ the SPAD counts follow :func:`nlosjax.physics.expected_counts` with
 per-sequence efficiency ``eta ~ U(efficiency)``, photon budget ``S`` and
 ambient light log-uniform in their ranges, dark counts and timing jitter,
 drawn by NumPy's Poisson sampler (or :func:`nlosjax.physics.add_spad_noise`
-with ``noise_sampler="jax"``).
+with ``noise_sampler="jax"``). With ``renderer="mix"`` the forward model itself
+is drawn per sequence from ``physics`` (:class:`PhysicsMix`: renderer family,
+falloffs, cosines, impulse response, background shape, gain, time-zero
+offset, early gate; :mod:`~nlosjax.data.dataset.physics`).
 
 Units. ``clean`` is the expected number of *incident* signal photons per time
 bin: ``signal_scale * render(albedo)``, with ``signal_scale`` chosen so that
@@ -38,7 +41,9 @@ HDF5 layout (:data:`FORMAT_NAME`, version :data:`FORMAT_VERSION`)::
                                      render_depth_range [2], kinds (JSON list), scene (JSON),
                                      complete; with a non-default motion also motion
                                      ("helix" | "line"; helix_* then describe the unused
-                                     helix, the path is in scene) and spin_speed (rad/s)
+                                     helix, the path is in scene) and spin_speed (rad/s);
+                                     with renderer "mix" also family and physics (JSON of
+                                     the drawn ForwardModel)
       measurement  [F, T, H, W] uint16 (uint32 when a count exceeds 65535) SPAD counts
       clean        [F, T, H, W] float32 expected incident signal photons (optional)
       albedo       [F, T, H, W] float32 shaded albedo volume (optional)
@@ -74,6 +79,8 @@ The code, one concern per module; every name is importable from
   :func:`sequence_seed` and :func:`sequence_name`.
 * :mod:`~nlosjax.data.dataset.simulate` -- :func:`simulate_sequence` (scene,
   rendering, SPAD counts), :func:`render_setup`, :func:`measurement_rate`.
+* :mod:`~nlosjax.data.dataset.physics` -- :class:`PhysicsMix` (the forward
+  model as a random variable) and its draws, :class:`ForwardModel`.
 * :mod:`~nlosjax.data.dataset.file` -- the HDF5 file format: the writer
   (:func:`write_dataset` with its ``.partial`` resume and worker processes,
   :func:`extend_dataset`) and the reader (:class:`DynamicDataset`,
@@ -95,18 +102,22 @@ from nlosjax.data.dataset.file import (
 )
 from nlosjax.data.dataset.file import _partial_path as _partial_path  # private; the tests use it
 from nlosjax.data.dataset.loader import TripletLoader, prefetch
+from nlosjax.data.dataset.physics import FAMILIES, ForwardModel, PhysicsMix
 from nlosjax.data.dataset.simulate import measurement_rate, render_setup, simulate_sequence
 from nlosjax.data.dataset.spec import RENDERERS, SPLITS, DatasetSpec, sequence_name, sequence_seed
 from nlosjax.data.dataset.undersampling import undersample, undersampled_positions, undersampled_setup
 
 __all__ = [
     "DATASETS",
+    "FAMILIES",
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "RENDERERS",
     "SPLITS",
     "DatasetSpec",
     "DynamicDataset",
+    "ForwardModel",
+    "PhysicsMix",
     "TripletLoader",
     "WriteResult",
     "open_dataset",

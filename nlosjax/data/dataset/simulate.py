@@ -70,6 +70,67 @@ def _compact(x: np.ndarray) -> np.ndarray:
   return u.view(np.float32)
 
 
+def _render_clean(spec: DatasetSpec, scene, maps, gated: Setup, fm) -> np.ndarray:
+  """``[F, T, H, W]`` float32 noise-free transient of every frame (arbitrary scale).
+
+  ``fm``: the sequence's :class:`~nlosjax.data.dataset.physics.ForwardModel`
+  (``renderer="mix"``), else ``None`` (``spec.renderer`` decides).
+  """
+  from nlosjax.physics.forward import render
+  setup = spec.setup
+  F, T = spec.frames, setup.num_bins
+  renderer = spec.renderer if fm is None else fm.family
+  if renderer in ("transport", "points"):   # every frame in one call: objects sampled once
+    from nlosjax.data import surfaces
+    if fm is None:
+      return surfaces.render_scene(scene, setup, retroreflective=spec.retroreflective)
+    return surfaces.render_scene(scene, setup, falloff_power=fm.object_powers(len(scene.objects)),
+                                 cosine_power=fm.cosine_power, occlusion=renderer == "transport")
+  k0, k1 = gated.depth_bins
+  clean = np.empty((F, T) + setup.grid, np.float32)
+  for start in range(0, F, spec.render_batch):
+    stop = min(F, start + spec.render_batch)
+    vol = maps.volume(setup, slice(start, stop))
+    if np.any(vol[:, :k0]) or np.any(vol[:, k1:]):  # cannot happen for valid scenes
+      clean[start:stop] = np.asarray(render(vol, setup, falloff=spec.falloff))
+    else:
+      clean[start:stop] = np.asarray(render(vol[:, k0:k1], gated, falloff=spec.falloff))
+  if fm is not None:   # r^-4 -> r^-p: every return in bin t comes from r = (t + 1/2) c dt / 2
+    r = (np.arange(T) + 0.5) * setup.bin_length / 2
+    clean *= (r ** (4.0 - fm.scene_falloff)).astype(np.float32)[:, None, None]
+  return clean
+
+
+def mixed_rate(clean, setup: Setup, fm, *, efficiency: float, ambient_total: float,
+               dark_counts: float) -> np.ndarray:
+  """Expected counts ``[F, T, H, W]`` under a drawn forward model (``renderer="mix"``).
+
+  ``eta * gain * (shift(clean (*) g) + b) + dark / T`` per bin, with ``g`` the
+  draw's impulse response, ``b [T]`` its ambient profile summing to
+  ``ambient_total`` (photons per histogram), ``gain [H, W]`` its gain map and
+  ``shift`` its time-zero offset (zero-filled); 0 in the bins that start before
+  its gate time. ``clean`` ``[F, T, H, W]`` in incident photons per bin;
+  ``dark_counts`` per histogram.
+  """
+  from nlosjax.data.dataset import physics
+  signal = measurement_rate(clean, setup, efficiency=1.0, ambient=0.0, dark_counts=0.0,
+                            jitter=physics.impulse_kernel(setup, fm)).astype(np.float64)
+  d = fm.time_shift
+  if d:
+    shifted = np.zeros_like(signal)
+    if d > 0:
+      shifted[:, d:] = signal[:, :-d]
+    else:
+      shifted[:, :d] = signal[:, -d:]
+    signal = shifted
+  background = physics.background_profile(setup, fm, ambient_total)[:, None, None]
+  gain = physics.gain_map(setup, fm)
+  rate = efficiency * gain * (signal + background) + dark_counts / setup.num_bins
+  gated = int(np.ceil(fm.gate_time / setup.bin_width - 1e-9))
+  rate[:, :gated] = 0.0
+  return np.maximum(rate, 0.0).astype(np.float32)
+
+
 def simulate_sequence(spec: DatasetSpec, split: str, index: int) -> dict:
   """Simulate one sequence (deterministic in ``spec``, ``split`` and ``index``).
 
@@ -83,7 +144,6 @@ def simulate_sequence(spec: DatasetSpec, split: str, index: int) -> dict:
   """
   import jax
 
-  from nlosjax.physics.forward import render
   from nlosjax.physics.noise import add_spad_noise
 
   setup = spec.setup
@@ -98,27 +158,14 @@ def simulate_sequence(spec: DatasetSpec, split: str, index: int) -> dict:
 
   maps = scenes.rasterize(scene, setup, supersample=spec.scene.supersample)
   gated = render_setup(spec)
-  k0, k1 = gated.depth_bins
   F = spec.frames
-  clean = np.empty((F, T) + setup.grid, np.float32)
-  albedo = np.empty((F, T) + setup.grid, np.float32) if spec.store_albedo else None
-  transport = spec.renderer == "transport"
-  if transport:  # every frame in one call: the objects are sampled once per sequence
-    from nlosjax.data import surfaces
-    clean[:] = surfaces.render_scene(scene, setup, retroreflective=spec.retroreflective)
-  for start in range(0, F, spec.render_batch):
-    stop = min(F, start + spec.render_batch)
-    if transport and albedo is None:
-      continue
-    vol = maps.volume(setup, slice(start, stop))
-    if albedo is not None:
-      albedo[start:stop] = vol
-    if transport:
-      continue
-    if np.any(vol[:, :k0]) or np.any(vol[:, k1:]):  # cannot happen for valid scenes
-      clean[start:stop] = np.asarray(render(vol, setup, falloff=spec.falloff))
-    else:
-      clean[start:stop] = np.asarray(render(vol[:, k0:k1], gated, falloff=spec.falloff))
+  fm = None if spec.physics is None else spec.physics.draw(seed, setup)
+  clean = _render_clean(spec, scene, maps, gated, fm)
+  albedo = None
+  if spec.store_albedo:
+    albedo = np.empty((F, T) + setup.grid, np.float32)
+    for start in range(0, F, spec.render_batch):
+      albedo[start:start + spec.render_batch] = maps.volume(setup, slice(start, start + spec.render_batch))
   energy = float(np.mean(np.sum(clean, axis=1, dtype=np.float64)))
   if not energy > 0:
     raise ValueError(f"sequence {sequence_name(split, index)} (seed {seed}) renders no signal")
@@ -126,7 +173,15 @@ def simulate_sequence(spec: DatasetSpec, split: str, index: int) -> dict:
   clean = _compact(clean * np.float32(scale))
 
   counts = np.empty(clean.shape, np.float32)
-  if spec.noise_sampler == "jax":
+  if fm is not None:
+    dark_total = spec.dark_counts if fm.dark_counts is None else fm.dark_counts
+    dark = dark_total / T
+    lam = mixed_rate(clean, setup, fm, efficiency=efficiency, ambient_total=ambient_total,
+                     dark_counts=dark_total)
+    for f in range(F):
+      frame_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2, f)))
+      counts[f] = frame_rng.poisson(lam[f])
+  elif spec.noise_sampler == "jax":
     key = jax.random.key(seed)
     for f in range(F):
       counts[f] = np.asarray(add_spad_noise(
@@ -164,4 +219,7 @@ def simulate_sequence(spec: DatasetSpec, split: str, index: int) -> dict:
   if scene.motion != "helix" or scene.spin_speed:  # options added later: absent by default
     attrs["motion"] = scene.motion
     attrs["spin_speed"] = scene.spin_speed
+  if fm is not None:
+    attrs["physics"] = fm.describe()
+    attrs["family"] = fm.family
   return {"name": sequence_name(split, index), "arrays": arrays, "attrs": attrs}

@@ -14,10 +14,12 @@ from collections.abc import Mapping
 import numpy as np
 
 from nlosjax.data import scenes
+from nlosjax.data.dataset.physics import PhysicsMix
 from nlosjax.physics.setup import Setup
 
-#: Renderers of the noise-free transient (:attr:`DatasetSpec.renderer`).
-RENDERERS = ("lct", "transport")
+#: Renderers of the noise-free transient (:attr:`DatasetSpec.renderer`); ``"mix"`` draws
+#: one per sequence from :attr:`DatasetSpec.physics`.
+RENDERERS = ("lct", "transport", "mix")
 #: Split names (group-name prefixes and the ``split`` attribute). ``val`` is
 #: the validation split every choice is made on (classic-method settings,
 #: checkpoints, hyperparameters); ``test`` only writes final tables. The order
@@ -70,6 +72,11 @@ class DatasetSpec:
       slower, see ``benchmarks/results/data.md``). Ground-truth maps are the same.
     retroreflective: probability that an object is retroreflective (``r^-2``)
       rather than diffuse, ``renderer="transport"`` only.
+    physics: with ``renderer="mix"`` (and only then), the
+      :class:`~nlosjax.data.dataset.physics.PhysicsMix` each sequence's forward
+      model is drawn from: renderer family, falloffs, cosines, impulse response
+      (replacing ``jitter``), background shape, dark counts, gain and time-zero
+      offset (a dict from a config is converted).
     store_clean: store the noise-free ``clean`` transients.
     store_albedo: store the albedo volumes.
     compression: ``"gzip"``, ``"lzf"`` or ``None``.
@@ -104,6 +111,7 @@ class DatasetSpec:
   scene: scenes.SceneParams = scenes.SceneParams()
   renderer: str = "lct"
   retroreflective: float = 0.0
+  physics: PhysicsMix | None = None
 
   def __post_init__(self):
     if not isinstance(self.setup, Setup):
@@ -146,9 +154,19 @@ class DatasetSpec:
     if self.renderer == "lct" and self.retroreflective:
       raise ValueError("retroreflective is drawn per object by renderer='transport';"
                        " with renderer='lct' use falloff='retroreflective'")
-    if self.renderer == "transport" and self.falloff != "diffuse":
-      raise ValueError("renderer='transport' draws each object's material: set"
-                       " retroreflective=1.0 instead of falloff='retroreflective'")
+    if self.renderer in ("transport", "mix") and self.falloff != "diffuse":
+      raise ValueError(f"renderer={self.renderer!r} draws each object's material: set"
+                       " retroreflective=1.0 (or data.physics) instead of falloff='retroreflective'")
+    if isinstance(self.physics, Mapping):
+      object.__setattr__(self, "physics", PhysicsMix.from_dict(self.physics))
+    if (self.renderer == "mix") != (self.physics is not None):
+      raise ValueError("renderer='mix' and physics go together: set data.physics (a PhysicsMix) with"
+                       f" renderer='mix', got renderer={self.renderer!r}, physics={self.physics!r}")
+    if self.physics is not None and not isinstance(self.physics, PhysicsMix):
+      raise ValueError(f"physics must be a PhysicsMix or dict, got {type(self.physics).__name__}")
+    if self.renderer == "mix" and self.retroreflective:
+      raise ValueError("renderer='mix' draws materials from data.physics.retroreflective;"
+                       " leave data.retroreflective at 0")
     if self.noise_sampler not in ("numpy", "jax"):
       raise ValueError(f'noise_sampler must be "numpy" or "jax", got {self.noise_sampler!r}')
     if self.compression not in ("gzip", "lzf", None):
@@ -200,6 +218,8 @@ class DatasetSpec:
       raise ValueError(f"unknown data config key(s) {unknown}; known: {sorted(names | set(_LOAD_KEYS))}")
     if isinstance(d.get("scene"), Mapping):
       d["scene"] = scenes.SceneParams.from_dict(d["scene"])
+    if isinstance(d.get("physics"), Mapping):
+      d["physics"] = PhysicsMix.from_dict(d["physics"])
     return cls(setup=setup, **d)
 
   def to_dict(self) -> dict:
@@ -218,7 +238,8 @@ class DatasetSpec:
             # Only when set: files written before the field existed keep their key.
             **({} if self.falloff == "diffuse" else {"falloff": self.falloff}),
             **({} if self.renderer == "lct" else {"renderer": self.renderer,
-                                                  "retroreflective": self.retroreflective})}
+                                                  "retroreflective": self.retroreflective}),
+            **({} if self.physics is None else {"physics": self.physics.to_dict()})}
 
   def generation_key(self) -> dict:
     """What decides the content of a sequence: everything but the sequence counts."""
