@@ -1,0 +1,69 @@
+"""``python -m benchmarks.physics_shift``: the command line of the study (:mod:`benchmarks.physics_shift`)."""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+import time
+
+from benchmarks import physics_shift
+from benchmarks.physics_shift import heldout, report, study
+
+
+def main(argv=None) -> int:
+  from benchmarks.mechanisms import STUDY_STOP, code_at_start
+  from experiments.cli import config_parser, parse_config
+  from experiments.provenance import provenance
+  code_at_start()
+  parser = config_parser(physics_shift.__doc__.split("\n\n")[0])
+  parser.add_argument("--designs", nargs="+", choices=list(study.DESIGNS), default=list(study.DESIGNS))
+  parser.add_argument("--variants", nargs="+", choices=list(study.VARIANTS), default=list(study.VARIANTS))
+  parser.add_argument("--conditions", nargs="+", choices=list(heldout.CONDITIONS),
+                      default=list(heldout.CONDITIONS), help="held-out renderer conditions")
+  parser.add_argument("--max-runs", type=int, default=None, help="train at most this many runs")
+  parser.add_argument("--time-limit-s", type=float, default=None,
+                      help="start no run after this many seconds (a started run finishes)")
+  parser.add_argument("--workdir", default="runs/physics_shift", help="run folders")
+  parser.add_argument("--results", default="benchmarks/results", help="JSON files and report")
+  parser.add_argument("--report-only", action="store_true", help="only rewrite the report from the JSON files")
+  argv = sys.argv[1:] if argv is None else list(argv)
+  args, base, _ = parse_config(parser, argv)
+  preset = args.config
+  results, workdir = pathlib.Path(args.results), pathlib.Path(args.workdir)
+  stop = {**STUDY_STOP, **base.get("train", {}).get("stop", {})}
+  physics = base["data"].get("physics")
+  if not args.report_only:
+    from tqdm import tqdm
+    sets = study.test_sets(base, args.conditions, physics)
+    jobs = [("classic", study.classic_design(name), name) for name in sets]
+    jobs += [("run", d, v) for d in args.designs for v in args.variants]
+    done = {j for j in jobs if (study.classic_path(results, j[1], j[2]) if j[0] == "classic"
+                                else study.run_path(results, j[1], j[2])).exists()}
+    todo = [j for j in jobs if j not in done]
+    print(f"physics_shift: {len(done)} of {len(jobs)} records exist in {results / 'physics_shift'}; "
+          f"{len(todo)} to do")
+    t0, trained = time.perf_counter(), 0
+    for kind, a, b in tqdm(todo, desc="physics_shift", unit="job"):
+      if kind == "classic":
+        study.run_classic(base, a, b, sets, results, preset, physics, log=tqdm.write)
+        continue
+      if args.max_runs is not None and trained >= args.max_runs:
+        tqdm.write(f"physics_shift: --max-runs {args.max_runs} reached")
+        break
+      if args.time_limit_s is not None and time.perf_counter() - t0 > args.time_limit_s:
+        tqdm.write(f"physics_shift: --time-limit-s {args.time_limit_s:g} passed; no new run starts")
+        break
+      study.run_design(base, a, b, sets, stop, workdir, results, preset, physics, log=tqdm.write)
+      trained += a != "base"
+  runs, classic = report.load(results)
+  command = "python -m benchmarks.physics_shift " + " ".join(argv)
+  text = report.to_markdown(runs, classic, provenance(command.strip()), args.conditions)
+  out = results / "physics_shift.md"
+  out.write_text(text)
+  report.plot(runs, classic, args.conditions, results / "physics_shift.png")
+  print(text)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

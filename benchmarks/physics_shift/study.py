@@ -1,0 +1,212 @@
+"""The runs of :mod:`benchmarks.physics_shift`: configs, training to the plateau, scoring, JSON records.
+
+Designs (:data:`DESIGNS`): ``base`` is the shipped model of the preset
+(``pretrained:<preset>/<variant>``, trained on the preset's own data); ``mix``
+is trained on sequences whose forward model is drawn from every family of
+:class:`nlosjax.data.dataset.physics.PhysicsMix`; ``no_<family>`` on every
+family but one. Each learned run trains to the plateau rule of
+:mod:`benchmarks.mechanisms` and writes ``RESULTS/physics_shift/<design>-<variant>.json``;
+each classic method's per-frame scores on a test set, with settings tuned on a
+design's validation split, go to ``RESULTS/physics_shift/classic-<design>-<set>.json``.
+A file that exists is not recomputed, so the command resumes anywhere.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import pathlib
+import time
+from typing import Callable
+
+import numpy as np
+
+from nlosjax.data.dataset.physics import FAMILIES
+
+#: design -> the families its training data draws from (``base``: the preset's own data).
+DESIGNS = {"base": None, "mix": FAMILIES,
+           **{f"no_{f}": tuple(g for g in FAMILIES if g != f) for f in FAMILIES}}
+VARIANTS = ("ours", "ours_s")
+#: Test sequences per set and frames per sequence.
+SEQUENCES, FRAMES = 8, 8
+#: Seed of the held-out renderer's sets.
+HELDOUT_SEED = 4048
+
+
+def data_stem(base: dict) -> str:
+  """``runs/data/<stem>`` of the preset's mix files: the preset file's stem with ``-mix`` (once)."""
+  stem = pathlib.PurePosixPath(base["data"]["path"]).stem
+  return stem if stem.endswith("-mix") else stem + "-mix"
+
+
+def design_config(base: dict, design: str, physics: dict | None = None) -> dict:
+  """The preset config ``base`` with the data of ``design`` (its own file under ``runs/data``)."""
+  from nlosjax.train import with_defaults
+  cfg = copy.deepcopy(with_defaults(base))
+  if design == "base":
+    return cfg
+  families = DESIGNS[design]
+  data = cfg["data"]
+  data["renderer"] = "mix"
+  data["retroreflective"] = 0.0
+  data["physics"] = {**(physics if physics is not None else data.get("physics") or {}),
+                     "families": list(families)}
+  name = data_stem(base) + ("" if design == "mix" else f"-{design.replace('_', '-')}")
+  data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(f"{name}.h5"))
+  return cfg
+
+
+def family_set_config(base: dict, family: str, physics: dict | None = None) -> dict:
+  """The config of family ``family``'s test set: the mix restricted to it, test split only."""
+  cfg = design_config(base, "mix", physics)
+  data = cfg["data"]
+  data["physics"]["families"] = [family]
+  data["num_sequences"] = {"train": 0, "test": SEQUENCES}
+  data["frames"] = FRAMES
+  data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(f"{data_stem(base)}-only-{family}.h5"))
+  return cfg
+
+
+def heldout_path(base: dict, condition: str) -> pathlib.Path:
+  """The held-out renderer's file of ``condition`` at the preset's capture."""
+  from benchmarks.physics_shift import heldout
+  version = heldout.GENERATOR_VERSION.rsplit("/", 1)[1]
+  stem = pathlib.PurePosixPath(base["data"]["path"]).stem.split("-")[0]
+  return pathlib.Path(base["data"]["path"]).with_name(f"heldout{version}-{stem}-{condition}.h5")
+
+
+def test_sets(base: dict, conditions, physics=None) -> dict:
+  """``set name -> (path, config to read it with)``: each family's set and each held-out condition."""
+  from benchmarks.physics_shift import heldout
+  from nlosjax import train as T
+  sets = {}
+  for family in FAMILIES:
+    cfg = family_set_config(base, family, physics)
+    T.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
+    sets[f"family:{family}"] = (pathlib.Path(cfg["data"]["path"]), cfg)
+  for cond in conditions:
+    path = heldout.ensure_condition(heldout_path(base, cond), base["data"], cond, SEQUENCES, FRAMES,
+                                    HELDOUT_SEED)
+    sets[f"heldout:{cond}"] = (path, base)
+  return sets
+
+
+def sets_of(design: str, sets: dict) -> list[str]:
+  """The test sets a design is scored on: every set (``base``, ``mix``) or its held-out family."""
+  if design in ("base", "mix"):
+    return list(sets)
+  return [f"family:{design[3:]}"]
+
+
+def _scores(ev: dict, method: str) -> dict:
+  s = ev["scores"][method]
+  return {k: np.asarray(v).reshape(-1) for k, v in s.items()}
+
+
+def score_model(cfg: dict, val_path, mcfg, params, variant: str, sets: dict, names,
+                log: Callable[[str], None] = print) -> dict:
+  """The model's surface threshold on ``val_path``'s validation split, then per-frame scores on each set."""
+  from nlosjax.evaluation import protocol
+  tuned = protocol.tune_model_thresholds(cfg, val_path, {variant: [(mcfg, params)]}, log=log)[variant]
+  out = {"surface_threshold": tuned["threshold"], "sets": {}}
+  for name in names:
+    path, set_cfg = sets[name]
+    read = {**set_cfg, "train": cfg["train"]}
+    ev = protocol.evaluate(read, path, {variant: [(mcfg, params)]}, methods=(),
+                           model_thresholds={variant: tuned["threshold"]}, log=log)
+    out["sets"][name] = {"sequence": np.asarray(ev["sequence"]), "frame": np.asarray(ev["frame"]),
+                         "scores": _scores(ev, variant)}
+  return out
+
+
+def classic_record(cfg: dict, val_path, settings: dict, sets: dict, name: str, log=print) -> dict:
+  """Every classic method on set ``name`` with ``settings`` (tuned on ``val_path``'s validation split)."""
+  from nlosjax.evaluation import baselines, protocol
+  path, set_cfg = sets[name]
+  ev = protocol.evaluate({**set_cfg, "train": cfg["train"]}, path, {}, classic_settings=settings, log=log)
+  return {"set": name, "tuned_on": str(val_path), "best": max(settings, key=lambda m: settings[m]["psnr"]),
+          "val_psnr": {m: settings[m]["psnr"] for m in settings},
+          "sequence": np.asarray(ev["sequence"]), "frame": np.asarray(ev["frame"]),
+          "methods": {m: _scores(ev, m) for m in baselines.CLASSIC_METHODS}}
+
+
+def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=print):
+  """Train (or resume) one learned run to its plateau; ``(mcfg, params, curve record)``."""
+  from benchmarks.mechanisms import _subsample
+  from nlosjax import train as T
+  from nlosjax.evaluation import protocol
+  cfg = copy.deepcopy(cfg)
+  cfg["train"]["stop"] = dict(stop)
+  cfg["train"]["variants"] = (variant,)
+  data_path = pathlib.Path(cfg["data"]["path"])
+  T.ensure_dataset(cfg, data_path, log=log)
+  validate = protocol.validation_psnr(cfg, data_path)
+  mcfg, state = T.train_model(cfg, data_path, folder, variant, folder="model", validate=validate, log=log)
+  curve = T.read_curve(folder / "model")
+  record = {"steps_taken": curve["steps_taken"], "stop_reason": curve["stop_reason"],
+            "best_step": curve["best_step"], "best_val_psnr": curve["best_val_psnr"],
+            "validation_curve": curve["curve"],
+            "loss_curve": _subsample(T.read_metrics(folder / "model" / "metrics.jsonl"))}
+  return mcfg, T.to_host(state.params), record
+
+
+def load_base(preset: str, variant: str):
+  """The shipped model: ``(mcfg, params, its training config)``."""
+  from nlosjax import inference, train
+  mcfg, params, provenance = inference.load_pretrained(preset, variant)
+  return mcfg, params, train.with_defaults(provenance["config"])
+
+
+def run_design(base: dict, design: str, variant: str, sets: dict, stop: dict, workdir: pathlib.Path,
+               results: pathlib.Path, preset: str, physics=None, log=print) -> dict:
+  """One learned run (or the shipped one), scored on its sets; writes and returns its record."""
+  from benchmarks.mechanisms import machine, write_json
+  t0 = time.perf_counter()
+  if design == "base":
+    mcfg, params, cfg = load_base(preset, variant)
+    record = {"source": f"pretrained:{preset}/{variant}"}
+  else:
+    cfg = design_config(base, design, physics)
+    mcfg, params, record = train_run(cfg, workdir / f"{design}-{variant}", variant, stop, log)
+  val_path = pathlib.Path(cfg["data"]["path"])
+  record.update(design=design, variant=variant, families=DESIGNS[design], data=str(val_path),
+                physics=cfg["data"].get("physics"), machine=machine(),
+                **score_model(cfg, val_path, mcfg, params, variant, sets, sets_of(design, sets), log))
+  record["wall_s"] = round(time.perf_counter() - t0, 1)
+  write_json(run_path(results, design, variant), record)
+  return record
+
+
+def run_path(results, design: str, variant: str) -> pathlib.Path:
+  return pathlib.Path(results) / "physics_shift" / f"{design}-{variant}.json"
+
+
+def classic_path(results, design: str, name: str) -> pathlib.Path:
+  return pathlib.Path(results) / "physics_shift" / f"classic-{design}-{name.replace(':', '-')}.json"
+
+
+def run_classic(base: dict, design: str, name: str, sets: dict, results, preset: str, physics=None,
+                log=print) -> dict:
+  """The classic methods on set ``name`` with settings tuned on ``design``'s validation split."""
+  from benchmarks.mechanisms import machine, write_json
+  from nlosjax import train as T
+  from nlosjax.main_job import tune_classic
+  cfg = load_base(preset, "ours")[2] if design == "base" else design_config(base, design, physics)
+  val_path = pathlib.Path(cfg["data"]["path"])
+  tuning = pathlib.Path(results) / "physics_shift" / f"tuning-{design}.json"
+  if tuning.exists():
+    settings = json.loads(tuning.read_text())["settings"]
+  else:
+    T.ensure_dataset(cfg, val_path, log=log)
+    settings = tune_classic(cfg, val_path, log)
+    write_json(tuning, {"design": design, "tuned_on": str(val_path), "settings": settings,
+                        "machine": machine()})
+  record = classic_record(cfg, val_path, settings, sets, name, log)
+  record.update(design=design, machine=machine())
+  write_json(classic_path(results, design, name), record)
+  return record
+
+
+def classic_design(name: str) -> str:
+  """Whose validation split tunes the classic methods on set ``name``: the design that left it out."""
+  return f"no_{name.split(':')[1]}" if name.startswith("family:") else "mix"

@@ -1,0 +1,106 @@
+"""benchmarks.physics_shift: the held-out renderer, the study's configs and its report.
+
+Independent references: a triple loop over points, scan points and the
+radiometric formula for the held-out renderer; a hand-made pair of records
+whose differences are known for the report.
+"""
+
+import json
+import math
+
+import h5py
+import numpy as np
+import pytest
+
+from benchmarks.physics_shift import heldout, report, study
+from experiments import configs
+
+
+def loop_returns(x, y, z, w, scan_x, scan_y, bin_length, T, power, cosines):
+  out = np.zeros((T, len(scan_y), len(scan_x)))
+  for p in range(len(x)):
+    for i, sy in enumerate(scan_y):
+      for j, sx in enumerate(scan_x):
+        r = math.sqrt((x[p] - sx) ** 2 + (y[p] - sy) ** 2 + z[p] ** 2)
+        k = int(math.floor(2 * r / bin_length))
+        if k < T:
+          out[k, i, j] += w[p] * (z[p] / r) ** (cosines * power) / r ** power
+  return out
+
+
+@pytest.mark.parametrize("power,cosines", [(4, 0), (4, 1), (2, 0), (2, 1)])
+def test_point_returns_match_a_loop(power, cosines):
+  rng = np.random.default_rng(power + 10 * cosines)
+  x, y = rng.uniform(-0.5, 0.5, (2, 30))
+  z, w = rng.uniform(0.4, 1.6, 30), rng.uniform(0.1, 1.0, 30)
+  sx, sy = np.linspace(-0.9, 0.9, 5), np.linspace(-0.8, 0.8, 4)
+  got = heldout.point_returns(x, y, z, w, sx, sy, 0.04, 90, power=power, cosines=cosines)
+  want = loop_returns(x, y, z, w, sx, sy, 0.04, 90, power, cosines)
+  assert want.sum() > 0
+  np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+
+
+def test_a_written_condition_is_read_by_the_evaluation_protocol(tmp_path):
+  from nlosjax.evaluation import protocol
+  cfg = configs.get_config("cpu")
+  data = {**cfg["data"], "grid": 16, "num_bins": 64, "bin_width": 264e-12, "input_stride": 4, "input_offset": 2}
+  path = heldout.write_condition(tmp_path / "far.h5", data, "far", sequences=2, frames=3, seed=1,
+                                 progress=False)
+  with h5py.File(path) as f:
+    assert f.attrs["complete"] and f.attrs["generator_version"] == heldout.GENERATOR_VERSION
+    cond = json.loads(f.attrs["condition"])
+    assert cond["name"] == "far" and cond["depth"] == [0.9, 1.8]
+    assert cond["photons"] == [float(p) for p in data["photons"]]
+    g = f["sequences/test-00001"]
+    assert g["measurement"].shape == (3, 64, 16, 16) and g["measurement"].dtype == np.uint32
+    depth = g["depth"][...]
+    assert depth[depth > 0].min() >= 0.9 - 1e-6 and depth.max() <= 1.8 + 1e-6
+    # The clean transient meets its photon budget on average over the sequence.
+    assert g["clean"][...].sum(axis=1).mean() == pytest.approx(g.attrs["photons"], rel=1e-4)
+  assert heldout.ensure_condition(path, data, "far", 2, 3, 1) == path        # the same set: reused
+  with pytest.raises(ValueError, match="another held-out set"):
+    heldout.ensure_condition(path, {**data, "photons": (1.0, 2.0)}, "far", 2, 3, 1)
+  split = protocol.load_split({**cfg, "data": data}, path, "test", batch_size=4)
+  split["loader"].close()
+  assert split["measurement"].shape == (2, 64, 4, 4) and split["intensity"].shape == (2, 16, 16)
+
+
+def test_design_configs_name_their_families_and_files():
+  base = configs.get_config("cpu")
+  mix = study.design_config(base, "mix")
+  assert mix["data"]["renderer"] == "mix" and mix["data"]["physics"]["families"] == list(study.FAMILIES)
+  no_lct = study.design_config(base, "no_lct")
+  assert no_lct["data"]["physics"]["families"] == ["transport", "points"]
+  assert no_lct["data"]["path"] == "runs/data/cpu-v3-mix-no-lct.h5"
+  assert mix["data"]["path"] == "runs/data/cpu-v3-mix.h5"
+  assert study.data_stem(mix) == "cpu-v3-mix"
+  fam = study.family_set_config(base, "points")
+  assert fam["data"]["physics"]["families"] == ["points"] and fam["data"]["num_sequences"] == {"train": 0, "test": 8}
+  assert study.design_config(base, "base")["data"]["path"] == base["data"]["path"]
+  assert study.classic_design("family:lct") == "no_lct" and study.classic_design("heldout:far") == "mix"
+  assert study.sets_of("no_points", {"family:points": 0, "heldout:far": 0}) == ["family:points"]
+
+
+def _frames(offset):
+  seq = np.repeat(np.arange(4), 3)
+  return {"sequence": seq.tolist(), "frame": np.tile([1, 2, 3], 4).tolist(),
+          "scores": {"psnr": (20.0 + offset + 0.1 * seq).tolist(), "recall": [0.8] * 12}}
+
+
+def test_report_differences_and_goal_from_records():
+  name = "family:lct"
+  runs = {("no_lct", "ours"): {"sets": {name: _frames(2.0)}},
+          ("no_lct", "ours_s"): {"sets": {name: _frames(1.5)}}}
+  classic = {("no_lct", name): {"best": "rsd", "sequence": np.repeat(np.arange(4), 3).tolist(),
+                                "methods": {m: {"psnr": _frames(0.5 if m == "rsd" else -1)["scores"]["psnr"],
+                                                "recall": [0.7] * 12}
+                                            for m in ("fbp", "lct", "fk", "phasor", "rsd")}}}
+  c = report.compare(runs, classic, name, "no_lct")
+  assert c["diff"]["ours"]["psnr"]["mean"] == pytest.approx(1.5)
+  assert c["diff"]["ours"]["recall"]["mean"] == pytest.approx(0.1)
+  assert c["ours_vs_ours_s"]["mean"] == pytest.approx(0.5)
+  assert report._goal(c) == "met"
+  runs[("no_lct", "ours")]["sets"][name] = _frames(1.0)        # +0.5 dB only: misses the 1 dB margin
+  assert report._goal(report.compare(runs, classic, name, "no_lct")) == "missed"
+  text = report.to_markdown(runs, classic, ["header"], ["base"])
+  assert "| lct |" in text and "Runs still missing" in text
