@@ -77,15 +77,28 @@ def _best_checkpoint_folder(model: pathlib.Path, step: int) -> pathlib.Path:
 
 
 def study_run(folder, results) -> dict:
-  """What a mechanism-study run folder says about its model (module docstring); ValueError naming the file."""
+  """What a study's run folder says about its model (module docstring); ValueError naming the file.
+
+  A run of ``benchmarks.mechanisms`` (``run.json`` with ``budget``, ``row``,
+  ``seed``) or of another study whose ``run.json`` names its ``command``,
+  ``record`` (its results JSON, for the machine) and ``study`` (what the run is
+  within it), e.g. ``benchmarks.physics_shift``.
+  """
   from nlosjax.train import read_selection
   folder = pathlib.Path(folder)
   meta_path = folder / "run.json"
   try:
     meta = json.loads(meta_path.read_text())
-    config, budget, row, seed = meta["config"], meta["budget"], meta["row"], int(meta["seed"])
+    config = meta["config"]
+    if "command" in meta:
+      command, study, record = meta["command"], dict(meta["study"]), pathlib.Path(meta["record"])
+    else:
+      budget, row, seed = meta["budget"], meta["row"], int(meta["seed"])
+      command = f"python -m benchmarks.mechanisms --budgets {budget} --rows {row} --seeds {seed}"
+      study = {"budget": budget, "row": row, "seed": seed}
+      record = pathlib.Path(results) / "mechanisms" / budget / f"{row}-seed{seed}.json"
   except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-    raise ValueError(f"{meta_path}: not a run record of benchmarks.mechanisms ({e})") from None
+    raise ValueError(f"{meta_path}: not a run record of a study ({e})") from None
   variants = list(config.get("train", {}).get("variants", ()))
   if len(variants) != 1:
     raise ValueError(f"{meta_path}: config train.variants is {variants}, expected the one variant trained")
@@ -97,19 +110,17 @@ def study_run(folder, results) -> dict:
   if step not in selection["val_psnr"]:
     raise ValueError(f"{model / 'selection.json'}: no validation score of the selected step {step}")
   machine = meta.get("machine")
-  record = pathlib.Path(results) / "mechanisms" / budget / f"{row}-seed{seed}.json"
   if machine is None and record.is_file():
     machine = json.loads(record.read_text()).get("machine")
   machine = dict(machine or {})
-  return {"kind": "mechanisms study run", "source": folder, "config": config, "variant": variants[0],
+  return {"kind": "study run", "source": folder, "config": config, "variant": variants[0],
           "checkpoints": _best_checkpoint_folder(model, step), "step": step,
           "recorded_val_psnr": float(selection["val_psnr"][step]),
           "steps_taken": int(selection["steps_taken"]), "stop_reason": selection["stop_reason"],
           "best_step": step, "machine": machine, "machine_source": _shown(record) if machine else None,
           "commit": machine.get("commit", "unknown"),
           "date": machine.get("date") or _mtime(model / "selection.json"),
-          "command": f"python -m benchmarks.mechanisms --budgets {budget} --rows {row} --seeds {seed}",
-          "study": {"budget": budget, "row": row, "seed": seed}}
+          "command": command, "study": study}
 
 
 def main_job_run(path, variant: str | None) -> dict:

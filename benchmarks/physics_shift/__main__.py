@@ -35,10 +35,10 @@ def main(argv=None) -> int:
   if not args.report_only:
     from tqdm import tqdm
     sets = study.test_sets(base, args.conditions, physics)
-    jobs = [("classic", study.classic_design(name), name) for name in sets]
+    jobs = [("classic", study.classic_design(name), name) for name in study.scored_by_classic(sets)]
     jobs += [("run", d, v) for d in args.designs for v in args.variants]
-    done = {j for j in jobs if (study.classic_path(results, j[1], j[2]) if j[0] == "classic"
-                                else study.run_path(results, j[1], j[2])).exists()}
+    done = {j for j in jobs if (study.classic_path(results, j[1], j[2]).exists() if j[0] == "classic"
+                                else not study.incomplete(results, j[1], j[2], sets))}
     todo = [j for j in jobs if j not in done]
     print(f"physics_shift: {len(done)} of {len(jobs)} records exist in {results / 'physics_shift'}; "
           f"{len(todo)} to do")
@@ -53,8 +53,9 @@ def main(argv=None) -> int:
       if args.time_limit_s is not None and time.perf_counter() - t0 > args.time_limit_s:
         tqdm.write(f"physics_shift: --time-limit-s {args.time_limit_s:g} passed; no new run starts")
         break
+      new = not study.run_path(results, a, b).exists()
       study.run_design(base, a, b, sets, stop, workdir, results, preset, physics, log=tqdm.write)
-      trained += a != "base"
+      trained += a != "base" and new
   runs, classic = report.load(results)
   command = "python -m benchmarks.physics_shift " + " ".join(argv)
   text = report.to_markdown(runs, classic, provenance(command.strip()), args.conditions)

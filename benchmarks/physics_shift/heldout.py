@@ -20,8 +20,8 @@ over the sequence), blurred by a Gaussian of FWHM ``jitter`` (its own
 kernel), plus flat ambient light and dark counts, then Poisson.
 
 :data:`CONDITIONS` are the test sets, each a change from ``base`` (objects
-0.5-1.5 m away, 0.25-0.6 m across, no cosines, ``r^-4``, the preset's photon
-and ambient ranges).
+0.5-1.5 m away, 0.25-0.6 m across, no cosines, ``r^-4``, a 60 ps Gaussian
+jitter, the preset's photon, ambient and dark-count ranges).
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ GENERATOR_VERSION = "benchmarks.physics_shift.heldout/1"
 
 #: Test conditions: name -> changes from the base condition (``depth``/``size`` in m;
 #: ``photons``/``ambient`` scale the preset's ranges).
+#: A condition's seed stream is its position here: new conditions go last.
 CONDITIONS = {
     "base": {},
     "far": {"depth": (0.9, 1.8)},
@@ -48,9 +49,13 @@ CONDITIONS = {
     "cosines": {"cosines": 1},
     "cosines_ambient": {"cosines": 1, "ambient": 5.0},
     "retro": {"power": 2},
+    "bright": {"photons": 10.0},
+    "dark": {"ambient": 0.0, "dark": 0.0},
+    "far_dark": {"depth": (0.9, 1.8), "ambient": 0.0, "dark": 0.0},
+    "sharp": {"jitter": 0.0},
 }
 BASE = {"depth": (0.5, 1.5), "size": (0.25, 0.6), "cosines": 0, "power": 4, "photons": 1.0,
-        "ambient": 1.0, "jitter": 60e-12}
+        "ambient": 1.0, "dark": 1.0, "jitter": 60e-12}
 
 
 def condition(name: str) -> dict:
@@ -89,6 +94,8 @@ def point_returns(x, y, z, weight, scan_x, scan_y, bin_length: float, num_bins: 
 
 
 def _gaussian(bin_width: float, fwhm: float) -> np.ndarray:
+  if fwhm <= 0:
+    return np.ones(1)
   sigma = fwhm / (2 * math.sqrt(2 * math.log(2))) / bin_width
   half = max(1, int(math.ceil(4 * sigma)))
   k = np.exp(-0.5 * (np.arange(-half, half + 1) / max(sigma, 1e-6)) ** 2)
@@ -232,7 +239,7 @@ def write_condition(path, data: dict, name: str, sequences: int = 8, frames: int
       efficiency = float(rng.uniform(*data["efficiency"]))
       amb = float(np.exp(rng.uniform(*np.log(ambient)))) / T if ambient[1] > 0 else 0.0
       blurred = np.apply_along_axis(lambda h: np.convolve(h, taps)[c:c + T], 1, clean)
-      rate = efficiency * (blurred + amb) + float(data["dark_counts"]) / T
+      rate = efficiency * (blurred + amb) + cond["dark"] * float(data["dark_counts"]) / T
       g = group.create_group(f"test-{i:05d}")
       g.attrs.update({"split": "test", "index": i, "efficiency": efficiency, "photons": S,
                       "objects": json.dumps(scene["objects"])})

@@ -76,10 +76,14 @@ def heldout_path(base: dict, condition: str) -> pathlib.Path:
 
 
 def test_sets(base: dict, conditions, physics=None) -> dict:
-  """``set name -> (path, config to read it with)``: each family's set and each held-out condition."""
+  """``set name -> (path, config to read it with[, split])``: each family's set, each held-out condition,
+  and the validation splits of the preset's data and of the mix (``val:base``, ``val:mix``), on which
+  the shipped and the mix-trained models are compared to choose between them."""
   from benchmarks.physics_shift import heldout
   from nlosjax import train as T
-  sets = {}
+  mix = design_config(base, "mix", physics)
+  sets = {"val:base": (pathlib.Path(base["data"]["path"]), base, "val"),
+          "val:mix": (pathlib.Path(mix["data"]["path"]), mix, "val")}
   for family in FAMILIES:
     cfg = family_set_config(base, family, physics)
     T.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
@@ -92,10 +96,15 @@ def test_sets(base: dict, conditions, physics=None) -> dict:
 
 
 def sets_of(design: str, sets: dict) -> list[str]:
-  """The test sets a design is scored on: every set (``base``, ``mix``) or its held-out family."""
+  """The sets a design is scored on: every set (``base``, ``mix``) or its held-out family."""
   if design in ("base", "mix"):
     return list(sets)
   return [f"family:{design[3:]}"]
+
+
+def scored_by_classic(sets: dict) -> list[str]:
+  """The test sets the classic methods are scored on (not the validation splits)."""
+  return [n for n in sets if not n.startswith("val:")]
 
 
 def _scores(ev: dict, method: str) -> dict:
@@ -110,9 +119,9 @@ def score_model(cfg: dict, val_path, mcfg, params, variant: str, sets: dict, nam
   tuned = protocol.tune_model_thresholds(cfg, val_path, {variant: [(mcfg, params)]}, log=log)[variant]
   out = {"surface_threshold": tuned["threshold"], "sets": {}}
   for name in names:
-    path, set_cfg = sets[name]
+    path, set_cfg, *split = sets[name]
     read = {**set_cfg, "train": cfg["train"]}
-    ev = protocol.evaluate(read, path, {variant: [(mcfg, params)]}, methods=(),
+    ev = protocol.evaluate(read, path, {variant: [(mcfg, params)]}, methods=(), split=(split or ["test"])[0],
                            model_thresholds={variant: tuned["threshold"]}, log=log)
     out["sets"][name] = {"sequence": np.asarray(ev["sequence"]), "frame": np.asarray(ev["frame"]),
                          "scores": _scores(ev, variant)}
@@ -122,7 +131,7 @@ def score_model(cfg: dict, val_path, mcfg, params, variant: str, sets: dict, nam
 def classic_record(cfg: dict, val_path, settings: dict, sets: dict, name: str, log=print) -> dict:
   """Every classic method on set ``name`` with ``settings`` (tuned on ``val_path``'s validation split)."""
   from nlosjax.evaluation import baselines, protocol
-  path, set_cfg = sets[name]
+  path, set_cfg, *_ = sets[name]
   ev = protocol.evaluate({**set_cfg, "train": cfg["train"]}, path, {}, classic_settings=settings, log=log)
   return {"set": name, "tuned_on": str(val_path), "best": max(settings, key=lambda m: settings[m]["psnr"]),
           "val_psnr": {m: settings[m]["psnr"] for m in settings},
@@ -130,14 +139,27 @@ def classic_record(cfg: dict, val_path, settings: dict, sets: dict, name: str, l
           "methods": {m: _scores(ev, m) for m in baselines.CLASSIC_METHODS}}
 
 
-def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=print):
-  """Train (or resume) one learned run to its plateau; ``(mcfg, params, curve record)``."""
-  from benchmarks.mechanisms import _subsample
+def run_meta(cfg: dict, design: str, variant: str, preset: str, results) -> dict:
+  """The run folder's ``run.json``: what ``experiments.export_weights`` reads of a study run."""
+  return {"config": cfg, "command": f"python -m benchmarks.physics_shift --config {preset} --designs {design} "
+                                    f"--variants {variant}",
+          "record": str(run_path(results, design, variant)),
+          "study": {"study": "physics_shift", "design": design, "variant": variant}}
+
+
+def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=print, meta=None):
+  """Train (or resume) one learned run to its plateau; ``(mcfg, params, curve record)``.
+
+  ``meta``: written to ``folder/run.json`` with the run's config (:func:`run_meta`).
+  """
+  from benchmarks.mechanisms import _subsample, write_json
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
   cfg = copy.deepcopy(cfg)
   cfg["train"]["stop"] = dict(stop)
   cfg["train"]["variants"] = (variant,)
+  if meta is not None:
+    write_json(folder / "run.json", {**meta, "config": cfg})
   data_path = pathlib.Path(cfg["data"]["path"])
   T.ensure_dataset(cfg, data_path, log=log)
   validate = protocol.validation_psnr(cfg, data_path)
@@ -159,22 +181,46 @@ def load_base(preset: str, variant: str):
 
 def run_design(base: dict, design: str, variant: str, sets: dict, stop: dict, workdir: pathlib.Path,
                results: pathlib.Path, preset: str, physics=None, log=print) -> dict:
-  """One learned run (or the shipped one), scored on its sets; writes and returns its record."""
+  """One learned run (or the shipped one), scored on its sets; writes and returns its record.
+
+  A record that exists already is completed: the sets it lacks are scored
+  (the run is restored, not trained again) and added.
+  """
   from benchmarks.mechanisms import machine, write_json
   t0 = time.perf_counter()
+  path = run_path(results, design, variant)
+  old = json.loads(path.read_text()) if path.exists() else None
   if design == "base":
     mcfg, params, cfg = load_base(preset, variant)
     record = {"source": f"pretrained:{preset}/{variant}"}
   else:
     cfg = design_config(base, design, physics)
-    mcfg, params, record = train_run(cfg, workdir / f"{design}-{variant}", variant, stop, log)
+    mcfg, params, record = train_run(cfg, workdir / f"{design}-{variant}", variant, stop, log,
+                                     meta=run_meta(cfg, design, variant, preset, results))
   val_path = pathlib.Path(cfg["data"]["path"])
+  names = [n for n in sets_of(design, sets) if old is None or n not in old["sets"]]
+  scored = score_model(cfg, val_path, mcfg, params, variant, sets, names, log)
+  if old is not None:
+    if old["surface_threshold"] != scored["surface_threshold"]:
+      raise RuntimeError(f"{path}: the restored run chose another surface threshold than its record")
+    old["sets"].update(scored["sets"])
+    old.setdefault("rescored", []).append({"sets": names, "machine": machine()})
+    write_json(path, old)
+    return old
   record.update(design=design, variant=variant, families=DESIGNS[design], data=str(val_path),
-                physics=cfg["data"].get("physics"), machine=machine(),
-                **score_model(cfg, val_path, mcfg, params, variant, sets, sets_of(design, sets), log))
+                physics=cfg["data"].get("physics"), machine=machine(), **scored)
   record["wall_s"] = round(time.perf_counter() - t0, 1)
-  write_json(run_path(results, design, variant), record)
+  write_json(path, record)
   return record
+
+
+def incomplete(results, design: str, variant: str, sets: dict) -> bool:
+  """Whether the run has no record, or one that lacks a set it is scored on."""
+  path = run_path(results, design, variant)
+  if not path.exists():
+    return True
+  have = json.loads(path.read_text())["sets"]
+  return any(n not in have for n in sets_of(design, sets))
 
 
 def run_path(results, design: str, variant: str) -> pathlib.Path:
