@@ -20,8 +20,9 @@ over the sequence), blurred by a Gaussian of FWHM ``jitter`` (its own
 kernel), plus flat ambient light and dark counts, then Poisson.
 
 :data:`CONDITIONS` are the test sets, each a change from ``base`` (objects
-0.5-1.5 m away, 0.25-0.6 m across, no cosines, ``r^-4``, a 60 ps Gaussian
-jitter, the preset's photon, ambient and dark-count ranges).
+0.5-1.5 m away, 0.25-0.6 m across, anchored within 0.4 m of the wall centre,
+no cosines, ``r^-4``, a 60 ps Gaussian jitter, the preset's photon, ambient
+and dark-count ranges).
 """
 
 from __future__ import annotations
@@ -53,9 +54,12 @@ CONDITIONS = {
     "dark": {"ambient": 0.0, "dark": 0.0},
     "far_dark": {"depth": (0.9, 1.8), "ambient": 0.0, "dark": 0.0},
     "sharp": {"jitter": 0.0},
+    "wide": {"lateral": 0.8},
+    "small": {"size": (0.1, 0.25)},
+    "large": {"size": (0.6, 1.0)},
 }
-BASE = {"depth": (0.5, 1.5), "size": (0.25, 0.6), "cosines": 0, "power": 4, "photons": 1.0,
-        "ambient": 1.0, "dark": 1.0, "jitter": 60e-12}
+BASE = {"depth": (0.5, 1.5), "size": (0.25, 0.6), "lateral": 0.4, "cosines": 0, "power": 4,
+        "photons": 1.0, "ambient": 1.0, "dark": 1.0, "jitter": 60e-12}
 
 
 def condition(name: str) -> dict:
@@ -108,7 +112,7 @@ def _objects(rng, cond: dict) -> list[dict]:
   for _ in range(int(rng.integers(1, 3)) + 1):              # 1-2 static + the dynamic one (last)
     kind = SHAPES[int(rng.choice(len(SHAPES), p=list(KIND_MIX.values())))]
     o = dict(kind=kind, size=float(rng.uniform(*cond["size"])), angle=float(rng.uniform(0, 2 * np.pi)),
-             albedo=float(rng.uniform(0.3, 1.0)), pos=rng.uniform(-0.4, 0.4, 2),
+             albedo=float(rng.uniform(0.3, 1.0)), pos=rng.uniform(-cond["lateral"], cond["lateral"], 2),
              z=float(rng.uniform(*cond["depth"])))
     if kind == "letter":
       o["glyph"] = str(rng.choice(list(GLYPHS)))
@@ -155,7 +159,8 @@ def make_sequence(rng: np.random.Generator, grid, wall_size: float, bin_width: f
       pos, z, angle = o["pos"], o["z"], o["angle"]
       if i == len(objects) - 1:
         pos = pos + velocity * f
-        pos = 0.45 - np.abs((pos + 0.45) % 1.8 - 0.9)                # bounce inside |x|, |y| <= 0.45
+        edge = cond["lateral"] + 0.05                                # bounce inside |x|, |y| <= edge
+        pos = edge - np.abs((pos + edge) % (4 * edge) - 2 * edge)
         z = float(np.clip(z + z_amp * math.sin(z_freq * f), lo, hi))
         angle = angle + spin * f
       m = shape_mask(o["kind"], X - pos[1], Y - pos[0], o["size"], angle,
