@@ -74,6 +74,11 @@ def test_design_configs_name_their_families_and_files():
   assert no_lct["data"]["path"] == "runs/data/cpu-v3-mix-no-lct.h5"
   assert mix["data"]["path"] == "runs/data/cpu-v3-mix.h5"
   assert study.data_stem(mix) == "cpu-v3-mix"
+  wide = study.design_config(base, "wide")
+  assert wide["data"]["path"] == "runs/data/cpu-v3-mix-wide.h5"
+  scene = wide["data"]["scene"]
+  assert scene["size_range"] == (0.15, 1.0) and scene["lateral_extent"] == 0.7
+  assert scene["depth_range"] == (0.4, 2.0) and mix["data"]["scene"] == base["data"]["scene"]
   fam = study.family_set_config(base, "points")
   assert fam["data"]["physics"]["families"] == ["points"] and fam["data"]["num_sequences"] == {"train": 0, "test": 8}
   assert study.design_config(base, "base")["data"]["path"] == base["data"]["path"]

@@ -18,6 +18,7 @@ from benchmarks.physics_shift import heldout, study
 #: The goal margin over the best classic method on a held-out family or condition (dB).
 GOAL_MARGIN_DB = 1.0
 LABELS = {"base": "shipped (trained on the preset's data)", "mix": "mix (every family)",
+          "wide": "wide (every family, wider scenes)",
           **{f"no_{f}": f"without {f}" for f in study.FAMILIES}}
 
 
@@ -41,7 +42,9 @@ def _arr(values) -> np.ndarray:
 
 
 def _cell(s, digits=2, signed=False) -> str:
-  if s is None or not np.isfinite(s["mean"]):
+  if s is None:
+    return "(not run)"
+  if not np.isfinite(s["mean"]):
     return "—"
   f = f"{{:{'+' if signed else ''}.{digits}f}}"
   return f"{f.format(s['mean'])} [{f.format(s['ci95'][0])}, {f.format(s['ci95'][1])}]"
@@ -83,19 +86,29 @@ def compare(runs: dict, classic: dict, name: str, design: str) -> dict | None:
   return out
 
 
-def choice(runs: dict, variant: str, name: str) -> dict | None:
-  """Mix-trained minus shipped ``variant`` on validation split ``name``: means and the paired difference."""
+def choice(runs: dict, variant: str, name: str, design: str, against: str = "base") -> dict | None:
+  """``design`` minus ``against`` (``variant``) on validation split ``name``: means and the paired difference."""
   from nlosjax import stats
   from nlosjax.evaluation import scores
-  a = runs.get(("mix", variant), {}).get("sets", {}).get(name)
-  b = runs.get(("base", variant), {}).get("sets", {}).get(name)
+  a = runs.get((design, variant), {}).get("sets", {}).get(name)
+  b = runs.get((against, variant), {}).get("sets", {}).get(name)
   if a is None or b is None:
     return None
   seq = np.asarray(a["sequence"])
   if not np.array_equal(seq, np.asarray(b["sequence"])):
-    raise ValueError(f"mix-{variant} and base-{variant} read {name} in different orders")
+    raise ValueError(f"{design}-{variant} and {against}-{variant} read {name} in different orders")
   pa, pb = (scores.by_sequence(_arr(r["scores"]["psnr"]), seq) for r in (a, b))
-  return {"mix": stats.summarize(pa), "base": stats.summarize(pb), "diff": stats.paired_difference(pa, pb)}
+  return {"a": stats.summarize(pa), "b": stats.summarize(pb), "diff": stats.paired_difference(pa, pb)}
+
+
+def _mean(runs: dict, design: str, variant: str, name: str) -> dict | None:
+  """Mean intensity PSNR of a run on set ``name`` with its interval over sequences (None: not scored)."""
+  from nlosjax import stats
+  from nlosjax.evaluation import scores
+  r = runs.get((design, variant), {}).get("sets", {}).get(name)
+  if r is None:
+    return None
+  return stats.summarize(scores.by_sequence(_arr(r["scores"]["psnr"]), np.asarray(r["sequence"])))
 
 
 def _goal(c: dict) -> str:
@@ -143,20 +156,19 @@ def to_markdown(runs: dict, classic: dict, header: list[str], conditions) -> str
       "recall at least the best classic method's, and Ours ≥ Ours-S (each by its mean; the intervals say "
       "whether a difference is called).", ""]
   lines += ["## The choice, on validation", "",
-            "Intensity PSNR of the shipped and the mix-trained models on two validation splits: the "
-            "preset's own data (`val:base`) and the mix (`val:mix`, every family). The preset adopts the "
-            "mix where the mix-trained model is ahead on the mix's validation split (interval above 0) "
-            "without falling behind on the preset's own.", "",
-            "| variant | validation split | shipped (dB) | mix-trained (dB) | mix − shipped (dB) |",
-            "|---|---|---|---|---|"]
+            "Intensity PSNR of the candidates (" + ", ".join(f"**{d}** = {LABELS[d]}" for d in study.CANDIDATES)
+            + ") on the validation split of each candidate's data, and the paired differences to the shipped "
+            "model. The preset adopts the candidate ahead on the other candidates' validation splits "
+            "(intervals above 0) without falling behind on the preset's own.", "",
+            "| variant | validation split | " + " | ".join(f"{d} (dB)" for d in study.CANDIDATES) + " | "
+            + " | ".join(f"{d} − base (dB)" for d in study.CANDIDATES[1:]) + " |",
+            "|---|---|" + "---|" * (2 * len(study.CANDIDATES) - 1)]
   for variant in study.VARIANTS:
-    for name in ("val:base", "val:mix"):
-      c = choice(runs, variant, name)
-      if c is None:
-        lines.append(f"| {variant} | {name} | (not run) | (not run) | (not run) |")
-        continue
-      lines.append(f"| {variant} | {name} | {_cell(c['base'])} | {_cell(c['mix'])} | "
-                   f"{_cell(c['diff'], signed=True)} |")
+    for name in (f"val:{d}" for d in study.CANDIDATES):
+      means = [_cell(_mean(runs, d, variant, name)) for d in study.CANDIDATES]
+      diffs = [choice(runs, variant, name, d) for d in study.CANDIDATES[1:]]
+      lines.append(f"| {variant} | {name} | " + " | ".join(means) + " | "
+                   + " | ".join(_cell(c["diff"], signed=True) if c else "(not run)" for c in diffs) + " |")
   lines += [""]
   lines += ["## Held-out families: trained without the family, tested on it", "",
             HEADER.format(what="left-out family"), "|---|---|---|---|---|---|---|---|"]
@@ -165,7 +177,7 @@ def to_markdown(runs: dict, classic: dict, header: list[str], conditions) -> str
   lines += ["", "The same sets, models trained on every family (mix) and the shipped models:", "",
             HEADER.format(what="family (design)"), "|---|---|---|---|---|---|---|---|"]
   for f in study.FAMILIES:
-    for design in ("mix", "base"):
+    for design in study.CANDIDATES:
       lines.append(_row(f"{f} ({LABELS[design]})", compare(runs, classic, f"family:{f}", design)))
   lines += ["", "## Held-out renderer (`benchmarks/physics_shift/heldout.py`, never trained on)", "",
             "Conditions (changes from objects at 0.5–1.5 m, 0.25–0.6 m across, no cosines, r⁻⁴, the "
@@ -174,7 +186,7 @@ def to_markdown(runs: dict, classic: dict, header: list[str], conditions) -> str
                 if k in conditions) + ".", "",
             HEADER.format(what="condition (design)"), "|---|---|---|---|---|---|---|---|"]
   for cond in conditions:
-    for design in ("mix", "base"):
+    for design in study.CANDIDATES:
       lines.append(_row(f"{cond} ({LABELS[design]})", compare(runs, classic, f"heldout:{cond}", design)))
   lines += ["", "## Runs", "", "| design | variant | steps (stop, best step) | best validation PSNR (dB) | "
             "train data | wall (s) | machine, commit |", "|---|---|---|---|---|---|---|"]
@@ -197,9 +209,9 @@ def plot(runs: dict, classic: dict, conditions, path: pathlib.Path) -> None:
   import matplotlib.pyplot as plt
   items = [(f"family:{f}", f"{f}\n(held out)", f"no_{f}") for f in study.FAMILIES]
   items += [(f"heldout:{c}", c, None) for c in conditions]
-  designs = ("base", "mix")
+  designs = study.CANDIDATES
   fig, ax = plt.subplots(figsize=(1.1 * len(items) + 2, 3.6))
-  width = 0.27
+  width = 0.2
   for k, design in enumerate(designs + ("held-out design",)):
     xs, ys, lo, hi = [], [], [], []
     for i, (name, _, own) in enumerate(items):
@@ -210,13 +222,14 @@ def plot(runs: dict, classic: dict, conditions, path: pathlib.Path) -> None:
       if c is None or "ours" not in c["diff"]:
         continue
       s = c["diff"]["ours"]["psnr"]
-      xs.append(i + (k - 1) * width)
+      xs.append(i + (k - 1.5) * width)
       ys.append(s["mean"])
       lo.append(s["mean"] - s["ci95"][0])
       hi.append(s["ci95"][1] - s["mean"])
     if xs:
       ax.bar(xs, ys, width, yerr=[lo, hi], capsize=2,
-             label={"base": "shipped", "mix": "mix", "held-out design": "trained without the family"}[design])
+             label={"base": "shipped", "mix": "mix", "wide": "wide",
+                    "held-out design": "trained without the family"}[design])
   ax.axhline(0, color="k", lw=0.8)
   ax.axhline(GOAL_MARGIN_DB, color="g", lw=0.8, ls="--", label=f"goal +{GOAL_MARGIN_DB:g} dB")
   ax.set_xticks(range(len(items)), [lab for _, lab, _ in items], fontsize=8)

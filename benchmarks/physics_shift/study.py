@@ -24,8 +24,20 @@ import numpy as np
 from nlosjax.data.dataset.physics import FAMILIES
 
 #: design -> the families its training data draws from (``base``: the preset's own data).
-DESIGNS = {"base": None, "mix": FAMILIES,
+#: ``wide``: every family, and scenes wider than the preset's (:func:`wide_scene`).
+DESIGNS = {"base": None, "mix": FAMILIES, "wide": FAMILIES,
            **{f"no_{f}": tuple(g for g in FAMILIES if g != f) for f in FAMILIES}}
+#: Designs compared on validation to choose the preset's data.
+CANDIDATES = ("base", "mix", "wide")
+
+
+def wide_scene(scene: dict) -> dict:
+  """The preset's scene distribution widened: objects 0.6x to 1.67x its sizes, anchored 1.4x as far
+  from the wall centre, 0.8x to 1.33x its depths (cpu: 0.15-1.0 m across, within 0.7 m, 0.4-2.0 m)."""
+  (s0, s1), (z0, z1) = scene["size_range"], scene["depth_range"]
+  return {**scene, "size_range": (round(0.6 * s0, 4), round(s1 * 5 / 3, 4)),
+          "lateral_extent": round(1.4 * scene["lateral_extent"], 4),
+          "depth_range": (round(0.8 * z0, 4), round(z1 * 4 / 3, 4))}
 VARIANTS = ("ours", "ours_s")
 #: Test sequences per set and frames per sequence.
 SEQUENCES, FRAMES = 8, 8
@@ -51,6 +63,8 @@ def design_config(base: dict, design: str, physics: dict | None = None) -> dict:
   data["retroreflective"] = 0.0
   data["physics"] = {**(physics if physics is not None else data.get("physics") or {}),
                      "families": list(families)}
+  if design == "wide":
+    data["scene"] = wide_scene(data["scene"])
   name = data_stem(base) + ("" if design == "mix" else f"-{design.replace('_', '-')}")
   data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(f"{name}.h5"))
   return cfg
@@ -77,13 +91,15 @@ def heldout_path(base: dict, condition: str) -> pathlib.Path:
 
 def test_sets(base: dict, conditions, physics=None) -> dict:
   """``set name -> (path, config to read it with[, split])``: each family's set, each held-out condition,
-  and the validation splits of the preset's data and of the mix (``val:base``, ``val:mix``), on which
-  the shipped and the mix-trained models are compared to choose between them."""
+  and the validation splits of the candidates' data (``val:base``, ``val:mix``, ``val:wide``), on which
+  the candidates are compared to choose the preset's data."""
   from benchmarks.physics_shift import heldout
   from nlosjax import train as T
-  mix = design_config(base, "mix", physics)
-  sets = {"val:base": (pathlib.Path(base["data"]["path"]), base, "val"),
-          "val:mix": (pathlib.Path(mix["data"]["path"]), mix, "val")}
+  sets = {"val:base": (pathlib.Path(base["data"]["path"]), base, "val")}
+  for design in CANDIDATES[1:]:
+    cfg = design_config(base, design, physics)
+    T.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
+    sets[f"val:{design}"] = (pathlib.Path(cfg["data"]["path"]), cfg, "val")
   for family in FAMILIES:
     cfg = family_set_config(base, family, physics)
     T.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
@@ -96,8 +112,8 @@ def test_sets(base: dict, conditions, physics=None) -> dict:
 
 
 def sets_of(design: str, sets: dict) -> list[str]:
-  """The sets a design is scored on: every set (``base``, ``mix``) or its held-out family."""
-  if design in ("base", "mix"):
+  """The sets a design is scored on: every set (the :data:`CANDIDATES`) or its held-out family."""
+  if design in CANDIDATES:
     return list(sets)
   return [f"family:{design[3:]}"]
 
