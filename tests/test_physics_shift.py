@@ -71,11 +71,14 @@ def test_design_configs_name_their_families_and_files():
   assert mix["data"]["renderer"] == "mix" and mix["data"]["physics"]["families"] == list(study.FAMILIES)
   no_lct = study.design_config(base, "no_lct")
   assert no_lct["data"]["physics"]["families"] == ["transport", "points"]
-  assert no_lct["data"]["path"] == "runs/data/cpu-v3-mix-no-lct.h5"
-  assert mix["data"]["path"] == "runs/data/cpu-v3-mix.h5"
-  assert study.data_stem(mix) == "cpu-v3-mix"
+  stem = f"runs/data/cpu-v3-mix-{study.physics_digest(None)}"
+  assert no_lct["data"]["path"] == f"{stem}-no-lct.h5" and mix["data"]["path"] == f"{stem}.h5"
+  assert study.data_stem(mix) == stem.split("/")[-1]
+  other = study.design_config(base, "mix", {"time_shift": 0})
+  assert other["data"]["path"] != mix["data"]["path"] and other["data"]["physics"]["time_shift"] == 0
+  assert study.physics_digest({"families": ["lct"]}) == study.physics_digest({})
   wide = study.design_config(base, "wide")
-  assert wide["data"]["path"] == "runs/data/cpu-v3-mix-wide.h5"
+  assert wide["data"]["path"] == f"{stem}-wide.h5"
   scene = wide["data"]["scene"]
   assert scene["size_range"] == (0.15, 1.0) and scene["lateral_extent"] == 0.7
   assert scene["depth_range"] == (0.4, 2.0) and mix["data"]["scene"] == base["data"]["scene"]

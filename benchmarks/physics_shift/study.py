@@ -45,10 +45,22 @@ SEQUENCES, FRAMES = 8, 8
 HELDOUT_SEED = 4048
 
 
-def data_stem(base: dict) -> str:
-  """``runs/data/<stem>`` of the preset's mix files: the preset file's stem with ``-mix`` (once)."""
-  stem = pathlib.PurePosixPath(base["data"]["path"]).stem
-  return stem if stem.endswith("-mix") else stem + "-mix"
+def physics_digest(physics: dict | None) -> str:
+  """Six hex digits naming a mix's physics (its families aside): files of two mixes never collide."""
+  import hashlib
+
+  from nlosjax.data.dataset.physics import PhysicsMix
+  d = PhysicsMix.from_dict({k: v for k, v in (physics or {}).items() if k != "families"}).to_dict()
+  d.pop("families")
+  return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:6]
+
+
+def data_stem(base: dict, physics: dict | None = None) -> str:
+  """``runs/data/<stem>`` of the preset's mix files: the preset file's stem, ``-mix`` and the physics digest."""
+  stem = pathlib.PurePosixPath(base["data"]["path"]).stem.split("-mix")[0]
+  if physics is None:
+    physics = base["data"].get("physics")
+  return f"{stem}-mix-{physics_digest(physics)}"
 
 
 def design_config(base: dict, design: str, physics: dict | None = None) -> dict:
@@ -61,11 +73,11 @@ def design_config(base: dict, design: str, physics: dict | None = None) -> dict:
   data = cfg["data"]
   data["renderer"] = "mix"
   data["retroreflective"] = 0.0
-  data["physics"] = {**(physics if physics is not None else data.get("physics") or {}),
-                     "families": list(families)}
+  physics = physics if physics is not None else data.get("physics") or {}
+  data["physics"] = {**physics, "families": list(families)}
   if design == "wide":
     data["scene"] = wide_scene(data["scene"])
-  name = data_stem(base) + ("" if design == "mix" else f"-{design.replace('_', '-')}")
+  name = data_stem(base, physics) + ("" if design == "mix" else f"-{design.replace('_', '-')}")
   data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(f"{name}.h5"))
   return cfg
 
@@ -77,7 +89,8 @@ def family_set_config(base: dict, family: str, physics: dict | None = None) -> d
   data["physics"]["families"] = [family]
   data["num_sequences"] = {"train": 0, "test": SEQUENCES}
   data["frames"] = FRAMES
-  data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(f"{data_stem(base)}-only-{family}.h5"))
+  name = f"{data_stem(base, physics)}-only-{family}.h5"
+  data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(name))
   return cfg
 
 
