@@ -85,6 +85,11 @@ def test_design_configs_name_their_families_and_files():
   fam = study.family_set_config(base, "points")
   assert fam["data"]["physics"]["families"] == ["points"] and fam["data"]["num_sequences"] == {"train": 0, "test": 8}
   assert study.design_config(base, "base")["data"]["path"] == base["data"]["path"]
+  # A preset that adopted a mix: base is its scenes by the transport renderer alone, in a file of its own.
+  adopted = study.design_config(base, "mix")
+  transport = study.design_config(adopted, "base")["data"]
+  assert transport["renderer"] == "transport" and "physics" not in transport
+  assert transport["retroreflective"] == 0.2 and transport["path"] == "runs/data/cpu-v3-transport.h5"
   assert study.classic_design("family:lct") == "no_lct" and study.classic_design("heldout:far") == "mix"
   assert study.sets_of("no_points", {"family:points": 0, "heldout:far": 0}) == ["family:points"]
 

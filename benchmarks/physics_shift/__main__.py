@@ -55,7 +55,7 @@ def main(argv=None) -> int:
         break
       new = not study.run_path(results, a, b).exists()
       study.run_design(base, a, b, sets, stop, workdir, results, preset, physics, log=tqdm.write)
-      trained += a != "base" and new
+      trained += new
   runs, classic = report.load(results)
   command = "python -m benchmarks.physics_shift " + " ".join(argv)
   text = report.to_markdown(runs, classic, provenance(command.strip()), args.conditions)

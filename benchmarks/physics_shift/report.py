@@ -17,7 +17,7 @@ from benchmarks.physics_shift import heldout, study
 
 #: The goal margin over the best classic method on a held-out family or condition (dB).
 GOAL_MARGIN_DB = 1.0
-LABELS = {"base": "shipped (trained on the preset's data)", "mix": "mix (every family)",
+LABELS = {"base": "base (transport renderer only)", "mix": "mix (every family)",
           "wide": "wide (every family, wider scenes)",
           **{f"no_{f}": f"without {f}" for f in study.FAMILIES}}
 
@@ -142,11 +142,13 @@ def to_markdown(runs: dict, classic: dict, header: list[str], conditions) -> str
   lines = ["# Physics shift: learned models on forward models they were not trained on", ""]
   lines += header + [""]
   lines += [
-      "Designs: **shipped** = the preset's shipped weights (trained on its own data); **mix** = trained on "
+      "Designs: **base** = trained on the preset's scenes rendered by the transport renderer alone (the "
+      "data the preset's shipped weights were trained on, when it has no physics mix); **mix** = trained on "
       "sequences whose forward model is drawn per sequence from every family of "
       "`nlosjax.data.dataset.physics.PhysicsMix` (light-cone operator, transport with visibility and "
       "cosines, point scatterers; falloff, impulse response, background, gain and time-zero offset "
-      "randomised); **without F** = the same mix without family F. Every learned run trains to the "
+      "randomised); **wide** = the mix with wider scenes (`benchmarks.physics_shift.study.wide_scene`); "
+      "**without F** = the same mix without family F. Every learned run trains to the "
       "validation plateau of `benchmarks.mechanisms` and picks its checkpoint and surface threshold on "
       "its own training data's validation split. The classic methods' settings, and which of them is "
       "best, are chosen on the validation split of the design that left the set's family out (held-out "
@@ -157,9 +159,9 @@ def to_markdown(runs: dict, classic: dict, header: list[str], conditions) -> str
       "whether a difference is called).", ""]
   lines += ["## The choice, on validation", "",
             "Intensity PSNR of the candidates (" + ", ".join(f"**{d}** = {LABELS[d]}" for d in study.CANDIDATES)
-            + ") on the validation split of each candidate's data, and the paired differences to the shipped "
-            "model. The preset adopts the candidate ahead on the other candidates' validation splits "
-            "(intervals above 0) without falling behind on the preset's own.", "",
+            + ") on the validation split of each candidate's data, and the paired differences to base. "
+            "The preset adopts the candidate ahead on the other candidates' validation splits "
+            "(intervals above 0) without falling behind on base's.", "",
             "| variant | validation split | " + " | ".join(f"{d} (dB)" for d in study.CANDIDATES) + " | "
             + " | ".join(f"{d} − base (dB)" for d in study.CANDIDATES[1:]) + " |",
             "|---|---|" + "---|" * (2 * len(study.CANDIDATES) - 1)]
@@ -174,7 +176,7 @@ def to_markdown(runs: dict, classic: dict, header: list[str], conditions) -> str
             HEADER.format(what="left-out family"), "|---|---|---|---|---|---|---|---|"]
   for f in study.FAMILIES:
     lines.append(_row(f, compare(runs, classic, f"family:{f}", f"no_{f}")))
-  lines += ["", "The same sets, models trained on every family (mix) and the shipped models:", "",
+  lines += ["", "The same sets, the candidates (base, mix, wide) trained on every family they draw from:", "",
             HEADER.format(what="family (design)"), "|---|---|---|---|---|---|---|---|"]
   for f in study.FAMILIES:
     for design in study.CANDIDATES:
@@ -228,7 +230,7 @@ def plot(runs: dict, classic: dict, conditions, path: pathlib.Path) -> None:
       hi.append(s["ci95"][1] - s["mean"])
     if xs:
       ax.bar(xs, ys, width, yerr=[lo, hi], capsize=2,
-             label={"base": "shipped", "mix": "mix", "wide": "wide",
+             label={"base": "base", "mix": "mix", "wide": "wide",
                     "held-out design": "trained without the family"}[design])
   ax.axhline(0, color="k", lw=0.8)
   ax.axhline(GOAL_MARGIN_DB, color="g", lw=0.8, ls="--", label=f"goal +{GOAL_MARGIN_DB:g} dB")

@@ -1,13 +1,14 @@
 """The runs of :mod:`benchmarks.physics_shift`: configs, training to the plateau, scoring, JSON records.
 
-Designs (:data:`DESIGNS`): ``base`` is the shipped model of the preset
-(``pretrained:<preset>/<variant>``, trained on the preset's own data); ``mix``
-is trained on sequences whose forward model is drawn from every family of
-:class:`nlosjax.data.dataset.physics.PhysicsMix`; ``no_<family>`` on every
-family but one. Each learned run trains to the plateau rule of
-:mod:`benchmarks.mechanisms` and writes ``RESULTS/physics_shift/<design>-<variant>.json``;
-each classic method's per-frame scores on a test set, with settings tuned on a
-design's validation split, go to ``RESULTS/physics_shift/classic-<design>-<set>.json``.
+Designs (:data:`DESIGNS`), every one trained here: ``base`` on the preset's
+scenes rendered by the transport renderer alone, without a physics mix (the
+preset's own data where it has none); ``mix`` on sequences whose forward model
+is drawn from every family of :class:`nlosjax.data.dataset.physics.PhysicsMix`;
+``wide`` on the mix with wider scenes; ``no_<family>`` on every family but
+one. Each learned run trains to the plateau rule of :mod:`benchmarks.mechanisms`
+and writes ``RESULTS/physics_shift/<design>-<variant>.json``; each classic
+method's per-frame scores on a test set, with settings tuned on a design's
+validation split, go to ``RESULTS/physics_shift/classic-<design>-<set>.json``.
 A file that exists is not recomputed, so the command resumes anywhere.
 """
 
@@ -21,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from nlosjax.data.dataset.physics import FAMILIES
+from nlosjax.data.dataset.physics import FAMILIES, PhysicsMix
 
 #: design -> the families its training data draws from (``base``: the preset's own data).
 #: ``wide``: every family, and scenes wider than the preset's (:func:`wide_scene`).
@@ -67,10 +68,16 @@ def design_config(base: dict, design: str, physics: dict | None = None) -> dict:
   """The preset config ``base`` with the data of ``design`` (its own file under ``runs/data``)."""
   from nlosjax.train import with_defaults
   cfg = copy.deepcopy(with_defaults(base))
+  data = cfg["data"]
   if design == "base":
+    if data.get("renderer") == "mix":     # the preset's scenes by transport alone
+      retro = PhysicsMix.from_dict(data.get("physics") or {}).retroreflective
+      data.update(renderer="transport", retroreflective=retro)
+      data.pop("physics")
+      data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(
+          f"{data_stem(base).rsplit('-mix-', 1)[0]}-transport.h5"))
     return cfg
   families = DESIGNS[design]
-  data = cfg["data"]
   data["renderer"] = "mix"
   data["retroreflective"] = 0.0
   physics = physics if physics is not None else data.get("physics") or {}
@@ -108,8 +115,8 @@ def test_sets(base: dict, conditions, physics=None) -> dict:
   the candidates are compared to choose the preset's data."""
   from benchmarks.physics_shift import heldout
   from nlosjax import train as T
-  sets = {"val:base": (pathlib.Path(base["data"]["path"]), base, "val")}
-  for design in CANDIDATES[1:]:
+  sets = {}
+  for design in CANDIDATES:
     cfg = design_config(base, design, physics)
     T.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
     sets[f"val:{design}"] = (pathlib.Path(cfg["data"]["path"]), cfg, "val")
@@ -201,16 +208,9 @@ def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=pri
   return mcfg, T.to_host(state.params), record
 
 
-def load_base(preset: str, variant: str):
-  """The shipped model: ``(mcfg, params, its training config)``."""
-  from nlosjax import inference, train
-  mcfg, params, provenance = inference.load_pretrained(preset, variant)
-  return mcfg, params, train.with_defaults(provenance["config"])
-
-
 def run_design(base: dict, design: str, variant: str, sets: dict, stop: dict, workdir: pathlib.Path,
                results: pathlib.Path, preset: str, physics=None, log=print) -> dict:
-  """One learned run (or the shipped one), scored on its sets; writes and returns its record.
+  """One learned run, trained to its plateau and scored on its sets; writes and returns its record.
 
   A record that exists already is completed: the sets it lacks are scored
   (the run is restored, not trained again) and added.
@@ -219,13 +219,9 @@ def run_design(base: dict, design: str, variant: str, sets: dict, stop: dict, wo
   t0 = time.perf_counter()
   path = run_path(results, design, variant)
   old = json.loads(path.read_text()) if path.exists() else None
-  if design == "base":
-    mcfg, params, cfg = load_base(preset, variant)
-    record = {"source": f"pretrained:{preset}/{variant}"}
-  else:
-    cfg = design_config(base, design, physics)
-    mcfg, params, record = train_run(cfg, workdir / f"{design}-{variant}", variant, stop, log,
-                                     meta=run_meta(cfg, design, variant, preset, results))
+  cfg = design_config(base, design, physics)
+  mcfg, params, record = train_run(cfg, workdir / f"{design}-{variant}", variant, stop, log,
+                                   meta=run_meta(cfg, design, variant, preset, results))
   val_path = pathlib.Path(cfg["data"]["path"])
   names = [n for n in sets_of(design, sets) if old is None or n not in old["sets"]]
   scored = score_model(cfg, val_path, mcfg, params, variant, sets, names, log)
@@ -266,7 +262,7 @@ def run_classic(base: dict, design: str, name: str, sets: dict, results, preset:
   from benchmarks.mechanisms import machine, write_json
   from nlosjax import train as T
   from nlosjax.main_job import tune_classic
-  cfg = load_base(preset, "ours")[2] if design == "base" else design_config(base, design, physics)
+  cfg = design_config(base, design, physics)
   val_path = pathlib.Path(cfg["data"]["path"])
   tuning = pathlib.Path(results) / "physics_shift" / f"tuning-{design}.json"
   if tuning.exists():
