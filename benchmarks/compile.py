@@ -9,7 +9,7 @@ load hits both alike:
 
 * train step: :func:`nlosjax.train.make_train_step` (the operators an argument,
   :mod:`nlosjax.physics.operator_args`) against the same function under a plain
-  ``jax.jit`` (the operators read as constants, as before issue 37);
+  ``jax.jit`` (the operators read as constants);
 * forward: ``model.apply`` bound to :meth:`~nlosjax.models.network.ModelConfig.physics_operators`
   against a plain ``jax.jit``.
 

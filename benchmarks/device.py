@@ -1,31 +1,31 @@
-"""One command for a borrowed accelerator: correctness, scan kernels and paper scale on the device present.
+"""One command for an accelerator machine: correctness, scan kernels and paper scale on the device present.
 
     PYTHONPATH=. python -m benchmarks.device [--out DIR] [--budget-s 480] [--tiny]
     python -m benchmarks.device --collect DIR [--results benchmarks/results/device.md]
     python -m benchmarks.device --make-reference          # on CPU; rewrites benchmarks/device_reference/
 
-Procedure on a GPU machine without network (nothing can be installed there; it has JAX with
-CUDA, flax, optax, orbax-checkpoint, h5py, chex, scipy, matplotlib and pytest, and no tqdm):
+Procedure on a GPU machine, which needs no network and no install step (JAX with CUDA, flax,
+optax, orbax-checkpoint, h5py, chex, scipy and matplotlib; tqdm is optional; docs/gpu.md):
 
-1. From the repository root of the working tree copy, run exactly
+1. From the repository root, run
 
-       PYTHONPATH=. python -m benchmarks.device --out $OUT/device
+       PYTHONPATH=. python -m benchmarks.device --out DIR
 
-   under a wall-clock limit below 10 minutes (e.g. the device tool's ``timeout_s=560``, or
-   ``timeout 560`` in front of it, for the default ``--budget-s 480``). It needs no install step
+   under a wall-clock limit below 10 minutes (e.g. ``timeout 560`` in front of it, for the
+   default ``--budget-s 480``). It needs no install step
    and no network: only the tree, ``experiments/data/`` (the shipped scan) and
    ``benchmarks/device_reference/reference.npz`` (the CPU values the checks compare with).
    The command manages the budget itself: each part gets a share of it (environment 3 %,
    correctness 20 %, scan kernels 22 %, paper scale 38 %, classic 17 %, unused time rolls
    over to the next part), skips a step or a part, with a note, whose conservative estimate
    exceeds the time left, and stops itself at ``--budget-s`` (``os._exit``) if a step overruns.
-2. What comes back (``$OUT/device``, 6 files): ``environment.json``, ``correctness.json``,
+2. What comes back (``DIR``, 6 files): ``environment.json``, ``correctness.json``,
    ``scan_kernels.json``, ``paper_scale.json``, ``classic.json`` and ``device.log``. Each part's
    JSON is written when the part starts and rewritten after every row, so a run cut off still
    returns what it measured (``"status": "cut off"`` where the budget stopped it, ``"running"``
    where something outside killed it; ``"skipped"`` where it never had the time to start).
    The exit status is 1 when a correctness check failed or a part raised, else 0.
-3. On the developer machine, ``python -m benchmarks.device --collect DIR`` (DIR: the folder that
+3. Back on any machine with the repository, ``python -m benchmarks.device --collect DIR`` (DIR: the folder that
    came back) writes ``benchmarks/results/device.md`` whole: the provenance lines recorded on the
    device (its device kind, date, code digest), the command, each part's table, and the goals
    shown as met / not met from the numbers; then ``python -m benchmarks.index``.
@@ -53,7 +53,7 @@ Parts, in this order (``benchmarks/device_parts.py``):
   method's FFT floor (``benchmarks.physics.fft_floor``), timed alternately.
 * then a log note where a future mechanism study's rows would go (not implemented).
 
-Goals (issue 39), judged by ``--collect``: paper-scale inference >= 30 frames/s at batch 1 on one
+Goals, judged by ``--collect``: paper-scale inference >= 30 frames/s at batch 1 on one
 H100; the dry run's planned peak within +-20 % of the measured one; the best scan method's
 forward+backward <= 6x the exp floor at every shape; the measured ``auto`` row within 10 % of the
 best method, forward and forward+backward; every correctness check passes.
@@ -279,7 +279,7 @@ def _verdict(ok) -> str:
 
 
 def goals(data: dict) -> list[tuple[str, bool | None, str]]:
-  """``(goal, met or None where not measured, the numbers)`` for each goal of issue 39."""
+  """``(goal, met or None where not measured, the numbers)`` for each goal (module docstring)."""
   from benchmarks import scan as scan_bench
   env, corr, scan, paper = (data.get(k) or {} for k in ("environment", "correctness", "scan_kernels",
                                                        "paper_scale"))

@@ -16,7 +16,7 @@ five classic methods, on
   and noise; written if absent at the first model's Setup and detector).
 
 Beyond the Table 1 metrics, two ratios say whether a method shrinks or dims
-the objects (issue 38 item 2), per frame over the true object pixels ``O``
+the objects, per frame over the true object pixels ``O``
 (ground-truth depth > 0):
 
 * brightness ratio ``sum_O intensity / sum_O true intensity`` (1: as bright

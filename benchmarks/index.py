@@ -32,36 +32,35 @@ HERE = pathlib.Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 INDEX = HERE / "README.md"
 
-# What each results file is judged against (from the issue that asked for it); a file not
+# What each results file is judged against (the goal its benchmark was written for); a file not
 # named here shows "none stated".
 GOALS = {
     "compile": "the paper-scale physics operators passed as arguments, not baked in as constants: "
-               "smaller programs, faster compiles, the same numbers (issue 37)",
-    "data": "near-linear speed-up with `--workers` (issue 22)",
+               "smaller programs, faster compiles, the same numbers",
+    "data": "near-linear speed-up with `--workers`",
     "device": "paper-scale inference >= 30 frames/s on one H100; dry-run memory within ±20 % of the measured "
               "peak; scan fwd+bwd <= 6x the exp floor; auto within 10 % of the best; every correctness check "
-              "passes (issue 39)",
+              "passes",
     "dry_run": "refuses a run above 90 % of device memory",
     "main_job": "the main job within 1200 s (20 min on 2 cores)",
     "mechanisms": "full - no-SSM and full - Ours-S with intervals at both photon budgets, every run "
-                  "trained to its validation plateau; the SSM probe of a trained Ours (issue 37)",
+                  "trained to its validation plateau; the SSM probe of a trained Ours",
     "physics": "each method <= 1.3x its FFT floor and >= 1x the same-variant NumPy/SciPy twin, "
-               "at 64² and 128² (issue 20)",
-    "real": "the network ahead of every classic method against every other method's full scan "
-            "(issue 18)",
+               "at 64² and 128²",
+    "real": "the network ahead of every classic method against every other method's full scan",
     "real_public": "a network whose physics layer has the public operators, beside the refined one it "
-                   "would replace, on the measured scans (issue 38)",
+                   "would replace, on the measured scans",
     "reconstruct_time": "`experiments.reconstruct` with the shipped model on a 64 x 64 x 512 capture in "
-                        "under 10 s on 2 cores, compile included (issue 38)",
+                        "under 10 s on 2 cores, compile included",
     "scan": "associative <= 4x / <= 10x the exp floor (forward / fwd+bwd), best <= 2x / <= 6x, "
-            "auto within 10 % of the best, fwd+bwd peak <= 3x inputs + outputs (issue 21)",
-    "scan_torch": "associative >= 5x faster than mambapy's pscan, fwd+bwd (issue 21)",
-    "table1": "Ours - Ours-S >= +0.5 dB; Ours >= best classic + 3 dB (issue 18); "
-              "Ours >= USM + 0.5 dB (issue 19)",
-    "table1_independent": "Ours >= best classic + 1 dB, recall >= 0.85 (issue 18)",
-    "table1_low_photon": "Ours - Ours-S >= +0.5 dB where photons are scarce (issue 18)",
-    "table2_controls": "full - no-SSM >= +1 dB (issue 18)",
-    "table2_controls_low_photon": "full - no-SSM >= +1 dB where photons are scarce (issue 18)",
+            "auto within 10 % of the best, fwd+bwd peak <= 3x inputs + outputs",
+    "scan_torch": "associative >= 5x faster than mambapy's pscan, fwd+bwd",
+    "table1": "Ours - Ours-S >= +0.5 dB; Ours >= best classic + 3 dB; "
+              "Ours >= USM + 0.5 dB",
+    "table1_independent": "Ours >= best classic + 1 dB, recall >= 0.85",
+    "table1_low_photon": "Ours - Ours-S >= +0.5 dB where photons are scarce",
+    "table2_controls": "full - no-SSM >= +1 dB",
+    "table2_controls_low_photon": "full - no-SSM >= +1 dB where photons are scarce",
     "tradeoff": "halving the depth range cuts LCT and network time by >= 1.6x",
 }
 
@@ -74,8 +73,8 @@ by the command named in its first lines ("Produced by `...`"), with the date, ma
 commit, and a digest of the project modules that command may run. The "state" column recomputes
 that digest on the tree this index was written from: **current** means the code is the same,
 **stale since <commit>** names the first later commit that changed one of those modules (and
-which ones). A stale file is regenerated with its command; until then the README marks the
-numbers it quotes from it as stale. The numbers are in the files.
+which ones). A stale file is regenerated with its command; until then the README and `docs/`
+mark the numbers they quote from it as stale. The numbers are in the files.
 `pip install -e ".[bench]"` installs PyTorch and mambapy, needed only for
 `benchmarks/scan_torch.py`. Imports run downward only: `nlosjax` <- `experiments` <-
 `benchmarks` (provenance and the NumPy twins live in `experiments/`).
@@ -83,15 +82,15 @@ numbers it quotes from it as stale. The numbers are in the files.
 This file is written by `python -m benchmarks.index` from the results files' headers; rerun it
 after any benchmark (a test fails while it is out of date).
 
-**On a GPU** (`device.md`, from a borrowed GPU machine with no network): from the repository
-root run exactly `PYTHONPATH=. python -m benchmarks.device --out $OUT/device` under a time limit
-below 10 minutes (the command keeps itself within its own `--budget-s 480`); no install step is
-needed. Six files come back in `$OUT/device`: `environment.json`, `correctness.json`,
-`scan_kernels.json`, `paper_scale.json`, `classic.json` and `device.log`, each part's JSON written
-as the part runs, so a cut-off run still returns what it measured. On the developer machine,
-`python -m benchmarks.device --collect DIR` writes `results/device.md` whole (the device named);
-then rerun `python -m benchmarks.index`. `python -m benchmarks.device --tiny` rehearses the same
-code paths on CPU in the test suite, so the command cannot rot between GPU loans.
+**On a GPU** (`device.md`): from the repository root run
+`PYTHONPATH=. python -m benchmarks.device --out DIR` under a time limit below 10 minutes (the
+command keeps itself within its own `--budget-s 480`); no install step and no network are needed.
+Six files come back in `DIR`: `environment.json`, `correctness.json`, `scan_kernels.json`,
+`paper_scale.json`, `classic.json` and `device.log`, each part's JSON written as the part runs, so
+a cut-off run still returns what it measured. Then `python -m benchmarks.device --collect DIR`
+writes `results/device.md` whole (the device named); rerun `python -m benchmarks.index`.
+`python -m benchmarks.device --tiny` rehearses the same code paths on CPU in the test suite, so
+the command cannot break unnoticed between GPU runs. The procedure: `docs/gpu.md`.
 """
 
 

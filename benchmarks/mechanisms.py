@@ -1,4 +1,4 @@
-"""Mechanisms (issue 37): does Ours use its SSMs and its neighbour frames, every model trained until learning stops?
+"""Mechanisms: does Ours use its SSMs and its neighbour frames, every model trained until learning stops?
 
     python -m benchmarks.mechanisms [--config cpu] [--budgets full tenth] [--rows full ours_s no_ssm]
                                     [--extra-rows] [--seeds 0 1 2] [--max-runs N] [--time-limit-s S]

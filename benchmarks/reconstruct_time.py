@@ -10,8 +10,8 @@ building the operators, compiling and running, and writing the volume and its
 figures. The learned methods use the shipped weights (``--pretrained``, each
 name given: ``real`` is trained on the measured scans' geometry, ``cpu`` on a
 2 m wall); three
-classic methods run in the same session so the ratios beside the times hold on
-any machine. The goal (issue 38) is under 10 s on 2 cores for the shipped
+classic methods run in the same measurement so the ratios beside the times hold on
+any machine. The goal is under 10 s on 2 cores for the shipped
 model on a 64 x 64 x 512 capture, compile included.
 """
 

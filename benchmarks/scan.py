@@ -23,7 +23,7 @@ The two floors, in the same run and the same way:
   ``[Bt, L, D, N]`` is materialised;
 * copy floor: a copy of the inputs ``x, dt, B, C`` (memory traffic only).
 
-Ratios are to the exp floor. The goals (issue 21, CPU with 2 cores) are checked
+Ratios are to the exp floor. The goals (CPU with 2 cores) are checked
 at the end: the associative kernels ("blockwise": log depth across blocks; and
 the plain "associative") forward <= 4x the exp floor and forward+backward <= 10x;
 the best method forward <= 2x and forward+backward <= 6x; the measured "auto" row

@@ -18,7 +18,7 @@ forward+backward medians (ms) per shape, the shapes of ``benchmarks.scan``'s
 
 our own kernels in the same run and the same way (``nlosjax blockwise`` and
 so on: ``selective_scan(method=...)`` jitted, forward and ``value_and_grad``),
-so that the ratio to mambapy is measured side by side; issue 21's goal is the
+so that the ratio to mambapy is measured side by side; the goal is the
 associative kernel ("blockwise") at least 5x faster than mambapy forward+backward;
 and two parallel formulations written here from their published descriptions,
 with PyTorch autograd for the backward:
@@ -59,7 +59,7 @@ try:
 except ImportError:
   mambapy_pscan = None
 
-DEFAULT_SHAPES = ("64x512x32x16", "128x256x32x16")   # issue 21's, as benchmarks.scan
+DEFAULT_SHAPES = ("64x512x32x16", "128x256x32x16")   # the shapes of benchmarks.scan
 JAX_METHODS = ("blockwise", "sequential", "associative")
 GOAL_VS_MAMBAPY = 5.0
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "scan_torch.md"

@@ -1,4 +1,4 @@
-"""One command-line habit (issue 36): ``experiments.train`` and ``experiments.make_dataset`` share ``experiments.cli``.
+"""One command-line habit: ``experiments.train`` and ``experiments.make_dataset`` share ``experiments.cli``.
 
 Parse-only: generation and training are replaced by recorders, so nothing is simulated or compiled.
 """

@@ -564,7 +564,7 @@ def test_cli_writes_the_preset_split_and_the_loader_reads_it_by_config(tmp_path)
 
 @pytest.mark.parametrize("in_memory", [False, True])
 def test_sharded_loaders_read_their_rows_of_the_global_batch(tiny, in_memory):
-  # Multi-process training (issue 22): process i of n gets rows i*B/n .. (i+1)*B/n.
+  # Multi-process training: process i of n gets rows i*B/n .. (i+1)*B/n.
   path, _ = tiny
   kw = dict(batch_size=4, stride=4, offset=1, seed=3, in_memory=in_memory)
   with D.TripletLoader(path, **kw) as whole, D.TripletLoader(path, shard=(0, 2), **kw) as a, \

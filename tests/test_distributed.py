@@ -1,5 +1,5 @@
 """Beyond one device: data-parallel meshes of 4, 2 and 1 devices, checkpoints restored across
-mesh sizes, and two processes joined by ``jax.distributed`` (issue 22).
+mesh sizes, and two processes joined by ``jax.distributed``.
 
 The runs happen in subprocesses (``tests/distributed_run.py``): the device count of a
 CPU process is fixed when JAX starts (``--xla_force_host_platform_device_count``).

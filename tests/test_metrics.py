@@ -297,7 +297,7 @@ def test_rmse_gradient_away_from_zero():
 
 
 def test_rmse_propagates_nan_under_jit_and_stays_zero_with_finite_gradient_at_zero_error():
-  """Issue 36: the sqrt guard fell back to 0 where the mean square was not > 0, and NaN is not."""
+  """NaN must propagate: a sqrt guard that falls back to 0 where the mean square is not > 0 would hide it."""
   target = jnp.asarray(_structured(6, 7)[0], jnp.float32)
   pred = target.at[2, 3].set(jnp.nan)
   jitted = jax.jit(metrics.rmse)

@@ -1,4 +1,4 @@
-"""The dry run (``nlosjax.plan``, ``experiments.train --dry-run``) and the paper recipe (issue 22)."""
+"""The dry run (``nlosjax.plan``, ``experiments.train --dry-run``) and the paper recipe."""
 
 import dataclasses
 

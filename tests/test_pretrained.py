@@ -1,4 +1,4 @@
-"""Weights shipped inside the package (``nlosjax/weights/``, issue 38 items 4 and 5).
+"""Weights shipped inside the package (``nlosjax/weights/``): loading, provenance and recorded scores.
 
 The shipped models must reproduce the validation score recorded at export on
 data regenerated from their recorded data specification (one val sequence,

@@ -1,4 +1,4 @@
-"""Stability at the extremes (issue 7): every case asserts finite outputs *and* a bounded deviation.
+"""Stability at the extremes: every case asserts finite outputs *and* a bounded deviation.
 
 The extremes, and the reference each is held to:
 
@@ -35,7 +35,7 @@ The extremes, and the reference each is held to:
   (each term alone, float32 and bfloat16), finite second derivatives; through
   the network, a training step (of Ours-S) on an empty scene (every term at zero
   error but depth) has exactly zero gradients;
-* bad values (NaN, +inf, a negative count) under ``physics.checks.checked`` (issue 36):
+* bad values (NaN, +inf, a negative count) under ``physics.checks.checked``:
   every classic method, through ``reconstruct`` and its own function, raises ``ValueError``
   naming the problem; every public metric, which has no compiled check, scores NaN for an
   image (a temporal score: a pair of frames) holding a NaN, and inf and negative values by its
@@ -671,7 +671,7 @@ def test_operators_built_first_inside_a_user_jit_do_not_leak_tracers():
                              atol=1e-6 * float(np.max(inside)))
 
 
-# ============================================== bad values under jit, checks on (issue 36)
+# ============================================== bad values under jit, checks on
 # What NaN, +inf and a negative value do to every public metric and every classic method under a
 # compiled call with the library's input checks on (``physics.checks.checked``). The methods check
 # their counts: each bad value raises ValueError naming the problem. The metrics have no compiled

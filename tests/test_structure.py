@@ -1,11 +1,11 @@
-"""Imports run downward only: ``nlosjax`` <- ``experiments`` <- ``benchmarks`` (issue 23).
+"""Imports run downward only: ``nlosjax`` <- ``experiments`` <- ``benchmarks``.
 
 Every ``import`` and ``from ... import`` statement of every module, top level or inside
 a function (or in a string run as a subprocess script), is read with ``ast``.
 
 Inside ``nlosjax`` no two modules import each other, directly or round a longer circle
-(issue 36: ``physics.depth_range`` and ``physics.reconstruct`` did, through imports inside
-functions).
+(a cycle such as ``physics.depth_range`` and ``physics.reconstruct`` importing each other inside
+functions hides an order dependence).
 """
 
 import ast

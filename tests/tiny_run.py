@@ -5,10 +5,10 @@ from nlosjax import train as T
 from nlosjax.data import scenes
 
 # 16 x 16 capture, every 4th point in (4 x 4), 64 bins of 264 ps; a model a few thousand parameters big.
-# The cpu preset's data before issue 18: the light-cone renderer, 1e3-1e4 photons, and the
+# The cpu preset's first data recipe: the light-cone renderer, 1e3-1e4 photons, and the
 # scene options added since at their defaults (helix motion, no spin, albedo 0.5-1). The
 # training and dataset tests' margins were measured there; the transport renderer the preset
-# now uses is tested against its own brute-force loop in tests/test_transport.py.
+# uses is tested against its own brute-force loop in tests/test_transport.py.
 LCT_DATA = dict(renderer="lct", retroreflective=0.0, photons=(1e3, 1e4))
 LCT_SCENE = dict(scenes._LATER_FIELDS)
 TINY_DATA = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, input_stride=4, input_offset=2,

@@ -149,7 +149,7 @@ def resolve_method(method: str, *, length: int, channels: int, state: int, batch
   """The concrete method ``"auto"`` stands for (other methods pass through).
 
   Rule (measured in ``benchmarks/results/scan.md``, 2 cores, XLA:CPU): on CPU
-  "sequential" at every shape. At issue 21's shapes ``(64, 512, 32, 16)`` and
+  "sequential" at every shape. At the benchmark's shapes ``(64, 512, 32, 16)`` and
   ``(128, 256, 32, 16)`` it was the fastest method forward (1.2-1.7x the exp
   floor, against 2.2-2.8x for "blockwise", 4.8-5.9x "chunked", 14-19x
   "associative") and forward+backward (13-15x, against 14-18x for "blockwise"
