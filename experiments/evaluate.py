@@ -7,8 +7,8 @@ Usage::
 
 ``--checkpoint`` is a main-job workdir (every trained variant in it is
 evaluated), one variant's folder (``WORKDIR/ours``) or its ``checkpoints``
-folder. ``--data`` is any file in the documented dataset layout (README,
-"Dynamic NLOS dataset"), not only ones our generator made; the models are
+folder. ``--data`` is any file in the documented dataset layout
+(``docs/dataset.md``), not only ones our generator made; the models are
 moved to the file's Setup (same parameters, physics layer rebuilt) and the
 classic methods get the under-scanned input interpolated to the full grid,
 as in the paper, with the settings the run chose on its validation split

@@ -10,7 +10,7 @@ charts where a preset names them, on helices or lines) rendered by
 :func:`nlosjax.physics.render` (the light-cone operator) or
 :mod:`nlosjax.data.surfaces`, with noise from :mod:`nlosjax.data.dataset`.
 This file is written without any of them, with plain NumPy and h5py, in the
-documented HDF5 layout (README, "Dynamic NLOS dataset"):
+documented HDF5 layout (``docs/dataset.md``):
 
 * **shapes** (:data:`SHAPES`, drawn with the shares of :data:`KIND_MIX`):
   fronto-parallel **letters and digits** of a hand-written single-stroke font

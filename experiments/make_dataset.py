@@ -14,8 +14,7 @@ calls :func:`nlosjax.data.dataset.write_dataset` with
 rerunning after a crash resumes it). So with the same ``--config`` and
 overrides, e.g. ``--config.data.renderer=lct --config.data.retroreflective=0.0``,
 it writes the file that train would make for itself. An existing ``FILE`` is
-kept unless ``--overwrite``. The layout is documented in the README (section
-"Dynamic NLOS dataset").
+kept unless ``--overwrite``. The layout is documented in ``docs/dataset.md``.
 
 The flags are shorthands of config keys: ``--out`` of ``data.path``, ``--frames``
 of ``data.frames``, ``--seed`` of ``data.seed``, ``--train/--val/--test`` of

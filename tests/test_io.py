@@ -683,7 +683,7 @@ def test_capture_inconsistent_attributes(tmp_path):
 
 
 def test_dynamic_dataset_sequence_frames(tmp_path):
-  # A minimal file in the documented dataset layout (README, "Dynamic NLOS dataset").
+  # A minimal file in the documented dataset layout (docs/dataset.md).
   rng = np.random.default_rng(16)
   meas = {name: rng.poisson(3.0, (3, 16, 4, 4)).astype(np.uint16)
           for name in ("test-00000", "test-00001", "train-00000")}

@@ -1,4 +1,5 @@
-"""The README's quick start is what CI runs, and its lock-file line matches the lock."""
+"""The README's quick start is what CI runs, its lock-file line matches the lock, and the README
+and ``docs/`` quote only current results."""
 
 import pathlib
 import re
@@ -47,27 +48,85 @@ def test_lock_file_is_generated_and_installable_as_the_readme_says():
     assert needed in names, needed
 
 
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+#: Headings a newcomer looks for, each within the README's first 100 lines.
+FRONT_HEADINGS = ("## Reconstruct my capture", "## Try the shipped network", "## Train on a GPU",
+                  "## Use the kernels in my code")
+
+
+def test_the_readme_is_short_and_answers_the_first_questions_early():
+  lines = (ROOT / "README.md").read_text().splitlines()
+  assert len(lines) <= 200, len(lines)
+  for heading in FRONT_HEADINGS:
+    assert heading in lines, heading
+    assert lines.index(heading) < 100, (heading, lines.index(heading) + 1)
+  assert lines.index("## Quick start") < min(lines.index(h) for h in FRONT_HEADINGS)
+
+
+def test_the_readme_links_every_docs_page():
+  readme = (ROOT / "README.md").read_text()
+  for page in sorted((ROOT / "docs").glob("*.md")):
+    assert f"(docs/{page.name})" in readme, page.name
+
+
+def _prose(page: pathlib.Path) -> str:
+  """A page's text outside its code blocks."""
+  return "".join(page.read_text().split("```")[::2])
+
+
 def _quoting_units(text: str):
-  """The README's paragraphs (blank-line separated) and table rows, each as one string."""
+  """A page's paragraphs (blank-line separated), list items and table rows, each as one string."""
   for block in re.split(r"\n\s*\n", text):
     rows = [l for l in block.splitlines() if l.lstrip().startswith("|")]
     rest = "\n".join(l for l in block.splitlines() if not l.lstrip().startswith("|"))
     yield from rows
-    if rest.strip():
-      yield rest
+    yield from (item for item in re.split(r"\n(?=\s*(?:[-*]|\d+\.) )", rest) if item.strip())
+
+
+NUMBER = re.compile(r"\d\.\d|\d+ ?(?:s|ms|min|dB|x|%)\b")
+RESULTS_FILE = re.compile(r"results/([A-Za-z0-9_]+)\.(?:md|json|png)")
 
 
 def test_the_readme_quotes_only_current_results_files_or_says_the_number_is_stale():
-  """A paragraph or table row that quotes a number from a stale results file says "stale"."""
+  """A paragraph, list item or table row of the README or docs/ that quotes a number from a
+  stale results file says "stale", and one that names only current files does not."""
   from benchmarks import index
   states = {e.name: index.state(e) for e in index.entries()}
-  readme = (ROOT / "README.md").read_text().split("```")
-  prose = "".join(readme[::2])                    # outside code blocks
+  unmarked, outdated = [], []
+  for page in PAGES:
+    for unit in _quoting_units(_prose(page)):
+      named = {n for n in RESULTS_FILE.findall(unit) if n in states}
+      stale = sorted(n for n in named if states[n] != "current")
+      says_stale = "stale" in unit.lower()
+      if stale and NUMBER.search(unit) and not says_stale:
+        unmarked.append(f"{page.name}: {', '.join(stale)}: {unit.strip()[:100]}...")
+      if named and not stale and says_stale:
+        outdated.append(f"{page.name}: {', '.join(sorted(named))}: {unit.strip()[:100]}...")
+  assert not unmarked, "README or docs/ quote stale results without saying so:\n" + "\n".join(unmarked)
+  assert not outdated, ("README or docs/ call current results stale (they were regenerated: drop the"
+                        " word):\n" + "\n".join(outdated))
+
+
+def test_every_finding_names_its_results_file():
+  """Each section of docs/results.md and each finding of the README's results that quotes a
+  number names a results file, one that exists."""
+  results = ROOT / "benchmarks" / "results"
+  readme = (ROOT / "README.md").read_text().split("## Results at a glance", 1)[1].split("\n## ", 1)[0]
+  findings = [f for f in re.split(r"\n(?=- )", readme) if f.startswith("- ")]
+  sections = re.split(r"\n(?=## )", _prose(ROOT / "docs" / "results.md"))[1:]   # after the intro
+  assert len(findings) == 5 and len(sections) > 5
   bad = []
-  for unit in _quoting_units(prose):
-    named = set(re.findall(r"results/([A-Za-z0-9_]+)\.(?:md|json|png)", unit))
-    numbers = re.search(r"\d\.\d|\d+ ?(?:s|ms|min|dB|x|%)\b", unit)
-    stale = sorted(n for n in named if n in states and states[n] != "current")
-    if stale and numbers and "stale" not in unit.lower():
-      bad.append(f"{', '.join(stale)}: {unit.strip()[:100]}...")
-  assert not bad, "README quotes stale results without saying so:\n" + "\n".join(bad)
+  for unit in findings + sections:
+    if NUMBER.search(unit):
+      named = re.findall(r"results/([A-Za-z0-9_]+\.(?:md|json|png))", unit)
+      if not named or not all((results / n).is_file() for n in named):
+        bad.append(unit.strip()[:100])
+  assert not bad, "findings without their results file:\n" + "\n".join(bad)
+
+
+def test_what_users_read_speaks_of_the_software_not_of_how_it_was_made():
+  pages = PAGES + [ROOT / "benchmarks" / "README.md", ROOT / "nlosjax" / "weights" / "README.md",
+                   ROOT / "CHANGELOG.md"]
+  bad = [f"{p.relative_to(ROOT)}: {m.group(0)}" for p in pages
+         for m in re.finditer(r"(?i)\bissues? #?\d+|/tmp/|\bsessions?\b|\btracker\b", p.read_text())]
+  assert not bad, bad

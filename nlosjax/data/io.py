@@ -25,8 +25,8 @@ Formats (the registry :data:`FORMATS`, name -> reader), one module each in
   nlosjax's single-capture HDF5 layout, written by :func:`save_capture`
   (and by ``python -m experiments.reconstruct``).
 ``"nlosjax_dataset"`` (:mod:`~nlosjax.data.formats.dataset_file`)
-  One sequence of an nlosjax dynamic dataset (``nlosjax.data.dataset``; README,
-  "Dynamic NLOS dataset").
+  One sequence of an nlosjax dynamic dataset (``nlosjax.data.dataset``;
+  ``docs/dataset.md``).
 
 Where the pieces live: the registry (:class:`FormatSpec`,
 :func:`register_format`, :data:`FORMATS`) and detection

@@ -1,7 +1,7 @@
 """Format ``"nlosjax_dataset"``: one sequence of an nlosjax dynamic dataset file.
 
-The HDF5 file written by :mod:`nlosjax.data.dataset` (README, "Dynamic NLOS
-dataset"; root attribute ``format = "nlosjax-dynamic-nlos"``); the reader
+The HDF5 file written by :mod:`nlosjax.data.dataset` (``docs/dataset.md``;
+root attribute ``format = "nlosjax-dynamic-nlos"``); the reader
 returns the frames of one sequence.
 """
 
@@ -20,7 +20,7 @@ _DATASET_FORMAT = "nlosjax-dynamic-nlos"    # nlosjax.data.dataset.FORMAT_NAME
 
 def _read_dataset(path: Path, *, zero_bins=None, bin_factor=None, num_bins=None, frame=0,
                   split=None, sequence=None, key="measurement"):
-  """Read frames of one sequence of an nlosjax dynamic dataset (README, "Dynamic NLOS dataset").
+  """Read frames of one sequence of an nlosjax dynamic dataset (``docs/dataset.md``).
 
   Args (beyond the shared ones):
     split: ``"train"`` or ``"test"`` (default: any split).
