@@ -103,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
   g = p.add_argument_group("classic method options")
   g.add_argument("--snr", type=float, default=None, help="lct: Wiener SNR (0.1; 0.8 retroreflective)")
   g.add_argument("--falloff", choices=("diffuse", "retroreflective"), default=None,
-                 help="lct, fbp: radiometric falloff")
+                 help="lct, fbp: radiometric falloff; with --adapt, the forward model's (default diffuse)")
   g.add_argument("--cycles", type=float, default=None, help="phasor, rsd: wavelet cycles")
   g.add_argument("--sampling-coeff", type=float, default=None, help="phasor, rsd: wavelength / (2 spacing)")
   g.add_argument("--ratio", type=float, default=None, help="rsd: spectrum threshold")
@@ -122,6 +122,14 @@ def build_parser() -> argparse.ArgumentParser:
   g.add_argument("--variant", choices=("ours", "ours_s", "usm"), default=None,
                  help="--method model: which trained variant (default: with --checkpoint the first"
                       " trained of ours, ours_s, usm; shipped weights: ours)")
+  g.add_argument("--adapt", action="store_true",
+                 help="fit a small part of the network (nlosjax.adaptation.DEFAULT_TRAINABLE) to this"
+                      " capture before reconstructing: the forward model of its volume is made to"
+                      " reproduce the counts it read, stopping on scan points held out of the fit"
+                      " (default: the network as trained)")
+  g.add_argument("--adapt-steps", type=int, default=40, help="--adapt: at most this many steps (40)")
+  g.add_argument("--adapt-holdout", type=float, default=0.25,
+                 help="--adapt: share of the read scan points held out for stopping (0.25)")
   g.add_argument("--model-bin-factor", type=int, default=None,
                  help="capture bins per network bin (default: nearest to the trained bin width)")
   p.add_argument("--no-cache", action="store_true",
@@ -325,8 +333,21 @@ def reconstruct_model(transient, setup, args, log):
       f" output {adapted.setup.grid}; wavelet sampling_coeff"
       f" {adapted.model_config.wavelet_sampling:.3g}")
   frames = np.asarray(underscan(adapted.prepare(transient), mcfg.stride))
+  fitted = None
+  if args.adapt:
+    if info["variant"] == "usm":
+      raise ValueError("--adapt fits an ST-Mamba network (ours, ours_s), not USM")
+    from nlosjax.adaptation import adapt
+    fitted = adapt(adapted.model_config, params, frames, steps=args.adapt_steps,
+                   holdout=args.adapt_holdout, falloff=args.falloff or "diffuse")
+    params = fitted.params
+    log(fitted.summary())
   out = cio.run_model(adapted.model_config, params, frames)
   info = {k: str(v) for k, v in info.items() if k != "config"}
+  if fitted is not None:
+    info["adapted"] = {"steps": fitted.steps, "best_step": fitted.best_step, "seconds": fitted.seconds,
+                       "trainable": list(fitted.trainable), "holdout": args.adapt_holdout,
+                       "holdout_nll": [float(fitted.holdout_nll[0]), float(fitted.holdout_nll[fitted.best_step])]}
   info["bin_factor"] = adapted.bin_factor
   info["wavelet_sampling"] = adapted.model_config.wavelet_sampling
   return out["volume"], out["intensity"], out["depth"], adapted.setup, info
@@ -391,6 +412,8 @@ def main(argv=None) -> dict:
   from nlosjax.data import io
   out = pathlib.Path(args.out)
   try:
+    if args.adapt and args.method not in LEARNED:
+      raise ValueError(f"--adapt fits a network; --method {args.method} is a classic method")
     if args.scan_stride is not None and args.scan_stride < 1:
       raise ValueError(f"--scan-stride must be >= 1, got {args.scan_stride}")
     if args.method in ("ours", "ours_s", "usm"):
@@ -437,8 +460,11 @@ def main(argv=None) -> dict:
   t3 = time.perf_counter()
   timings.update(write_s=t3 - t2, total_s=t3 - t_start)
   (out / "timings.json").write_text(json.dumps(timings, indent=2) + "\n")
+  fitted = info.get("adapted")
+  adapted = (f" (of which adapting {fitted['seconds']:.2f} s: {fitted['steps']} steps, best {fitted['best_step']},"
+             f" held-out NLL {fitted['holdout_nll'][0]:.4f} -> {fitted['holdout_nll'][1]:.4f})") if fitted else ""
   print(f"{args.method}: load {timings['load_s']:.2f} s, reconstruct {timings['reconstruct_s']:.2f} s"
-        f" (operators, compilation and run), write {timings['write_s']:.2f} s; total"
+        f" (operators, compilation and run){adapted}, write {timings['write_s']:.2f} s; total"
         f" {timings['total_s']:.2f} s -> {out}")
   return {"volume": volume, "intensity": intensity, "depth": depth, "setup": vsetup,
           "timings": timings}

@@ -280,6 +280,26 @@ def test_model_cli_end_to_end(trained_run, tmp_path):
     assert (tmp_path / "m" / name).read_bytes()[:8] == PNG_MAGIC
 
 
+def test_model_cli_adapt_records_what_it_did_and_refuses_classic_methods(trained_run, capture, tmp_path, capsys):
+  workdir, *_ = trained_run
+  rng = np.random.default_rng(7)
+  setup = Setup(wall_size=1.0, grid=(16, 16), bin_width=16e-12, num_bins=256)
+  x = rng.poisson(1.0, (256, 16, 16)).astype(np.float32)
+  x[100:110, 4:12, 4:12] += 30.0
+  path = io.save_capture(tmp_path / "still.h5", x, setup)
+  res = run_cli([path, "--method", "model", "--checkpoint", workdir, "--adapt", "--adapt-steps", "3",
+                 "--out", tmp_path / "a"])
+  assert np.isfinite(res["volume"]).all()
+  with h5py.File(tmp_path / "a" / "volume.h5", "r") as f:
+    adapted = json.loads(f.attrs["model"])["adapted"]
+  assert adapted["steps"] <= 3 and adapted["holdout"] == 0.25 and adapted["seconds"] > 0
+  assert adapted["holdout_nll"][1] <= adapted["holdout_nll"][0]
+  assert "of which adapting" in capsys.readouterr().out
+  with pytest.raises(SystemExit):
+    run_cli([capture, "--method", "lct", "--adapt", "--out", tmp_path / "c"])
+  assert "--adapt fits a network" in capsys.readouterr().err
+
+
 def test_usm_cli_end_to_end(trained_run, tmp_path):
   """``--method usm`` restores the run's USM (not Ours) and reconstructs every frame."""
   workdir, _, _, (ucfg, uparams) = trained_run
