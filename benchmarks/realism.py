@@ -100,17 +100,32 @@ def measured_inputs(files, bin_width: float, num_bins: int, stride: int) -> dict
 
 
 def audit_config(base: dict, design: str, sequences: int) -> dict:
-  """The data config of a design's audit file: ``sequences`` test sequences of 4 frames."""
+  """The data config of a design's audit file: ``sequences`` test sequences of 4 frames.
+
+  ``base``: the preset's scenes and detector by the transport renderer alone (no physics mix);
+  ``mix``: the preset's physics mix (the default :class:`~nlosjax.data.dataset.physics.PhysicsMix`
+  with the preset's share of retroreflective objects where it has none). The file is named after a
+  digest of its specification, so a changed preset never reads another one's file.
+  """
   import copy
+  import hashlib
+
+  from nlosjax.data.dataset import DatasetSpec, PhysicsMix
   cfg = copy.deepcopy(base)
   data = cfg["data"]
+  physics = data.pop("physics", None)
+  retro = (PhysicsMix.from_dict(physics).retroreflective if physics is not None
+           else data.get("retroreflective", 0.2))
   if design == "mix":
-    data["renderer"], data["retroreflective"] = "mix", 0.0
-    data["physics"] = dict(data.get("physics") or {"retroreflective": base["data"].get("retroreflective", 0.2)})
-  stem = pathlib.PurePosixPath(data["path"]).stem
-  data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(f"{stem}-{design}-audit.h5"))
+    data.update(renderer="mix", retroreflective=0.0, physics=physics or {"retroreflective": retro})
+  else:
+    data.update(renderer="transport", retroreflective=retro)
   data["num_sequences"] = {"train": 0, "test": sequences}
   data["frames"] = 4
+  key = json.dumps(DatasetSpec.from_config(data).generation_key(), sort_keys=True, default=str)
+  digest = hashlib.sha256(key.encode()).hexdigest()[:6]
+  stem = pathlib.PurePosixPath(data["path"]).stem
+  data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(f"{stem}-{design}-audit-{digest}.h5"))
   return cfg
 
 
