@@ -280,6 +280,24 @@ def test_ablated_models_zero_exactly_the_named_parts_and_skip_networks_without_t
   assert R._ablation_lines(results, None) == []
 
 
+def test_adapted_models_and_their_table():
+  from experiments import real_undersampling as R
+  marker = object()
+  out = R.adapted_models({"ours": ("cfg", marker), "usm": ("ucfg", None)})
+  assert out == {"ours|adapted": ("cfg", marker, True)}
+  score = lambda p, t=1.0: {"psnr": p, "ssim": 0.5, "vs": {}, "time_s": t}
+  results = {"strides": [4, 8], "methods": ["lct", "ours"],
+             "scenes": {"a": {"scores": {("ours", 4): score(16.0), ("ours", 8): score(14.0)}},
+                        "b": {"scores": {("ours", 4): score(18.0), ("ours", 8): score(15.0)}}}}
+  adaptation = {"methods": ["ours|adapted"],
+                "scenes": {"a": {"scores": {("ours|adapted", 4): score(17.0, 30.0), ("ours|adapted", 8): score(13.0)}},
+                           "b": {"scores": {("ours|adapted", 4): score(18.5, 50.0), ("ours|adapted", 8): score(15.0)}}}}
+  lines = R._adaptation_lines(results, adaptation)
+  assert "| Ours | 16 × 16 | 16.00 → 17.00 | 18.00 → 18.50 | **17.00 → 17.75** | 40.0 |" in lines
+  assert "| Ours | 8 × 8 | 14.00 → 13.00 | 15.00 → 15.00 | **14.50 → 14.00** | 1.0 |" in lines
+  assert R._adaptation_lines(results, None) == []
+
+
 def test_figures_take_the_reports_name_so_a_second_report_keeps_the_firsts(tmp_path):
   """``write_figures`` names its files after the report's stem: ``real_public.md`` beside
   ``real.md`` must not overwrite ``real_<scene>.png``."""

@@ -1,0 +1,114 @@
+"""Which data should a preset train on? Candidate models compared on every candidate's validation split.
+
+    python -m benchmarks.preset_choice --model LABEL=SOURCE --model LABEL=SOURCE [...]
+        [--variants ours ours_s] [--out benchmarks/results/preset_choice.md]
+
+``SOURCE`` is ``pretrained:NAME`` (the weights shipped as ``NAME-<variant>``)
+or a main-job workdir (``python -m experiments.train --workdir DIR``). Each
+candidate was trained on its own data (its config's ``data`` section); every
+candidate's model is scored (mean intensity PSNR, the checkpoint criterion)
+on the validation split of every candidate's data, written if absent with no
+training or test sequence (``<stem>-val.h5``, the same sequences as the
+training file's validation split). The table gives each model's mean with a
+95 % bootstrap interval over sequences and each later candidate minus the
+first, paired by frame. Nothing here reads a test split or a measured scan.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import pathlib
+import sys
+
+import numpy as np
+
+
+def load_candidate(source: str, variant: str):
+  """``(model_config, params, training config)`` of one candidate's ``variant``."""
+  from nlosjax import inference, train
+  if source.startswith("pretrained:"):
+    mcfg, params, provenance = inference.load_pretrained(source[len("pretrained:"):], variant)
+    return mcfg, params, train.with_defaults(provenance["config"])
+  config, trained = inference.load_run(source)
+  if variant not in trained:
+    raise SystemExit(f"{source}: no trained {variant} (it has {sorted(trained)})")
+  mcfg, params = trained[variant][0]
+  return mcfg, params, train.with_defaults(config)
+
+
+def validation_file(config: dict) -> tuple[pathlib.Path, dict]:
+  """The config's validation split, in a file of its own when the training file is absent."""
+  from nlosjax import train
+  path = pathlib.Path(config["data"]["path"])
+  if path.exists():
+    return path, config
+  cfg = copy.deepcopy(config)
+  counts = dict(cfg["data"].get("num_sequences", {}))
+  cfg["data"]["num_sequences"] = {"train": 0, "test": 0, "val": counts.get("val", 8)}
+  cfg["data"]["path"] = str(path.with_name(f"{path.stem}-val.h5"))
+  train.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
+  return pathlib.Path(cfg["data"]["path"]), cfg
+
+
+def main(argv=None) -> int:
+  from experiments.provenance import provenance
+  from nlosjax import stats
+  from nlosjax.evaluation import protocol, scores
+  parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+  parser.add_argument("--model", action="append", required=True, metavar="LABEL=SOURCE")
+  parser.add_argument("--variants", nargs="+", default=["ours", "ours_s"])
+  parser.add_argument("--out", default="benchmarks/results/preset_choice.md")
+  args = parser.parse_args(argv)
+  argv = sys.argv[1:] if argv is None else list(argv)
+  sources = dict(item.partition("=")[::2] for item in args.model)
+  if len(sources) < 2 or not all(sources.values()):
+    raise SystemExit("give at least two --model LABEL=SOURCE")
+  results, splits = {}, {}
+  for variant in args.variants:
+    models = {label: load_candidate(src, variant) for label, src in sources.items()}
+    for label, (_, _, cfg) in models.items():
+      splits.setdefault(label, validation_file(cfg))
+    for data_label, (path, cfg) in splits.items():
+      for label, (mcfg, params, _) in models.items():
+        ev = protocol.evaluate(cfg, path, {variant: [(mcfg, params)]}, split="val", methods=())
+        results[(variant, data_label, label)] = (np.asarray(ev["scores"][variant]["psnr"]).reshape(-1),
+                                                 np.asarray(ev["sequence"]))
+  labels = list(sources)
+  first = labels[0]
+
+  def cell(s, signed=False):
+    f = "{:+.2f}" if signed else "{:.2f}"
+    return f"{f.format(s['mean'])} [{f.format(s['ci95'][0])}, {f.format(s['ci95'][1])}]"
+
+  lines = ["# Preset choice: candidate models on every candidate's validation split", ""]
+  lines += provenance("python -m benchmarks.preset_choice " + " ".join(argv)) + [""]
+  lines += ["Candidates: " + "; ".join(f"`{k}` = `{v}` (data `{splits[k][0]}`)" for k, v in sources.items())
+            + ". Mean intensity PSNR (dB) on each validation split with a 95 % bootstrap interval over "
+            f"sequences; differences to `{first}` paired by frame. A candidate is preferred where it is "
+            "ahead on the other candidates' data (interval above 0) and not behind on its own.", "",
+            "| variant | validation data | " + " | ".join(labels) + " | "
+            + " | ".join(f"{k} − {first}" for k in labels[1:]) + " |",
+            "|---|---|" + "---|" * (2 * len(labels) - 1)]
+  record = {}
+  for variant in args.variants:
+    for data_label in splits:
+      base_v, seq = results[(variant, data_label, first)]
+      by = {k: scores.by_sequence(results[(variant, data_label, k)][0], seq) for k in labels}
+      means = [stats.summarize(by[k]) for k in labels]
+      diffs = [stats.paired_difference(by[k], by[first]) for k in labels[1:]]
+      record[f"{variant}/{data_label}"] = {"means": dict(zip(labels, means)),
+                                           "differences": dict(zip(labels[1:], diffs))}
+      lines.append(f"| {variant} | {data_label} | " + " | ".join(cell(m) for m in means) + " | "
+                   + " | ".join(cell(d, True) for d in diffs) + " |")
+  out = pathlib.Path(args.out)
+  out.parent.mkdir(parents=True, exist_ok=True)
+  out.write_text("\n".join(lines) + "\n")
+  out.with_suffix(".json").write_text(json.dumps(record, indent=1, default=float) + "\n")
+  print(out.read_text())
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
