@@ -253,3 +253,33 @@ def total_loss(outputs: dict, targets: dict, weights: LossWeights,
   terms["r"] = w.local_similarity * g("ls", zero) + w.alpha3 * g("tv", zero)
   loss = terms["m"] + w.beta * terms["v"] + w.gamma * terms["r"]
   return loss, terms
+
+
+def mmd2(x: jax.Array, y: jax.Array, bandwidths=(0.5, 1.0, 2.0, 4.0)) -> jax.Array:
+  """Unbiased squared maximum mean discrepancy between two samples, Gaussian kernels summed.
+
+  ``k(a, b) = sum_s exp(-|a - b|^2 / (2 s^2 d))`` over ``bandwidths`` ``s`` (in units of
+  ``sqrt(d)``, so they suit standardised features of any dimension ``d``); the U-statistic
+  ``mean_{i != j} k(x_i, x_j) + mean_{i != j} k(y_i, y_j) - 2 mean_{i, j} k(x_i, y_j)``
+  (Gretton et al. 2012), 0 in expectation when both come from one distribution.
+
+  Args:
+    x: ``[n, d]``, y: ``[m, d]`` samples (n, m >= 2).
+  Returns:
+    scalar float32 (may be slightly negative by chance).
+  """
+  x = jnp.asarray(x, jnp.float32)
+  y = jnp.asarray(y, jnp.float32)
+  if x.ndim != 2 or y.ndim != 2 or x.shape[1] != y.shape[1] or x.shape[0] < 2 or y.shape[0] < 2:
+    raise ValueError(f"x and y must be [n, d] and [m, d] with n, m >= 2, got {x.shape} and {y.shape}")
+  d = x.shape[1]
+
+  def kernel(a, b):
+    sq = jnp.maximum(jnp.sum(a * a, 1)[:, None] + jnp.sum(b * b, 1)[None, :] - 2.0 * a @ b.T, 0.0)
+    return sum(jnp.exp(-sq / (2.0 * s * s * d)) for s in bandwidths)
+
+  def off_diagonal_mean(k):
+    n = k.shape[0]
+    return (jnp.sum(k) - jnp.trace(k)) / (n * (n - 1))
+
+  return off_diagonal_mean(kernel(x, x)) + off_diagonal_mean(kernel(y, y)) - 2.0 * jnp.mean(kernel(x, y))

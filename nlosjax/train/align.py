@@ -1,0 +1,154 @@
+"""A second training stage: the synthetic loss plus a term that aligns features of synthetic and measured inputs.
+
+Starting from a trained network, :func:`align` trains every parameter on
+
+    L = L_synthetic(batch) + lam * MMD^2(f(batch), f(measured))
+
+where ``f`` is the output of one layer (``layer``, default the first ST-Mamba
+block: per frame, per time step and scan point a ``C``-vector of features)
+at ``samples`` positions drawn at random from each side and standardised by
+the synthetic side's mean and spread, and ``MMD^2`` the unbiased Gaussian-kernel
+discrepancy (:func:`nlosjax.losses.mmd2`). ``measured`` are unlabelled
+under-scanned inputs ``[M, F, T, h, w]`` (static scans: one frame repeated);
+each step reads ``measured_batch`` of them. Steps, learning rate and ``lam``
+are fixed beforehand: nothing is chosen on the measured inputs' scores, and
+a caller that scores a scan must leave that scan's inputs out of
+``measured`` (``experiments.align``).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import pathlib
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from nlosjax import losses
+from nlosjax.train.step import make_targets
+
+__all__ = ["DEFAULT_LAYER", "layer_features", "align_loss", "align"]
+
+#: The layer whose output is aligned.
+DEFAULT_LAYER = "st_mamba0"
+
+
+def layer_features(model, params, frames, layer: str = DEFAULT_LAYER):
+  """``(outputs, features [N, C])``: the model's outputs and ``layer``'s output, one row per position."""
+  out, state = model.apply({"params": params}, frames, mutable=["intermediates"],
+                           capture_intermediates=lambda mdl, method: mdl.name == layer and method == "__call__")
+  inter = state.get("intermediates", {})
+  if layer not in inter:
+    raise ValueError(f"layer {layer!r} is not a module of this network; it has {sorted(inter)}")
+  feat = inter[layer]["__call__"][0]
+  return out, jnp.reshape(feat.astype(jnp.float32), (-1, feat.shape[-1]))
+
+
+def _sample(x, key, n):
+  return x[jax.random.randint(key, (n,), 0, x.shape[0])]
+
+
+def align_loss(params, batch, measured, key, *, model, weights, wavelet, time_window, lam: float,
+               samples: int, layer: str = DEFAULT_LAYER):
+  """``(total, terms)``: the synthetic loss of ``batch`` plus ``lam`` times the features' MMD² to ``measured``.
+
+  ``batch``: as :func:`nlosjax.train.train_step`'s; ``measured``: ``[M, F, T, h, w]`` counts.
+  """
+  out, f_syn = layer_features(model, params, batch["measurement"], layer)
+  _, f_meas = layer_features(model, params, measured, layer)
+  loss, terms = losses.total_loss(out, make_targets(batch, time_window), weights, wavelet)
+  k1, k2 = jax.random.split(key)
+  a, b = _sample(f_syn, k1, samples), _sample(f_meas, k2, samples)
+  mu = jax.lax.stop_gradient(jnp.mean(a, 0))
+  sd = jax.lax.stop_gradient(jnp.std(a, 0)) + 1e-6
+  mmd = losses.mmd2((a - mu) / sd, (b - mu) / sd)
+  total = loss + lam * mmd
+  return total, {**terms, "mmd": mmd, "synthetic": loss, "loss": total}
+
+
+def align(config: dict, data_path, model_config, params, measured: np.ndarray, workdir, *,
+          steps: int = 100, learning_rate: float = 1e-4, lam: float = 1.0, measured_batch: int = 4,
+          samples: int = 512, layer: str = DEFAULT_LAYER, validate: Callable | None = None,
+          every: int = 25, seed: int = 0, log: Callable[[str], None] = print) -> tuple[dict, dict]:
+  """Run the second stage (module docstring) for ``steps`` steps; returns ``(params, record)``.
+
+  Args:
+    config: the run config of the synthetic data and loss (``nlosjax.train.with_defaults``).
+    data_path: its dataset file (the ``train`` split is read).
+    model_config, params: the trained network (its config at the data's Setup).
+    measured: ``[M, F, T, h, w]`` unlabelled measured inputs at the same Setup, ``M >= 1``.
+    workdir: where ``align.json`` (the record) and ``params.npz`` (the result, keyed as
+      :func:`nlosjax.pretrained.flatten_params`) are written.
+    steps, learning_rate, lam, measured_batch, samples, layer: the stage (module docstring).
+    validate: optional ``(model_config, params) -> validation PSNR``, scored every ``every`` steps.
+    seed: the synthetic batches' order and the samples' draws.
+  Returns:
+    ``(params, record)``; ``record``: the settings, the loss terms every ``every`` steps, the
+    validation scores, the wall time.
+  """
+  from nlosjax.physics import illumination_wavelet, operator_args
+  from nlosjax.pretrained import flatten_params
+  from nlosjax.train.loop import make_loader, select_frames, training_recipe
+  measured = np.asarray(measured, np.float32)
+  if measured.ndim != 5 or measured.shape[1:] != tuple(model_config.input_shape(1))[1:]:
+    raise ValueError(f"measured must be [M, F, T, h, w] = [M, *{model_config.input_shape(1)[1:]}], "
+                     f"got {measured.shape}")
+  if not (isinstance(steps, int) and steps >= 1 and lam >= 0 and measured_batch >= 1 and samples >= 2):
+    raise ValueError("steps >= 1, lam >= 0, measured_batch >= 1 and samples >= 2 are needed")
+  t0 = time.perf_counter()
+  workdir = pathlib.Path(workdir)
+  workdir.mkdir(parents=True, exist_ok=True)
+  _, weights = training_recipe(config, "ours" if model_config.frames > 1 else "ours_s")
+  wavelet = (illumination_wavelet(model_config.setup, cycles=model_config.wavelet_cycles,
+                                  sampling_coeff=model_config.wavelet_sampling)
+             if weights.phasor_field else None)
+  model = model_config.module()
+  loss_fn = functools.partial(align_loss, model=model, weights=weights, wavelet=wavelet,
+                              time_window=model_config.time_window, lam=float(lam), samples=int(samples),
+                              layer=layer)
+  tx = optax.adam(learning_rate)
+
+  def step(p, opt_state, batch, meas, key):
+    (_, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(p, batch, meas, key)
+    updates, opt_state = tx.update(grads, opt_state, p)
+    return optax.apply_updates(p, updates), opt_state, terms
+
+  run = operator_args.bind(step, model_config.physics_operators())
+  batch_size = int(config["train"]["batch_size"])
+  loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed)
+  rng = np.random.default_rng(seed)
+  key = jax.random.key(seed)
+  p = jax.tree_util.tree_map(jnp.asarray, params)
+  opt_state = tx.init(p)
+  curve = []
+  record = {"steps": steps, "learning_rate": learning_rate, "lam": lam, "measured_batch": measured_batch,
+            "samples": samples, "layer": layer, "measured_inputs": int(measured.shape[0]), "seed": seed,
+            "curve": curve}
+  if validate is not None:
+    curve.append({"step": 0, "val_psnr": float(validate(model_config, jax.tree_util.tree_map(np.asarray, p)))})
+  try:
+    for k in range(steps):
+      host = loader.batch(k)
+      batch = {name: jnp.asarray(host[name]) for name in ("measurement", "transient", "intensity", "depth")}
+      batch["measurement"] = jnp.asarray(select_frames(host["measurement"], model_config.frames))
+      meas = jnp.asarray(measured[rng.choice(measured.shape[0], measured_batch)])
+      p, opt_state, terms = run(p, opt_state, batch, meas, jax.random.fold_in(key, k))
+      done = k + 1
+      if done % every == 0 or done == steps:
+        row = {"step": done, **{name: float(v) for name, v in terms.items() if name in ("loss", "synthetic", "mmd")}}
+        if validate is not None:
+          row["val_psnr"] = float(validate(model_config, jax.tree_util.tree_map(np.asarray, p)))
+        curve.append(row)
+        log(f"[align] step {done}: " + ", ".join(f"{n} {v:.4f}" for n, v in row.items() if n != "step"))
+  finally:
+    loader.close()
+  params = jax.tree_util.tree_map(np.asarray, p)
+  record["seconds"] = round(time.perf_counter() - t0, 1)
+  np.savez(workdir / "params.npz", **flatten_params(params))
+  (workdir / "align.json").write_text(json.dumps(record, indent=1) + "\n")
+  return params, record
