@@ -418,29 +418,61 @@ def ablated_models(trained: dict) -> dict:
   return out
 
 
+def aligned_run(files, strides, results, workdir) -> dict:
+  """Each scan scored by the networks of ``python -m experiments.align --workdir WORKDIR`` that left it out.
+
+  Returns the :func:`run` results of ``"<variant>|aligned"`` (scenes without such a network are absent).
+  """
+  from experiments.align import fold_folder
+  from nlosjax.pretrained import unflatten_params
+  merged = {"strides": list(strides), "methods": [], "scenes": {}, "trained": {}}
+  for path in files:
+    scene = scene_name(path)
+    models = {}
+    for v, (mcfg, _) in results["trained"].items():
+      f = fold_folder(workdir, v, scene) / "params.npz"
+      if f.exists():
+        with np.load(f) as z:
+          models[f"{v}|aligned"] = (mcfg, unflatten_params({k: z[k] for k in z.files}))
+    if not models:
+      continue
+    part = run([path], strides, None, trained=models, classic=False,
+               references={scene: results["scenes"][scene]["references"]})
+    merged["scenes"][scene] = part["scenes"][scene]
+    merged["methods"] = sorted(set(merged["methods"]) | set(models))
+  return merged
+
+
 def adapted_models(trained: dict) -> dict:
   """``"<variant>|adapted" -> (model_config, params, True)`` for each ST-Mamba network (not USM)."""
   return {f"{v}|adapted": (mcfg, params, True) for v, (mcfg, params) in trained.items() if v != "usm"}
 
 
-def _adaptation_lines(results, adaptation) -> list[str]:
-  """Each network as trained and fitted to each scan (:func:`nlosjax.adaptation.adapt`), per scan and mean."""
+ADAPTATION_TEXT = ("Each network fitted to each scan before reconstructing it (`nlosjax.adaptation.adapt` with"
+                   " its defaults and the retroreflective forward model, nothing chosen on these scans):"
+                   " intensity PSNR (dB), mean over the references, as trained → fitted, per scan and mean;"
+                   " last column the seconds per scan the fitted network took, fitting included:")
+ALIGNED_TEXT = ("Each network after the second training stage on unlabelled measured inputs"
+                " (`python -m experiments.align`: the synthetic loss plus the MMD² of the first ST-Mamba"
+                " block's features to measured inputs), one network per scan, trained on the *other*"
+                " scans' inputs only: intensity PSNR (dB), mean over the references, as trained → aligned"
+                " without that scan, per scan and mean; last column the seconds per scan:")
+
+
+def _adaptation_lines(results, adaptation, suffix: str = "adapted", text: str = ADAPTATION_TEXT) -> list[str]:
+  """Each network as trained and as ``"<variant>|<suffix>"`` in ``adaptation``, per scan and mean."""
   if not adaptation:
     return []
   scenes = list(results["scenes"])
-  lines = ["Each network fitted to each scan before reconstructing it (`nlosjax.adaptation.adapt` with its"
-           " defaults and the retroreflective forward model, nothing chosen on these scans): intensity PSNR"
-           " (dB), mean over the references, as trained → fitted, per scan and mean; last column the"
-           " seconds per scan the fitted network took, fitting included:", "",
-           "| network | input | " + " | ".join(scenes) + " | mean | s per scan |",
+  lines = [text, "", "| network | input | " + " | ".join(scenes) + " | mean | s per scan |",
            "|---|---|" + "---|" * (len(scenes) + 2)]
-  for v in [m for m in results["methods"] if f"{m}|adapted" in adaptation["methods"]]:
+  for v in [m for m in results["methods"] if f"{m}|{suffix}" in adaptation["methods"]]:
     for stride in results["strides"]:
       g = 64 // stride
       cells, before, after, secs = [], [], [], []
       for sc in scenes:
         a = results["scenes"][sc]["scores"].get((v, stride))
-        b = adaptation["scenes"][sc]["scores"].get((f"{v}|adapted", stride))
+        b = adaptation["scenes"].get(sc, {}).get("scores", {}).get((f"{v}|{suffix}", stride))
         if a is None or b is None:
           cells.append("–")
           continue
@@ -806,8 +838,8 @@ def _binned_lines(results, binned) -> list[str]:
 
 
 def write_report(results, out: pathlib.Path, *, timing=None, warm=None, synthetic=None,
-                 binned=None, ablation=None, adaptation=None, facts: list[str], elapsed: float,
-                 figures: list[str], notes: str = "") -> None:
+                 binned=None, ablation=None, adaptation=None, aligned=None, facts: list[str],
+                 elapsed: float, figures: list[str], notes: str = "") -> None:
   lines = ["# Under-scanning on measured scans", ""] + facts + [
       f"- Wall time: {elapsed / 60:.1f} min; numpy {np.__version__}",
       "- Scans: " + ", ".join(f"`{pathlib.Path(e['file']).name}`" for e in results["scenes"].values()) +
@@ -829,6 +861,7 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
   lines += _binned_lines(results, binned)
   lines += _ablation_lines(results, ablation)
   lines += _adaptation_lines(results, adaptation)
+  lines += _adaptation_lines(results, aligned, "aligned", ALIGNED_TEXT)
   if synthetic:
     lines += [
         f"In-domain check (same code, the networks' own data): {synthetic['frames']} frames of"
@@ -927,6 +960,9 @@ def main(argv=None):
                       help="skip the networks with their learned residuals zeroed (ablated_models)")
   parser.add_argument("--adapt", action="store_true",
                       help="also fit each network to each scan before reconstructing it (adapted_models)")
+  parser.add_argument("--aligned", default=None, metavar="WORKDIR",
+                      help="also score each scan with the networks of python -m experiments.align --workdir"
+                           " WORKDIR that left it out (aligned_models)")
   args = parser.parse_args(argv)
   t0 = time.perf_counter()
   command = "python -m experiments.real_undersampling " + " ".join(
@@ -964,10 +1000,11 @@ def main(argv=None):
   if args.adapt and results["trained"]:
     adaptation = run(files, args.strides, None, trained=adapted_models(results["trained"]), classic=False,
                      references={sc: e["references"] for sc, e in results["scenes"].items()})
+  aligned = aligned_run(files, args.strides, results, args.aligned) if args.aligned else None
   notes = pathlib.Path(args.notes).read_text() if args.notes else ""
   write_report(results, out, timing=timing, warm=warm, synthetic=synthetic, binned=binned,
-               ablation=ablation, adaptation=adaptation, facts=facts, elapsed=time.perf_counter() - t0,
-               figures=figures, notes=notes)
+               ablation=ablation, adaptation=adaptation, aligned=aligned, facts=facts,
+               elapsed=time.perf_counter() - t0, figures=figures, notes=notes)
   if args.json:
     scores = {sc: {f"{m}@{s}": v for (m, s), v in e["scores"].items()}
               for sc, e in results["scenes"].items()}

@@ -298,6 +298,23 @@ def test_adapted_models_and_their_table():
   assert R._adaptation_lines(results, None) == []
 
 
+def test_align_reads_every_offset_of_each_scan_at_the_networks_bins():
+  from experiments import align
+  from nlosjax import inference
+  from nlosjax.data import io
+  mcfg, _, _ = inference.load_pretrained("real", "ours")
+  path = io.shipped_scan_path()
+  inputs = align.measured_inputs([path], mcfg)
+  (scene, x), = inputs.items()
+  s = mcfg.stride
+  assert scene == "exit_sign" and x.shape == (s * s, mcfg.frames) + mcfg.input_shape(1)[2:]
+  raw, setup = io.load_measurement(path)
+  binned = raw[:512].reshape(128, 4, 64, 64).sum(1)            # 16 ps -> the network's 64 ps
+  np.testing.assert_allclose(x[s * 1 + 3, 0], binned[:, 1::s, 3::s], rtol=1e-6)
+  np.testing.assert_array_equal(x[:, 0], x[:, -1])             # a static scan: the frames repeat
+  assert align.fold_folder("w", "ours", "s_u").as_posix() == "w/ours-without-s_u"
+
+
 def test_figures_take_the_reports_name_so_a_second_report_keeps_the_firsts(tmp_path):
   """``write_figures`` names its files after the report's stem: ``real_public.md`` beside
   ``real.md`` must not overwrite ``real_<scene>.png``."""
