@@ -49,7 +49,6 @@ from __future__ import annotations
 import argparse
 import ast
 import json
-import os
 import pathlib
 import sys
 import time
@@ -133,8 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
   g.add_argument("--model-bin-factor", type=int, default=None,
                  help="capture bins per network bin (default: nearest to the trained bin width)")
   p.add_argument("--no-cache", action="store_true",
-                 help="do not use the persistent XLA compilation cache"
-                      " (NLOSJAX_CACHE_DIR, default ~/.cache/nlosjax/xla)")
+                 help="do not use the persistent XLA compilation cache (NLOSJAX_CACHE_DIR; default"
+                      " .cache/xla in a clone of the repository, shared with the main job and the"
+                      " tests, else ~/.cache/nlosjax/xla; NLOSJAX_CACHE=0 also switches it off)")
   p.add_argument("--quiet", action="store_true", help="print only the timing line")
   return p
 
@@ -148,18 +148,15 @@ def _frame_arg(value: str):
     raise SystemExit(f"--frame must be an integer or 'all', got {value!r}") from None
 
 
-def enable_compilation_cache() -> None:
-  """Persist XLA executables across runs (a repeated reconstruction skips compilation)."""
-  import jax
-  path = os.environ.get("NLOSJAX_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache",
-                                                             "nlosjax", "xla")
-  try:
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-  except (OSError, AttributeError, ValueError):
-    pass                     # caching is an optimisation only
+def enable_compilation_cache() -> str | None:
+  """Persist XLA executables across runs (a repeated reconstruction skips compilation).
+
+  The folder is :func:`experiments.xla_cache.cache_dir`'s (``NLOSJAX_CACHE_DIR``, else
+  ``.cache/xla`` in a clone, else ``~/.cache/nlosjax/xla``); returns it, or None where the
+  cache is off. Caching is an optimisation only: a folder that cannot be made leaves it off.
+  """
+  from experiments import xla_cache
+  return xla_cache.enable()
 
 
 def load(args):

@@ -32,6 +32,11 @@ the dataset (on a file system the others see), writes the logs and evaluates.
 same ``--config`` and ``--config.data.*`` overrides it writes the dataset file
 this command would make for itself. An unknown key or section exits, listing
 the known ones, before any data is made or model trained.
+
+Compiled programs are kept in the clone's persistent XLA compilation cache
+(``.cache/xla``; ``NLOSJAX_CACHE_DIR`` names another folder, ``NLOSJAX_CACHE=0``
+switches it off; :mod:`experiments.xla_cache`), so a rerun reads what an earlier
+run compiled; the last line printed is the cache's hit rate.
 """
 
 from experiments.cli import config_parser, parse_config
@@ -77,6 +82,14 @@ def main(argv=None):
   parser.add_argument("--num-processes", type=int, default=1, help="processes in all (default 1)")
   parser.add_argument("--process-id", type=int, default=0, help="this process, 0 .. N-1")
   args, config, _ = parse_config(parser, argv)
+  from experiments import xla_cache
+  xla_cache.enable(tidy=True)        # before anything compiles
+  run(args, config, parser, argv)
+  print(xla_cache.summary(), flush=True)
+
+
+def run(args, config, parser, argv=None):
+  """The main job once its arguments are parsed (``--dry-run``: the plan only)."""
   if args.seeds is not None:
     if args.seeds < 1:
       parser.error(f"--seeds must be >= 1, got {args.seeds}")
