@@ -19,17 +19,20 @@ ImportError deep in one module. Here instead:
   knows the flag and the environment does not set it): the tiny model's gradient
   compiles in about 0.6x the time (the same operations, emitted another way);
 * the suite compiles the same small programs many times (every tiny training run
-  compiles the same train step), so one persistent XLA compilation cache, in a
-  temporary folder made for this run and removed after it, is shared by every
-  worker and every subprocess (environment variables set before the workers
-  start): the second compile of a program is a disk read. JAX writes cache
-  entries without renaming them into place, so a size limit is set: that makes
-  JAX lock the folder (with ``filelock``, in the test extra) around every read
-  and write, and no process reads an entry another is still writing. Without
-  ``filelock`` the cache stays off. A run never reads executables from an
-  earlier run or the user's own cache (``~/.cache/nlosjax``); folders left by
-  killed runs are removed by the next run. ``NLOSJAX_TEST_CACHE=0`` turns it
-  off; a ``JAX_COMPILATION_CACHE_DIR`` already set is used as it is (and kept).
+  compiles the same train step), so it shares the clone's persistent XLA compilation
+  cache (``.cache/xla``, ignored by git; ``NLOSJAX_CACHE_DIR`` names another folder)
+  with the main job, set up by ``experiments.xla_cache`` for every worker and
+  subprocess (environment variables set before the workers start): a program compiled
+  by another test, worker or earlier run is a disk read. XLA keys entries by program,
+  versions and flags, so an edited program compiles afresh. JAX writes entries without
+  renaming them into place, so a size limit is set: that makes JAX lock the folder
+  (with ``filelock``) around every read and write, and no process reads an entry
+  another is still writing. Without ``filelock`` the cache stays off.
+  ``NLOSJAX_TEST_CACHE=0`` (or ``NLOSJAX_CACHE=0``, which the main job reads too) turns it
+  off. The terminal summary ends with the cache's hit rate over the suite's processes:
+  each xdist worker, and each subprocess that enables the cache itself, writes its
+  counts into a folder made for this run (removed after it, or by the next run where
+  this one was killed).
 """
 
 from __future__ import annotations
@@ -82,11 +85,10 @@ def pytest_cmdline_main(config: pytest.Config):
 
 
 # Measured on 2 cores: tests/test_train_resume.py 97 s without the cache, 55 s with a cold one.
-CACHE_PREFIX = "nlosjax-test-xla-"
-CACHE_ENV = {"JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
-             "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0",
-             # Any limit switches on JAX's file lock; 64 GiB never evicts here.
-             "JAX_COMPILATION_CACHE_MAX_SIZE": str(64 * 2 ** 30)}
+#: Per-run folders (the workers' cache counts) start with this; ``nlosjax-test-xla-`` is the
+#: per-run cache folder of earlier versions of this file, removed the same way.
+RUN_PREFIX = "nlosjax-test-run-"
+STALE_PREFIXES = (RUN_PREFIX, "nlosjax-test-xla-")
 
 
 def _pid_alive(pid: int) -> bool:
@@ -99,12 +101,12 @@ def _pid_alive(pid: int) -> bool:
   return True
 
 
-def remove_stale_caches(parent: str | None = None) -> list[str]:
-  """Delete cache folders of earlier runs whose pytest process is gone; returns their paths."""
+def remove_stale_runs(parent: str | None = None) -> list[str]:
+  """Delete per-run folders of earlier runs whose pytest process is gone; returns their paths."""
   parent = parent or tempfile.gettempdir()
   removed = []
   for entry in os.scandir(parent):
-    if not (entry.name.startswith(CACHE_PREFIX) and entry.is_dir()):
+    if not (entry.name.startswith(STALE_PREFIXES) and entry.is_dir()):
       continue
     try:
       pid = int(open(os.path.join(entry.path, "pid")).read())
@@ -117,47 +119,89 @@ def remove_stale_caches(parent: str | None = None) -> list[str]:
 
 
 def shared_compilation_cache(environ) -> str | None:
-  """Point JAX (and ``experiments.reconstruct``'s cache) at a fresh folder via ``environ``.
+  """Point JAX, the workers and every subprocess at the clone's persistent cache via ``environ``.
 
-  Returns the folder this call made (the caller removes it at the end), or ``None``
-  when the cache is switched off (``NLOSJAX_TEST_CACHE=0``), the environment
-  already names one, or ``filelock`` is missing (JAX's lock needs it).
-  ``NLOSJAX_TEST_CACHE_DIR`` names the folder made here, so a test can tell it from
-  one the user gave.
+  Returns the folder (``experiments.xla_cache.configure``: ``.cache/xla`` in the clone, or
+  ``NLOSJAX_CACHE_DIR``, or a ``JAX_COMPILATION_CACHE_DIR`` already set), or ``None`` when
+  the cache is off: ``NLOSJAX_TEST_CACHE=0`` (which sets ``NLOSJAX_CACHE=0``, so a command
+  a test runs keeps it off too), ``NLOSJAX_CACHE=0``, or ``filelock`` missing.
   """
-  if environ.get("NLOSJAX_TEST_CACHE", "1") == "0" or environ.get("JAX_COMPILATION_CACHE_DIR"):
+  from experiments import xla_cache
+  if environ.get("NLOSJAX_TEST_CACHE", "1") == "0":
+    environ[xla_cache.SWITCH_ENV] = "0"
     return None
-  try:
-    import filelock  # noqa: F401  (JAX imports it to lock the cache)
-  except ImportError:
-    return None
-  path = tempfile.mkdtemp(prefix=CACHE_PREFIX)
+  return xla_cache.configure(environ, tidy=True)
+
+
+def counts_folder(environ) -> str:
+  """A folder for this run's cache counts, named in ``environ`` (``NLOSJAX_CACHE_COUNTS``)."""
+  from experiments import xla_cache
+  path = tempfile.mkdtemp(prefix=RUN_PREFIX)
   with open(os.path.join(path, "pid"), "w") as f:
     f.write(str(os.getpid()))
-  environ["JAX_COMPILATION_CACHE_DIR"] = environ["NLOSJAX_TEST_CACHE_DIR"] = path
-  environ["NLOSJAX_CACHE_DIR"] = path        # experiments.reconstruct.enable_compilation_cache
-  for key, value in CACHE_ENV.items():
-    environ.setdefault(key, value)
+  environ[xla_cache.COUNTS_ENV] = path
   return path
 
 
 def pytest_configure(config: pytest.Config) -> None:
   if hasattr(config, "workerinput"):
+    from experiments import xla_cache
+    if os.environ.get(xla_cache.COUNTS_ENV):        # the controller set the cache up
+      xla_cache.count()
     return                         # the controller has checked already and set the cache
   missing = missing_test_requirements()
   if missing:
     raise pytest.UsageError(f"the test extra is not fully installed (missing: "
                             f"{', '.join(missing)}); from the repository root run: {INSTALL}")
   # Before JAX is imported here and before the xdist workers start, so both read it.
-  if os.environ.get("NLOSJAX_TEST_CACHE", "1") != "0":
-    remove_stale_caches()
+  remove_stale_runs()
   config._nlosjax_cache = shared_compilation_cache(os.environ)
+  config._nlosjax_counts = counts_folder(os.environ) if config._nlosjax_cache else None
   # The suite compiles hundreds of tiny programs and runs few of them long: without XLA's
   # optimisations they compile several times faster (the temporal probe's test: 36 s -> 10 s).
   # Modules whose programs run long (measured scans, samplers, rendering) switch them back on
   # with tests.xla_options.xla_optimizations(True). Set before the workers and subprocesses start.
   os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
   os.environ["XLA_FLAGS"] = suite_xla_flags(os.environ.get("XLA_FLAGS", ""))
+  if config._nlosjax_cache and not getattr(config.option, "numprocesses", None):
+    from experiments import xla_cache
+    xla_cache.count()              # -n 0 or without xdist: the tests compile in this process
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+  """A worker writes its cache counts for the controller (before xdist reports it finished)."""
+  from experiments import xla_cache
+  folder = os.environ.get(xla_cache.COUNTS_ENV)
+  if hasattr(session.config, "workerinput") and folder:
+    xla_cache.write_counts(folder)
+
+
+def cache_summary(config: pytest.Config) -> str | None:
+  """The hit-rate line over this run's processes (``None`` where ``pytest_configure`` did not run)."""
+  from experiments import xla_cache
+  if not hasattr(config, "_nlosjax_cache"):
+    return None
+  path, folder = config._nlosjax_cache, config._nlosjax_counts
+  if not path:
+    why = ("NLOSJAX_TEST_CACHE=0" if os.environ.get("NLOSJAX_TEST_CACHE") == "0"
+           else "NLOSJAX_CACHE=0" if os.environ.get(xla_cache.SWITCH_ENV) == "0"
+           else "the filelock package, which JAX locks the folder with, is not installed")
+    return f"XLA compilation cache: off ({why})"
+  totals, processes = xla_cache.read_counts(folder)
+  own = xla_cache.counts()
+  if own["requests"]:
+    processes += 1
+    totals = {k: totals[k] + own[k] for k in totals}
+  where = f"over {processes} test process{'es' * (processes != 1)}" if processes else ""
+  return xla_cache.summary(totals, path, where=where)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config: pytest.Config) -> None:
+  if hasattr(config, "workerinput"):
+    return
+  line = cache_summary(config)
+  if line:
+    terminalreporter.write_line(line)
 
 
 #: XLA flags the suite adds (name -> value), each only where the environment does not set it.
@@ -188,6 +232,6 @@ def suite_xla_flags(current: str, known=_xla_flag_known) -> str:
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
-  path = getattr(config, "_nlosjax_cache", None)
-  if path:
-    shutil.rmtree(path, ignore_errors=True)
+  folder = getattr(config, "_nlosjax_counts", None)
+  if folder:
+    shutil.rmtree(folder, ignore_errors=True)

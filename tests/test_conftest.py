@@ -1,6 +1,8 @@
-"""The suite's own setup: a missing test requirement is named with the install command."""
+"""The suite's own setup: a missing test requirement is named with the install command; the
+persistent compilation cache and its hit rate; XLA flags."""
 
 import importlib.metadata
+import json
 import os
 import pathlib
 import shutil
@@ -44,36 +46,50 @@ def test_the_real_install_has_every_test_requirement():
   assert conftest.missing_test_requirements() == []
 
 
-def test_the_compilation_cache_is_a_fresh_locked_folder_unless_switched_off_or_given(tmp_path):
+def test_the_suite_uses_the_clones_persistent_locked_cache_unless_switched_off(tmp_path):
+  from experiments import xla_cache
   environ = {}
   path = conftest.shared_compilation_cache(environ)
-  try:
-    assert environ["JAX_COMPILATION_CACHE_DIR"] == environ["NLOSJAX_CACHE_DIR"] == path
-    assert environ["NLOSJAX_TEST_CACHE_DIR"] == path
-    assert environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
-    assert int(environ["JAX_COMPILATION_CACHE_MAX_SIZE"]) > 0        # JAX locks the folder
-    assert [e.name for e in os.scandir(path)] == ["pid"]              # nothing from an earlier run
-  finally:
-    shutil.rmtree(path)
-  assert conftest.shared_compilation_cache({"NLOSJAX_TEST_CACHE": "0"}) is None
-  given = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path)}
-  assert conftest.shared_compilation_cache(given) is None
-  assert given == {"JAX_COMPILATION_CACHE_DIR": str(tmp_path)}
+  assert path == str(xla_cache.CLONE_DIR) == str(conftest_root() / ".cache" / "xla")
+  assert environ["JAX_COMPILATION_CACHE_DIR"] == environ["NLOSJAX_CACHE_DIR"] == path
+  assert environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
+  assert int(environ["JAX_COMPILATION_CACHE_MAX_SIZE"]) > 0        # JAX locks the folder
+  # git ignores it, so it is kept across runs and never committed.
+  if (conftest_root() / ".git").exists() and shutil.which("git"):
+    ignored = subprocess.run(["git", "check-ignore", "-q", path + "/entry-cache"], cwd=conftest_root())
+    assert ignored.returncode == 0
+  # NLOSJAX_CACHE_DIR (or a JAX_COMPILATION_CACHE_DIR already set) names another folder.
+  given = {"NLOSJAX_CACHE_DIR": str(tmp_path / "mine")}
+  assert conftest.shared_compilation_cache(given) == str(tmp_path / "mine")
+  assert given["JAX_COMPILATION_CACHE_DIR"] == str(tmp_path / "mine") and (tmp_path / "mine").is_dir()
+  jax_given = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path)}
+  assert conftest.shared_compilation_cache(jax_given) == str(tmp_path)
+  # Switched off: for the suite, and then for every command a test runs too.
+  off = {"NLOSJAX_TEST_CACHE": "0"}
+  assert conftest.shared_compilation_cache(off) is None
+  assert off == {"NLOSJAX_TEST_CACHE": "0", "NLOSJAX_CACHE": "0"}
+  assert conftest.shared_compilation_cache({"NLOSJAX_CACHE": "0"}) is None
 
 
-def test_folders_of_killed_runs_are_removed_and_live_ones_kept(tmp_path):
+def conftest_root() -> pathlib.Path:
+  return pathlib.Path(conftest.__file__).resolve().parent
+
+
+def test_run_folders_of_killed_runs_are_removed_and_live_ones_kept(tmp_path):
   dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
                         capture_output=True, text=True, check=True).stdout.strip()
-  for name, pid in (("dead", dead), ("live", str(os.getpid())), ("nopid", None)):
-    folder = tmp_path / (conftest.CACHE_PREFIX + name)
+  old = "nlosjax-test-xla-"              # the per-run cache folders of earlier versions
+  for name, pid in ((conftest.RUN_PREFIX + "dead", dead), (conftest.RUN_PREFIX + "live", str(os.getpid())),
+                    (conftest.RUN_PREFIX + "nopid", None), (old + "dead", dead)):
+    folder = tmp_path / name
     folder.mkdir()
     if pid is not None:
       (folder / "pid").write_text(pid)
   (tmp_path / "unrelated").mkdir()
-  removed = conftest.remove_stale_caches(str(tmp_path))
-  assert sorted(pathlib.Path(p).name for p in removed) == [conftest.CACHE_PREFIX + "dead",
-                                                           conftest.CACHE_PREFIX + "nopid"]
-  assert sorted(p.name for p in tmp_path.iterdir()) == [conftest.CACHE_PREFIX + "live", "unrelated"]
+  removed = conftest.remove_stale_runs(str(tmp_path))
+  assert sorted(pathlib.Path(p).name for p in removed) == sorted(
+      [conftest.RUN_PREFIX + "dead", conftest.RUN_PREFIX + "nopid", old + "dead"])
+  assert sorted(p.name for p in tmp_path.iterdir()) == [conftest.RUN_PREFIX + "live", "unrelated"]
 
 
 def test_this_run_compiles_through_its_cache():
@@ -81,9 +97,65 @@ def test_this_run_compiles_through_its_cache():
   if os.environ.get("NLOSJAX_TEST_CACHE") == "0" or not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
     pytest.skip("no compilation cache in this run")
   assert jax.config.jax_compilation_cache_dir == os.environ["JAX_COMPILATION_CACHE_DIR"]
-  if os.environ.get("NLOSJAX_TEST_CACHE_DIR") == os.environ["JAX_COMPILATION_CACHE_DIR"]:
-    assert jax.config.jax_persistent_cache_min_compile_time_secs == 0     # made by conftest
-    assert jax.config.jax_compilation_cache_max_size > 0
+  assert os.environ["NLOSJAX_CACHE_DIR"] == os.environ["JAX_COMPILATION_CACHE_DIR"]
+  assert jax.config.jax_compilation_cache_max_size > 0
+  assert os.path.isdir(os.environ["NLOSJAX_CACHE_COUNTS"])          # where this process's counts go
+
+
+TINY_TEST = """
+import jax, numpy as np
+def test_compiles_one_program():
+  jax.jit(lambda x: x * 3.0 + 1.0)(np.arange(4.0, dtype=np.float32)).block_until_ready()
+"""
+
+
+def test_the_suite_prints_the_hit_rate_over_its_workers(tmp_path):
+  """This conftest (as a plugin) on a one-test module, twice, on 2 workers: the second run reads it back.
+
+  The folder is shown relative to the working directory where it is inside it."""
+  (tmp_path / "test_tiny.py").write_text(TINY_TEST)
+  (tmp_path / "pytest.ini").write_text("[pytest]\n")
+  env = {k: v for k, v in os.environ.items()
+         if not k.startswith(("NLOSJAX_", "JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE", "PYTEST_"))}
+  env.update(NLOSJAX_CACHE_DIR=str(tmp_path / "cache"), JAX_PLATFORMS="cpu", PYTHONPATH=str(conftest_root()),
+             TMPDIR=str(tmp_path / "tmp"))
+  (tmp_path / "tmp").mkdir()
+  cmd = [sys.executable, "-m", "pytest", "-q", "-p", "conftest", "-p", "no:cacheprovider", "-n", "2",
+         "test_tiny.py"]
+  lines = []
+  for _ in range(2):
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines.append([l for l in proc.stdout.splitlines() if l.startswith("XLA compilation cache")])
+  assert lines[0] == ["XLA compilation cache cache: 0 of 1 compiles read from it (0%), 0 s of compiling "
+                      "saved, over 2 test processes"], lines
+  assert lines[1][0].startswith("XLA compilation cache cache: 1 of 1 compiles read from it (100%), "), lines
+  # The run's folder of counts is gone with it.
+  assert not list((tmp_path / "tmp").glob(conftest.RUN_PREFIX + "*"))
+
+
+class _Config:
+  """What ``conftest.cache_summary`` reads of a pytest config."""
+
+  def __init__(self, cache, counts):
+    self._nlosjax_cache, self._nlosjax_counts = cache, counts
+
+
+def test_the_summary_adds_up_the_processes_or_says_why_the_cache_is_off(tmp_path, monkeypatch):
+  from experiments import xla_cache
+  for pid, (requests, hits, saved) in {"11": (10, 4, 3.0), "12": (6, 6, 5.5)}.items():
+    (tmp_path / f"{pid}.json").write_text(json.dumps({"requests": requests, "hits": hits, "saved_s": saved}))
+  (tmp_path / "pid").write_text("1")                                  # not a count
+  monkeypatch.setattr(xla_cache, "counts", lambda: {"requests": 0, "hits": 0, "saved_s": 0.0})
+  assert conftest.cache_summary(_Config("/somewhere/xla", str(tmp_path))) == (
+      "XLA compilation cache /somewhere/xla: 10 of 16 compiles read from it (62%), 8 s of compiling saved, "
+      "over 2 test processes")
+  monkeypatch.setenv("NLOSJAX_TEST_CACHE", "0")
+  assert conftest.cache_summary(_Config(None, None)) == "XLA compilation cache: off (NLOSJAX_TEST_CACHE=0)"
+  monkeypatch.delenv("NLOSJAX_TEST_CACHE")
+  monkeypatch.setenv("NLOSJAX_CACHE", "0")
+  assert conftest.cache_summary(_Config(None, None)) == "XLA compilation cache: off (NLOSJAX_CACHE=0)"
+  assert conftest.cache_summary(object()) is None
 
 
 def test_suite_xla_flags_are_added_once_and_only_where_known():
