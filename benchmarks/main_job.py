@@ -13,11 +13,16 @@ The 20-minute budget must hold on every CPU model the project's machines have
 kept per CPU model in ``main_job.json``: a run replaces its own model's row and
 keeps the others. The results file is written whole from that JSON: provenance,
 one row per CPU model (its commit, date, install and job times, load before and
-after: the promise is for a quiet machine, so run nothing beside it), the verdict
+after: the promise is for a quiet machine, so run nothing beside it; the CPU's clock
+and cache, which tell apart machines of one model name), the verdict
 for each model and for all of them together (a model never measured fails the
 verdict), and the headline rows of this run's ``table.md``. CI (``.ci/run``) runs
 the main job too, but only fails on a failure, a missing table or a hang: time is
 this file's claim, not a test's.
+
+The clone starts with an empty compilation cache (its own ``.cache/xla``; a
+``NLOSJAX_CACHE_DIR`` or ``JAX_COMPILATION_CACHE_DIR`` of this shell is not passed on),
+as a newcomer's does; the job's hit-rate line is kept with its row.
 
 ``python -m benchmarks.table1`` quotes this file's time and commit in
 ``table1.md``. Needs ``git`` and network access to the package index; refuses
@@ -84,19 +89,35 @@ def model_of(cpu: str) -> str:
   return next((m for m in CPU_MODELS if cpu.startswith(m)), cpu)
 
 
+def clock_and_cache(row: dict) -> str:
+  """A row's CPU clock and cache (``"2596 MHz, cache 1024 KB"``), or ``"not recorded"`` (older rows)."""
+  from experiments.provenance import cpu_text
+  text = cpu_text({"model": "", "mhz": row.get("cpu_mhz"), "cache": row.get("cpu_cache")}, model=False)
+  return text or "not recorded"
+
+
+def last_cache_line(log: pathlib.Path) -> str | None:
+  """The main job's hit-rate line (``XLA compilation cache ...``, its last) in ``log``, or None."""
+  try:
+    lines = [l.strip() for l in log.read_text(errors="replace").splitlines()]
+  except OSError:
+    return None
+  return next((l for l in reversed(lines) if l.startswith("XLA compilation cache")), None)
+
+
 def verdicts(times: dict[str, dict], budget_s: float = BUDGET_S) -> tuple[list[str], bool]:
   """Table rows (one per known or measured CPU model) and whether every model meets the budget."""
   rows, ok = [], True
   for model in dict.fromkeys([*CPU_MODELS, *(model_of(c) for c in times)]):
     mine = {c: t for c, t in times.items() if model_of(c) == model}
     if not mine:
-      rows.append(f"| {model} | not measured yet | | | | | **not shown** |")
+      rows.append(f"| {model} | | not measured yet | | | | | **not shown** |")
       ok = False
       continue
     for cpu, t in mine.items():
       within = t["main_job_s"] <= budget_s
       ok &= within
-      rows.append(f"| {cpu} | {t['commit']} | {t['date'][:10]} | {t['install_s']:.0f} s | "
+      rows.append(f"| {cpu} | {clock_and_cache(t)} | {t['commit']} | {t['date'][:10]} | {t['install_s']:.0f} s | "
                   f"{t['main_job_s']:.0f} s = {t['main_job_s'] / 60:.1f} min | {t['load_before']} / "
                   f"{t['load_after']} | {'within' if within else '**OVER**'} |")
   return rows, ok
@@ -107,7 +128,7 @@ def main(argv=None):
   parser.add_argument("--out", default="benchmarks/results/main_job.md")
   parser.add_argument("--keep", default=None, help="clone into DIR and keep it (default: a temporary folder)")
   args = parser.parse_args(argv)
-  from experiments.provenance import cpu_model, git_commit, load_average, provenance
+  from experiments.provenance import cpu_facts, cpu_model, git_commit, load_average, provenance
   commit = git_commit()
   if "+changes" in commit:
     raise SystemExit("uncommitted edits to tracked code: commit them first (the clone would not have them)")
@@ -124,7 +145,9 @@ def main(argv=None):
   clone, venv, log = where / "clone", where / "venv", where / "main_job.log"
   subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
   subprocess.run([sys.executable, "-m", "venv", "--clear", str(venv)], check=True)
-  env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+  # A newcomer's clone compiles from an empty cache: the clone's own .cache/xla, not one named here.
+  env = {k: v for k, v in os.environ.items()
+         if k not in ("PYTHONPATH", "VIRTUAL_ENV", "NLOSJAX_CACHE_DIR", "NLOSJAX_CACHE", "JAX_COMPILATION_CACHE_DIR")}
   env["PATH"] = f"{venv / 'bin'}:{env.get('PATH', '')}"
   env["VIRTUAL_ENV"] = str(venv)
   print(f"main job: installing and running `{COMMAND}` in {clone} (log: {log})", flush=True)
@@ -135,9 +158,11 @@ def main(argv=None):
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
   times = read_times(out.with_suffix(".json"))
+  cpu = cpu_facts()
   times[cpu_model()] = {"commit": commit, "date": date, "install_s": round(install_s, 1),
                         "main_job_s": round(job_s, 1), "budget_s": BUDGET_S, "load_before": load_before,
-                        "load_after": load_after}
+                        "load_after": load_after, "cpu_mhz": cpu["mhz"], "cpu_cache": cpu["cache"],
+                        "compilation_cache": last_cache_line(log)}
   rows, ok = verdicts(times)
   lines = ["# The main job from a fresh clone, on each CPU model", ""] + facts + [
       f"- Load average before the clone: {load_before}; after the job: {load_after}", "",
@@ -145,8 +170,10 @@ def main(argv=None):
       "virtual environment (the install, downloads included, resolves the newest versions "
       "`pyproject.toml` allows). Each CPU model's row is its latest run of this command; a row "
       "at an older commit than the one above measured older code.", "",
-      "| CPU | commit | date | `pip install -e .` | `python -m experiments.train` | load before / after | "
-      f"budget {BUDGET_S} s |", "|---|---|---|---|---|---|---|", *rows, "",
+      "| CPU | clock, cache | commit | date | `pip install -e .` | `python -m experiments.train` | "
+      f"load before / after | budget {BUDGET_S} s |", "|---|---|---|---|---|---|---|---|", *rows, "",
+      f"This run's compilation cache (empty at the start): {times[cpu_model()]['compilation_cache'] or 'no line'}.",
+      "",
       f"The main job is **{'within' if ok else 'not shown to be within'}** its budget of {BUDGET_S} s "
       f"(20 min on 2 cores) on every CPU model ({', '.join(CPU_MODELS)}).", "",
       f"## The main job's table from this run ({cpu_model()}; `runs/default/results/table.md`, 1 training seed)",

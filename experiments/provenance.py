@@ -42,6 +42,53 @@ def cpu_model() -> str:
   return _proc_field("/proc/cpuinfo", "model name") or platform.processor() or platform.machine()
 
 
+def _lscpu() -> dict[str, str]:
+  """``lscpu``'s fields (name -> value), or ``{}`` where it is missing or fails."""
+  import subprocess
+  try:
+    out = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=10,
+                         env={**os.environ, "LC_ALL": "C"}).stdout
+  except (OSError, subprocess.SubprocessError):
+    return {}
+  return {k.strip(): v.strip() for k, sep, v in (line.partition(":") for line in out.splitlines()) if sep}
+
+
+def cpu_facts() -> dict:
+  """The CPU's ``model``, ``mhz`` (a float, or None) and ``cache`` (text as reported, or None).
+
+  Machines of one model name differ (1.5-2x in this project's timings): the clock and the
+  cache tell them apart. ``/proc/cpuinfo``'s first processor (``cpu MHz``: its clock when
+  read; ``cache size``: the per-core cache it reports, L2 on AMD, L3 on Intel), else
+  ``lscpu`` (``CPU MHz`` or ``CPU max MHz``; the largest of L3, L2 it lists).
+  """
+  mhz = _proc_field("/proc/cpuinfo", "cpu MHz")
+  cache = _proc_field("/proc/cpuinfo", "cache size")
+  if mhz is None or cache is None:
+    fields = _lscpu()
+    mhz = mhz or fields.get("CPU MHz") or fields.get("CPU max MHz")
+    level = next((k for k in ("L3 cache", "L2 cache") if fields.get(k)), None)
+    cache = cache or (f"{level.split()[0]} {fields[level]}" if level else None)
+  try:
+    mhz = round(float(mhz), 1) if mhz is not None else None
+  except ValueError:
+    mhz = None
+  return {"model": cpu_model(), "mhz": mhz, "cache": cache}
+
+
+def cpu_text(facts: dict | None = None, model: bool = True) -> str:
+  """``"AMD EPYC, 2596 MHz, cache 1024 KB"``: :func:`cpu_facts` in one line (unknowns left out).
+
+  ``model=False``: the clock and cache alone (``""`` where neither is known).
+  """
+  facts = cpu_facts() if facts is None else facts
+  parts = [facts["model"]] if model else []
+  if facts.get("mhz"):
+    parts.append(f"{facts['mhz']:.0f} MHz")
+  if facts.get("cache"):
+    parts.append(f"cache {facts['cache']}")
+  return ", ".join(parts)
+
+
 def usable_cores() -> int:
   """Cores this process may run on (its affinity mask), else the logical count."""
   try:
@@ -102,7 +149,7 @@ def provenance(command: str) -> list[str]:
   import jax
   return [f"Produced by `{command}`.", "",
           f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
-          f"- Machine: {cpu_model()}; {usable_cores()} usable cores; memory {memory_text()}; "
+          f"- Machine: {cpu_model()}; {_clock_and_cache()}{usable_cores()} usable cores; memory {memory_text()}; "
           f"JAX backend {jax.default_backend()} ({jax.devices()[0].device_kind}); "
           f"Python {platform.python_version()}, jax {jax.__version__}",
           f"- Commit: {git_commit()}",
@@ -110,19 +157,28 @@ def provenance(command: str) -> list[str]:
           f"- Load average (1, 5, 15 min) when written: {load_average(', ')}"]
 
 
+def _clock_and_cache() -> str:
+  """``"2596 MHz, cache 1024 KB; "`` for a results header (empty where neither is known)."""
+  text = cpu_text(model=False)
+  return f"{text}; " if text else ""
+
+
 def machine_record() -> dict:
   """Where and from which code this process runs, JSON-ready.
 
-  ``date`` (UTC, now), ``commit`` (:func:`git_commit`), ``cpu``, ``cores``,
-  ``memory``, ``backend``, ``device``, ``python``, ``jax`` and ``load_average``.
+  ``date`` (UTC, now), ``commit`` (:func:`git_commit`), ``cpu``, ``cpu_mhz`` and
+  ``cpu_cache`` (:func:`cpu_facts`), ``cores``, ``memory``, ``backend``, ``device``,
+  ``python``, ``jax`` and ``load_average``.
   A training run's record (:func:`run_record`) and a mechanism-study run's
   ``machine`` are this.
   """
   import datetime
 
   import jax
+  facts = cpu_facts()
   return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-          "commit": git_commit(), "cpu": cpu_model(), "cores": usable_cores(), "memory": memory_text(),
+          "commit": git_commit(), "cpu": facts["model"], "cpu_mhz": facts["mhz"], "cpu_cache": facts["cache"],
+          "cores": usable_cores(), "memory": memory_text(),
           "backend": jax.default_backend(), "device": jax.devices()[0].device_kind,
           "python": platform.python_version(), "jax": jax.__version__,
           "load_average": load_average(", ")}

@@ -35,3 +35,37 @@ def test_provenance_names_command_date_machine_and_commit():
   assert lines[0] == "Produced by `python -m benchmarks.something --flag`."
   for needle in ("- Date: ", "- Machine: ", "- Commit: ", "- Load average"):
     assert needle in text, needle
+
+
+def test_cpu_facts_name_the_model_clock_and_cache(monkeypatch):
+  from experiments import provenance as P
+  cpuinfo = {"model name": "AMD EPYC", "cpu MHz": "2596.132", "cache size": "1024 KB"}
+  monkeypatch.setattr(P, "_proc_field", lambda path, key: cpuinfo.get(key) if "cpuinfo" in path else None)
+  monkeypatch.setattr(P, "_lscpu", lambda: {"CPU max MHz": "3000.0", "L3 cache": "32 MiB (1 instance)"})
+  assert P.cpu_facts() == {"model": "AMD EPYC", "mhz": 2596.1, "cache": "1024 KB"}
+  assert P.cpu_text() == "AMD EPYC, 2596 MHz, cache 1024 KB"
+  assert "- Machine: AMD EPYC; 2596 MHz, cache 1024 KB; " in "\n".join(P.provenance("python -m x"))
+  record = P.machine_record()
+  assert (record["cpu"], record["cpu_mhz"], record["cpu_cache"]) == ("AMD EPYC", 2596.1, "1024 KB")
+  # Without them in /proc/cpuinfo (an ARM machine, say), lscpu's; without either, the model alone.
+  del cpuinfo["cpu MHz"], cpuinfo["cache size"]
+  assert P.cpu_text() == "AMD EPYC, 3000 MHz, cache L3 32 MiB (1 instance)"
+  monkeypatch.setattr(P, "_lscpu", lambda: {})
+  assert P.cpu_text() == "AMD EPYC" and P.cpu_text(model=False) == ""
+  assert P._clock_and_cache() == ""                 # the header then reads "AMD EPYC; 2 usable cores"
+
+
+def test_the_main_job_benchmark_records_clock_cache_and_hit_rate(tmp_path):
+  from benchmarks import main_job
+  row = {"commit": "abc", "date": "2026-11-28T00:00:00+00:00", "install_s": 20.0, "main_job_s": 500.0,
+         "load_before": "0.00", "load_after": "1.00"}
+  rows, ok = main_job.verdicts({"AMD EPYC": {**row, "cpu_mhz": 2596.1, "cpu_cache": "1024 KB"},
+                                "Intel(R) Xeon(R) Processor": row})
+  assert rows[0].startswith("| AMD EPYC | 2596 MHz, cache 1024 KB | abc | 2026-11-28 | 20 s |")
+  assert rows[1].startswith("| Intel(R) Xeon(R) Processor | not recorded | abc |")      # an older row
+  assert ok and all(r.count("|") == 9 for r in rows)
+  log = tmp_path / "main_job.log"
+  log.write_text("pip ...\nXLA compilation cache .cache/xla: 0 of 9 compiles read from it (0%), 0 s of "
+                 "compiling saved\ntrained\nXLA compilation cache .cache/xla: 3 of 12 compiles read from it\n")
+  assert main_job.last_cache_line(log) == "XLA compilation cache .cache/xla: 3 of 12 compiles read from it"
+  assert main_job.last_cache_line(tmp_path / "none.log") is None
