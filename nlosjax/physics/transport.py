@@ -165,13 +165,24 @@ def default_spacing(setup: Setup) -> float:
 
 
 def _gnomonic_grid(points: np.ndarray, scan: np.ndarray, cell: float):
-  """(origin [2], cell, cells per axis [2]) covering every direction scan -> point."""
+  """(origin [2], cell, cells per axis [2]) of the z-buffers.
+
+  The cell lattice (origin and cell) covers every direction from every scan
+  point to every patch, as one grid would; each scan point's z-buffer is the
+  window of it that its own directions span, ``cells`` per axis. A direction's
+  coordinate ``(p - s) / p_z`` is linear in the scan point ``s`` for each
+  patch, so the span over the patches (a maximum of linear functions less a
+  minimum) is convex in ``s`` and largest at an extreme scan point: the
+  window is sized there.
+  """
   z = points[:, 2]
   lo = np.array([np.min((points[:, k] - scan[:, k].max()) / z) for k in (0, 1)])
   hi = np.array([np.max((points[:, k] - scan[:, k].min()) / z) for k in (0, 1)])
   span = hi - lo
   cell = max(cell, float(span.max()) / (_MAX_CELLS - 3))
-  n = np.ceil(span / cell).astype(int) + 1
+  own = np.array([max(np.ptp((points[:, k] - s) / z) for s in (scan[:, k].min(), scan[:, k].max()))
+                  for k in (0, 1)])
+  n = np.ceil(own / cell).astype(int) + 2            # +1 for the cells' alignment, +1 to spare
   return lo, cell, (_padded_cells(n[0]), _padded_cells(n[1]))
 
 
@@ -208,8 +219,13 @@ def _render_chunk(scan, s, origin, cell, bin_length, pixel_area, spacing, *, num
       # nearest r in the 2 x 2 cells around its own position (its cell and the neighbours on
       # the side of the cell it lies nearer to), so gaps between an occluder's samples do not
       # leak while the occluder's silhouette grows by half a cell on average.
+      # The lattice's cells, numbered from the first one this scan point's facing patches
+      # fall in: the same cells as one grid over every direction, in a window of its own.
       c = (g - origin) / cell
-      ij = jnp.clip(jnp.floor(c).astype(jnp.int32), 0, jnp.array([nx - 1, ny - 1])) + 1
+      fl = jnp.floor(c)
+      first = jnp.min(jnp.where(facing[:, None], fl, jnp.inf), axis=0)
+      first = jnp.where(jnp.isfinite(first), first, 0.0)
+      ij = jnp.clip((fl - first).astype(jnp.int32), 0, jnp.array([nx - 1, ny - 1])) + 1
       side = jnp.where(c - jnp.floor(c) < 0.5, -1, 1)
       stride = ny + 2
       flat = ij[:, 0] * stride + ij[:, 1]
