@@ -148,7 +148,7 @@ def adapt(model_config, params, frames, *, trainable=DEFAULT_TRAINABLE, steps: i
   Raises:
     ValueError: bad shapes, counts, ``trainable``, ``steps``, ``holdout`` or ``patience``.
   """
-  from nlosjax.inference import triplets
+  from nlosjax.models.network import triplets
   from nlosjax.physics import _validate, operator_args
   t0 = time.perf_counter()
   frames = np.asarray(frames, np.float32)

@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from nlosjax.models.network import triplets  # noqa: F401  (re-exported: part of this module's API)
 from nlosjax.physics.setup import Setup
 
 VARIANTS = ("ours", "ours_s", "usm")
@@ -490,19 +491,6 @@ def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = N
   sampling = max(1.0, per_bin * coarse_length / (2.0 * max(setup.spacing)))
   mcfg = dataclasses.replace(model_config, setup=setup, wavelet_sampling=float(sampling))
   return CaptureAdaptation(bin_factor=bin_factor, setup=setup, model_config=mcfg)
-
-
-def triplets(frames: np.ndarray, num_frames: int) -> np.ndarray:
-  """``[F, T, h, w] -> [F, num_frames, T, h, w]``: each frame with its neighbours, ends replicated.
-
-  Frame ``m`` gets frames ``m - n//2 .. m + n//2`` clipped to ``[0, F - 1]``
-  (a static capture, ``F = 1``, repeats its only frame), as the dataset
-  loader's ``ends="replicate"``.
-  """
-  f = frames.shape[0]
-  half = num_frames // 2
-  idx = np.clip(np.arange(f)[:, None] + np.arange(-half, half + 1)[None, :], 0, f - 1)
-  return frames[idx]
 
 
 @functools.lru_cache(maxsize=2)

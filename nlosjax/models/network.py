@@ -401,6 +401,19 @@ def underscan(transient, stride: int) -> jax.Array:
   return x[..., rows[0]::stride, cols[0]::stride][..., :rows.size, :cols.size]
 
 
+def triplets(frames: np.ndarray, num_frames: int) -> np.ndarray:
+  """``[F, T, h, w] -> [F, num_frames, T, h, w]``: each frame with its neighbours, ends replicated.
+
+  Frame ``m`` gets frames ``m - n//2 .. m + n//2`` clipped to ``[0, F - 1]``
+  (a static capture, ``F = 1``, repeats its only frame), as the dataset
+  loader's ``ends="replicate"``.
+  """
+  f = frames.shape[0]
+  half = num_frames // 2
+  idx = np.clip(np.arange(f)[:, None] + np.arange(-half, half + 1)[None, :], 0, f - 1)
+  return frames[idx]
+
+
 def input_scale(x: jax.Array, mode: str) -> jax.Array:
   """Per-sample scale ``[B]`` of counts ``[B, ...]``: root mean square, mean or max.
 
