@@ -1,6 +1,6 @@
 """The second training stage on unlabelled measured scans, leave one scan out.
 
-    python -m experiments.align --checkpoint runs/real-v4 [--variants ours ours_s] [--data-dir DIR]
+    python -m experiments.align --checkpoint runs/real [--variants ours ours_s] [--data-dir DIR]
         [--steps 100] [--lam 1.0] [--learning-rate 1e-4] [--workdir runs/align]
 
 For each measured scan (``--data-dir``, the scans of ``experiments.real_undersampling``)

@@ -54,26 +54,17 @@ def get_config() -> dict:
       "input_stride": 4,           # 64 -> 16
       "input_offset": 2,
       "photons": (1e3, 3e4),
-      "ambient": (100.0, 2e4),     # incident ambient photons per histogram: a background floor
+      # The transport renderer (exact paths, per-scan-point visibility, cosines), as the cpu
+      # preset: with it the falloff is drawn per object, most of them retroreflective like the
+      # measured targets (r^-2), the rest diffuse (r^-4). real.h5 (the light-cone renderer,
+      # every object retroreflective) trained the model of real.md up to 274608e.
       "falloff": "diffuse",
-      "renderer": "mix",           # the forward model drawn per sequence (data.physics)
-      "retroreflective": 0.0,      # (drawn by physics.retroreflective instead)
-      # v4: the physics mix (v3: transport only, ambient 50-500; real-v2: fewer scene kinds).
-      "path": "runs/data/real-v4.h5",
+      "renderer": "transport",
+      "retroreflective": 0.8,
+      # v3: charts, regular-weight glyphs, line motion and non-rigid motion (real-v2.h5: the
+      # scenes before them, which trained the models of real.md up to dd3d7fb).
+      "path": "runs/data/real-v3.h5",
   })
-  # The forward model per sequence (nlosjax.data.dataset.PhysicsMix; ranges not named keep
-  # its defaults). Why these values: docs/decisions.md, "Real preset data".
-  data["physics"] = {
-      "retroreflective": 0.8,                  # share of r^-2 objects (the targets are road-sign material)
-      "tail": 0.8,                             # SPAD diffusion tail, most of the time
-      "tail_weight": (0.1, 0.5),
-      "tail_decay": (1e-10, 1e-9),             # s
-      "dark_counts": (0.5, 50.0),              # per histogram
-      "gain_sigma": (0.05, 0.4),               # per-scan-point log-gain spread
-      "time_shift": 1,                         # bins of time-zero error
-      "gate": 1.0,                             # the direct reflection always removed ...
-      "gate_time": (2.0e-9, 2.6e-9),           # ... before about 2.4 ns, as the published preparation
-  }
   data["scene"] = {
       **data["scene"],
       "num_static": (0, 2),
