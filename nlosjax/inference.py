@@ -238,11 +238,10 @@ def restore_params(ckpt, model_config, *, step: int | None = None, config_file=N
                        f"  {label}: {model_config!r}")
   params = jax.tree.map(jnp.asarray, item["params"])
   _check_tree(where, params, _expected_tree(model_config))
-  fingerprint = getattr(train, "param_fingerprint", None)
-  if fingerprint is not None and "params" in signature and signature["params"] != fingerprint(params):
+  if "params" in signature and signature["params"] != train.param_fingerprint(params):
     raise ValueError(f"checkpoint {where}: its parameter-tree fingerprint {signature['params']}"
-                     f" differs from the restored tree's {fingerprint(params)} (written by another"
-                     " version of the model code?)")
+                     f" differs from the restored tree's {train.param_fingerprint(params)} (written by"
+                     " another version of the model code?)")
   return params, {"checkpoint": where, "step": int(step), "recorded_model": recorded,
                   "added_fields": added}
 
