@@ -38,13 +38,13 @@ def test_the_loss_is_the_papers_plus_lam_times_the_feature_mmd(tiny):
   weights0 = losses.LossWeights(**{**weights.__dict__, "phasor_field": 0.0})
   kw["weights"] = weights0
   key = jax.random.key(3)
-  loss = jax.jit(lambda p, lam: A.align_loss(p, batch, jnp.asarray(measured), key, lam=lam, **kw),
-                 static_argnums=1)
-  total0, _ = loss(params, 0.0)
+  # lam traced, not static: one compile serves both weights.
+  loss = jax.jit(lambda p, lam: A.align_loss(p, batch, jnp.asarray(measured), key, lam=lam, **kw))
+  total0, _ = loss(params, jnp.float32(0.0))
   out = jax.jit(model.apply)({"params": params}, batch["measurement"])
   want, _ = losses.total_loss(out, T.make_targets(batch, mcfg.time_window), weights0, None)
   assert float(total0) == pytest.approx(float(want), rel=1e-5)
-  total2, terms2 = loss(params, 2.0)
+  total2, terms2 = loss(params, jnp.float32(2.0))
   assert float(total2) == pytest.approx(float(want) + 2.0 * float(terms2["mmd"]), rel=1e-5)
   _, f = jax.jit(lambda p: A.layer_features(model, p, batch["measurement"]))(params)
   b, n = batch["measurement"].shape[:2]
