@@ -4,11 +4,14 @@ Each preset is a module here exposing ``get_config() -> dict``; :func:`get_confi
 returns a fresh copy by name. ``cpu`` is the default: its whole main job
 (make data, train a small model, evaluate) fits in about 20 minutes on 2 CPU
 cores. ``paper`` reproduces the paper's sizes (128 x 128 full grid, every 8th
-point as input, 512 bins of 33 ps, 32 frames, 265 sequences).
+point as input, 512 bins of 33 ps, 32 frames, 150 / 16 / 17 sequences for
+train / validation / test); ``real`` trains the cpu model on the geometry of the
+shipped measured scans.
 
 The ``data`` section is read by :meth:`nlosjax.data.dataset.DatasetSpec.from_config`
 (generation) and by the loaders (``input_stride``, ``input_offset``,
-``loader``, ``path``); see the README (section "Dynamic NLOS dataset").
+``loader``, ``path``); see docs/dataset.md (sections "The command", "Loading" and
+"Presets"). Why the presets' less obvious values are what they are: docs/decisions.md.
 """
 
 from __future__ import annotations

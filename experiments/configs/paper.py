@@ -1,38 +1,21 @@
 """Paper preset (ST-Mamba, Sec. 3.2 and 5.1): 128 x 128 x 512 at 33 ps, 32 frames, batch 4, AdamW 1e-4.
 
-Every setting of a paper-scale run is written here, so nothing falls back to
-the CPU preset's values:
+For reproducing the paper's training run at its sizes: every 8th scan point (16 x 16)
+of a 128 x 128 scan of a 2 m wall, 512 bins of 33 ps, 32-frame sequences (150 train,
+16 validation, 17 test), 40 epochs of batch 4. Every setting is written here, so
+nothing falls back to the cpu preset's values.
 
-* **Data**: every 8th scan point (16 x 16) of a 128 x 128 scan of a 2 m wall,
-  512 bins of 33 ps, 32-frame sequences. The paper trains on 150 sequences
-  and tests on 17 (of 265 it rendered); here 150 train, 16 validation (every
-  choice is made on them) and 17 test sequences are generated. Clean
-  transients are not stored (about 1 GiB per sequence uncompressed); the
-  loader's target is then the full-resolution measurement, as in USM.
-  Generation: about 75 s per sequence on 2 CPU cores once compiled
-  (``benchmarks/results/data.md``), so ``train.data_workers`` processes help.
-* **Model**: ``ModelConfig.paper()``'s widths (the paper gives none): C = 32,
-  N = 16, two ST-Mamba blocks, rematerialisation on and the physics layer
-  one feature channel at a time (``benchmarks/results/model.md``: 10.8 GiB
-  planned for one batch-1 step on CPU); ``softplus`` volume activation, as
-  in the cpu preset, where ``relu`` collapsed on transport-rendered data.
-* **Optimiser**: AdamW, learning rate 1e-4, batch 4, as printed. Weight decay:
-  the paper prints 0.95 (an unusual value for AdamW; its predecessor USM
-  used 1e-4). At the CPU preset the validation split preferred 0.95 by
-  +0.11 dB [+0.03, +0.20] (``benchmarks/results/table2.md``), so 0.95 it is;
-  no schedule (the paper names none), gradient clipping at norm 1.
-* **Steps**: 150 sequences x 30 triplets (``ends="valid"``: the two end
-  frames of each 32-frame sequence only serve as neighbours) = 4,500
-  examples, 1,125 steps of batch 4 per epoch. The paper states no epoch
-  count; 40 epochs = 45,000 steps, one checkpoint per epoch, the one with
-  the best validation PSNR evaluated.
-* **Evaluation**: as Table 1, on the 17 test sequences.
+    python -m experiments.train --config paper --dry-run      # memory and time per device, no data
+    python -m experiments.train --config paper --workdir runs/paper
 
-Before hours of data generation, ``python -m experiments.train --config paper
---dry-run`` compiles the train and eval steps and predicts memory and time per
-device (:mod:`nlosjax.plan`); ``train.check_memory`` makes the run itself
-refuse, before any data or parameters exist, when the prediction exceeds the
-device's memory.
+Data generation takes about 75 s per sequence on 2 CPU cores once compiled, hours for
+all of them (``train.data_workers`` processes help); the training is accelerator work.
+Before those hours, ``--dry-run`` compiles the train and eval steps and predicts memory
+and time per device (:mod:`nlosjax.plan`); ``train.check_memory`` makes the run itself
+refuse, before any data or parameters exist, when the prediction exceeds the device's
+memory.
+
+Why each value: docs/decisions.md, "The paper preset's choices".
 """
 
 from experiments.configs import cpu
@@ -46,38 +29,57 @@ def get_config() -> dict:
   # The cpu preset's detector and scene distributions, at the paper's sizes.
   data = cpu.get_config()["data"]
   data.update({
-      "wall_size": 2.0,
-      "grid": 128,
-      "bin_width": 33e-12,
+      "wall_size": 2.0,            # m
+      "grid": 128,                 # full-resolution scan points per axis
+      "bin_width": 33e-12,         # s
       "num_bins": 512,             # Setup.max_depth = 2.53 m
       "input_stride": 8,           # 128 -> 16
       "input_offset": 4,           # first kept point (stride // 2, the model's convention)
-      "frames": 32,
+      "frames": 32,                # F per sequence (30 triplets each with ends="valid")
       "num_sequences": {"train": 150, "val": 16, "test": 17},
-      "store_clean": False,
-      # The light-cone renderer: the transport renderer the cpu preset trains on costs about
-      # 8x as much per frame at 32 x 32 and grows with scan points x surface samples, i.e.
-      # days for 183 x 32 frames at 128 x 128 on a CPU (benchmarks/results/data.md).
-      "renderer": "lct",
-      "retroreflective": 0.0,
+      "store_clean": False,        # about 1 GiB per sequence: the target is the full-resolution measurement
+      "renderer": "lct",           # the light-cone renderer: transport would take days at this size
+      "retroreflective": 0.0,      # every object diffuse (r^-4)
       "render_batch": 4,
       "loader": {"ends": "valid", "target": "measurement", "in_memory": False, "prefetch": 4},
       "path": "runs/data/paper.h5",
   })
-  # ModelConfig.paper()'s widths, written out (tests/test_train.py checks they agree).
+  # ModelConfig.paper()'s widths, written out (tests/test_plan.py checks they agree).
   model = {
-      "width": 32, "d_state": 16, "extract_time_stride": 4, "extract_blocks": 2,
-      "st_depth": 2, "cross_depth": 1, "volume_time_stride": 2, "volume_features": 4,
-      "refine_width": 4, "physics_chunk": 1, "remat": True, "volume_activation": "softplus",
+      "width": 32,                 # feature channels C
+      "d_state": 16,               # Mamba state size N
+      "extract_time_stride": 4,    # time bins merged by the extraction
+      "extract_blocks": 2,         # interlaced residual blocks in the extraction
+      "st_depth": 2,               # ST-Mamba blocks per frame
+      "cross_depth": 1,            # cross ST-Mamba blocks per neighbour
+      "volume_time_stride": 2,     # time bins merged before the physics layer
+      "volume_features": 4,        # channels through the physics layer
+      "refine_width": 4,           # channels of the refinement
+      "physics_chunk": 1,          # physics layer one feature channel at a time (memory)
+      "remat": True,               # recompute activations in the backward pass (memory)
+      "volume_activation": "softplus",   # as the cpu preset
   }
   train = {
-      "steps": EPOCHS * STEPS_PER_EPOCH, "batch_size": 4, "seed": 0, "seeds": 1,
-      "log_every": 50, "checkpoint_every": STEPS_PER_EPOCH, "keep_checkpoints": 5,
-      "select_checkpoint": "val", "eval_batch_size": 4, "variants": ("ours_s", "ours"),
-      "data_workers": 2, "check_memory": True,
-      "optim": {"learning_rate": 1e-4, "weight_decay": 0.95, "warmup_steps": 0, "cosine": False,
-                "clip_norm": 1.0},
-      "loss": {},
+      "steps": EPOCHS * STEPS_PER_EPOCH,   # 45,000
+      "batch_size": 4,
+      "seed": 0,
+      "seeds": 1,                  # training seeds per variant
+      "log_every": 50,             # steps
+      "checkpoint_every": STEPS_PER_EPOCH,   # one checkpoint per epoch
+      "keep_checkpoints": 5,
+      "select_checkpoint": "val",  # the kept checkpoint with the best validation PSNR is evaluated
+      "eval_batch_size": 4,
+      "variants": ("ours_s", "ours"),
+      "data_workers": 2,           # processes generating the data
+      "check_memory": True,        # refuse a run whose predicted memory exceeds the device's
+      "optim": {
+          "learning_rate": 1e-4,   # AdamW, as printed
+          "weight_decay": 0.95,    # as printed
+          "warmup_steps": 0,       # no schedule: the paper names none
+          "cosine": False,
+          "clip_norm": 1.0,        # global gradient-norm clipping
+      },
+      "loss": {},                  # the paper's loss weights (Sec. 5.1)
   }
-  usm = {"recipe": "published", "model": {}}
+  usm = {"recipe": "published", "model": {}}   # USM's own optimiser, loss and widths
   return {"data": data, "model": model, "train": train, "usm": usm}
