@@ -410,9 +410,10 @@ def test_bad_input_raises_value_error_naming_the_argument(change, match):
 
 
 def test_auto_rule():
-  assert resolve_method("auto", backend="cpu") == "sequential"
-  assert resolve_method("auto", backend="gpu") == "chunked"
-  assert resolve_method("associative", backend="cpu") == "associative"
+  kw = dict(length=512, channels=32, state=16, batch=256)
+  assert resolve_method("auto", backend="cpu", **kw) == "sequential"
+  assert resolve_method("auto", backend="gpu", **kw) == "chunked"
+  assert resolve_method("associative", backend="cpu", **kw) == "associative"
 
 
 # ----------------------------------------------------------- bidirectional
