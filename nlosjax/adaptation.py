@@ -97,8 +97,13 @@ def consistency_nll(volume, counts, setup, stride: int, points, *, falloff: str 
   """
   from nlosjax.models.network import underscan
   from nlosjax.physics.forward import render
-  y = jnp.asarray(counts, jnp.float32)
   pred = underscan(render(volume, setup, falloff=falloff), stride)         # [T, h, w]
+  return _poisson_nll(pred, counts, points, background)
+
+
+def _poisson_nll(pred, counts, points, background=None):
+  """:func:`consistency_nll` from the rendered counts ``pred [T, h, w]`` at the read points."""
+  y = jnp.asarray(counts, jnp.float32)
   points = jnp.asarray(points, jnp.float32)
   background = jax.lax.stop_gradient(jnp.median(y, axis=0) if background is None
                                       else jnp.asarray(background, jnp.float32))   # [h, w]
@@ -148,8 +153,9 @@ def adapt(model_config, params, frames, *, trainable=DEFAULT_TRAINABLE, steps: i
   Raises:
     ValueError: bad shapes, counts, ``trainable``, ``steps``, ``holdout`` or ``patience``.
   """
-  from nlosjax.models.network import triplets
+  from nlosjax.models.network import triplets, underscan
   from nlosjax.physics import _validate, operator_args
+  from nlosjax.physics.forward import render
   t0 = time.perf_counter()
   frames = np.asarray(frames, np.float32)
   if frames.ndim != 4 or tuple(frames.shape[-2:]) != tuple(model_config.input_grid):
@@ -168,45 +174,56 @@ def adapt(model_config, params, frames, *, trainable=DEFAULT_TRAINABLE, steps: i
   def losses(p, data):
     x, background, fit_w, held_w = data
     vol = model.apply({"params": p}, x)["volume"]
-    per = jax.vmap(lambda v, c, b: jnp.stack([
-        consistency_nll(v, c, setup, stride, fit_w, falloff=falloff, background=b),
-        consistency_nll(v, c, setup, stride, held_w, falloff=falloff, background=b)]))(vol, x[:, mid], background)
+    def both(v, c, b):                    # one render, scored at the fit and the held-out points
+      pred = underscan(render(v, setup, falloff=falloff), stride)
+      return jnp.stack([_poisson_nll(pred, c, fit_w, b), _poisson_nll(pred, c, held_w, b)])
+    per = jax.vmap(both)(vol, x[:, mid], background)
     return per.mean(0)
 
-  # optax.masked passes the updates of masked-out leaves through unchanged: their gradients
-  # are zeroed first, so the frozen parameters do not move.
-  opt = optax.masked(optax.adam(learning_rate), mask)
+  # Only the trainable leaves are differentiated and optimised; the frozen ones enter as
+  # constants, so the backward pass stops where the first trainable parameter enters (the
+  # scans and the physics layer before it run forward only).
+  leaves, treedef = jax.tree_util.tree_flatten(jax.tree_util.tree_map(jnp.asarray, params))
+  picked = jax.tree_util.tree_leaves(mask)
+  train0 = [leaf for leaf, m in zip(leaves, picked) if m]
+  frozen = [leaf for leaf, m in zip(leaves, picked) if not m]
 
-  def fit_loss(q, data):
-    both = losses(q, data)
+  def merge(train, frozen):
+    it_t, it_f = iter(train), iter(frozen)
+    return jax.tree_util.tree_unflatten(treedef, [next(it_t) if m else next(it_f) for m in picked])
+
+  opt = optax.adam(learning_rate)
+
+  def fit_loss(train, frozen, data):
+    both = losses(merge(train, frozen), data)
     return both[0], both
 
-  def step(p, state, data):
-    (_, both), grads = jax.value_and_grad(fit_loss, has_aux=True)(p, data)
-    grads = jax.tree_util.tree_map(lambda g, m: g if m else jnp.zeros_like(g), grads, mask)
-    updates, state = opt.update(grads, state, p)
-    return optax.apply_updates(p, updates), state, both
+  def step(train, frozen, state, data):
+    (_, both), grads = jax.value_and_grad(fit_loss, has_aux=True)(train, frozen, data)
+    updates, state = opt.update(grads, state, train)
+    return optax.apply_updates(train, updates), state, both
 
   run_step = operator_args.bind(step, model_config.physics_operators())
-  p = jax.tree_util.tree_map(jnp.asarray, params)
-  state = opt.init(p)
+  train = train0
+  state = opt.init(train)
   fit, held_nll = [], []
-  best, best_step, best_params = np.inf, 0, p
+  best, best_step, best_train = np.inf, 0, train
   for k in range(steps + 1):              # the losses of the parameters after k steps
-    # One compiled program: the losses at p, then a step (discarded after the last scoring).
-    new_p, state, now = run_step(p, state, data)
+    # One compiled program: the losses at train, then a step (discarded after the last scoring).
+    new_train, state, now = run_step(train, frozen, state, data)
     now = np.asarray(now)
     fit.append(float(now[0]))
     held_nll.append(float(now[1]))
     if not np.all(np.isfinite(now)):
       break
     if held_nll[-1] < best:
-      best, best_step, best_params = held_nll[-1], k, p
+      best, best_step, best_train = held_nll[-1], k, train
     if log is not None:
       log(f"[adapt] step {k}: fit NLL {fit[-1]:.4f}, held-out NLL {held_nll[-1]:.4f}")
     if k == steps or k - best_step >= patience:
       break
-    p = new_p
+    train = new_train
+  best_params = merge(best_train, frozen)
   taken = len(fit) - 1
   out = jax.tree_util.tree_map(lambda a, b, m: np.asarray(a) if m else np.asarray(b), best_params, params, mask)
   return AdaptResult(out, taken, best_step, np.asarray(fit), np.asarray(held_nll), tuple(trainable), count,
