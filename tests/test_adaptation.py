@@ -66,7 +66,8 @@ def tiny():
                         frames=3, conv_impl="fold")
   frames = np.random.default_rng(2).poisson(2.0, (1, 32, 4, 4)).astype(np.float32)
   frames[0, 10:14] += 20.0
-  params = cfg.module().init(jax.random.key(0, impl="rbg"), jnp.asarray(frames[None].repeat(3, 1)))["params"]
+  init = jax.jit(cfg.module().init)                                        # eager init takes minutes
+  params = init(jax.random.key(0, impl="rbg"), jnp.asarray(frames[None].repeat(3, 1)))["params"]
   return cfg, jax.tree_util.tree_map(np.asarray, params), frames
 
 
