@@ -306,11 +306,11 @@ def test_model_config_physics_variant_reaches_the_layer_and_is_checked():
   assert [k[0] for k in public.physics_operators().keys] == ["public_lct_operators"]
   assert [k[0] for k in gated.physics_operators().keys] == ["lct_operators"]
   x = jnp.zeros(public.input_shape(1), jnp.float32).at[..., 20, :, :].set(1.0)
-  params = gated.module().init(jax.random.key(0), x)["params"]
-  assert jax.tree.map(jnp.shape, public.module().init(jax.random.key(0), x)["params"]) == \
+  params = jax.jit(gated.module().init)(jax.random.key(0), x)["params"]      # jit: eager takes a minute
+  assert jax.tree.map(jnp.shape, jax.eval_shape(public.module().init, jax.random.key(0), x)["params"]) == \
       jax.tree.map(jnp.shape, params)                               # the same parameters
-  a = gated.module().apply({"params": params}, x)["volume"]
-  b = public.module().apply({"params": params}, x)["volume"]
+  a = jax.jit(gated.module().apply)({"params": params}, x)["volume"]
+  b = jax.jit(public.module().apply)({"params": params}, x)["volume"]
   assert np.isfinite(np.asarray(b)).all() and not np.allclose(a, b, atol=1e-3)
   with pytest.raises(ValueError, match="not resolved"):   # checked for the public wavelet too
     dataclasses.replace(public, setup=Setup(0.6, (8, 8), 256e-12, 32), wavelet_sampling=1.0)
