@@ -186,6 +186,17 @@ def _gnomonic_grid(points: np.ndarray, scan: np.ndarray, cell: float):
   return lo, cell, (_padded_cells(n[0]), _padded_cells(n[1]))
 
 
+def _cell_index(fl, facing, n):
+  """``[P]`` int32 z-buffer cell ``1..n`` along one axis from floored cell coordinates ``fl``.
+
+  Counted from the first cell a facing patch falls in (0 where none faces), clipped to the
+  window of ``n`` cells.
+  """
+  first = jnp.min(jnp.where(facing, fl, jnp.inf))
+  first = jnp.where(jnp.isfinite(first), first, 0.0)
+  return jnp.clip((fl - first).astype(jnp.int32), 0, n - 1) + 1
+
+
 @functools.partial(jax.jit, static_argnames=("num_bins", "cells", "occlusion", "wall_cosine",
                                              "general"))
 def _render_chunk(scan, s, origin, cell, bin_length, pixel_area, spacing, *, num_bins, cells,
@@ -196,15 +207,19 @@ def _render_chunk(scan, s, origin, cell, bin_length, pixel_area, spacing, *, num
   ``s["kappa"]`` (cosine power ``kappa``): ``(cos_w cos_p)^(kappa p / 2) / r^p``.
   """
   nx, ny = cells
+  # Patches as one array per coordinate ([P] each, not [P, 3]): XLA:CPU vectorises the
+  # per-patch arithmetic over P this way, 2-5x faster than reducing over an axis of 3.
+  px, py, pz = s["points"].T
+  mx, my, mz = s["normals"].T
 
   def one(sp):
-    v = s["points"] - sp                                     # [P, 3]
-    r = jnp.sqrt(jnp.maximum(jnp.sum(v * v, axis=-1), 1e-12))
-    cos_p = -jnp.sum(v * s["normals"], axis=-1) / r
+    vx, vy, vz = px - sp[0], py - sp[1], pz - sp[2]          # v = p - s, [P] each
+    r = jnp.sqrt(jnp.maximum(vx * vx + vy * vy + vz * vz, 1e-12))
+    cos_p = -(vx * mx + vy * my + vz * mz) / r
     cos_p = jnp.where(s["two_sided"], jnp.abs(cos_p), cos_p)
     facing = cos_p > _MIN_COS
     cos_p = jnp.where(facing, cos_p, 0.0)
-    cw = v[:, 2] / r if wall_cosine else 1.0
+    cw = vz / r if wall_cosine else 1.0
     if general:   # out leg (cw cos_p)^kappa / r^2, back leg the same to the power (p - 2) / 2
       p = s["power"]
       w = jnp.where(facing, s["scale"] * jnp.power(jnp.maximum(cw * cos_p, 1e-12), 0.5 * s["kappa"] * p)
@@ -214,27 +229,27 @@ def _render_chunk(scan, s, origin, cell, bin_length, pixel_area, spacing, *, num
       back_leg = jnp.where(s["retro"], 1.0, cw * cos_p / (r * r))
       w = s["scale"] * out_leg * back_leg / pixel_area
     if occlusion:
-      g = v[:, :2] / v[:, 2:3]
       # Cells 1..n of a grid with a border of one empty cell. A patch is compared with the
       # nearest r in the 2 x 2 cells around its own position (its cell and the neighbours on
       # the side of the cell it lies nearer to), so gaps between an occluder's samples do not
       # leak while the occluder's silhouette grows by half a cell on average.
       # The lattice's cells, numbered from the first one this scan point's facing patches
       # fall in: the same cells as one grid over every direction, in a window of its own.
-      c = (g - origin) / cell
-      fl = jnp.floor(c)
-      first = jnp.min(jnp.where(facing[:, None], fl, jnp.inf), axis=0)
-      first = jnp.where(jnp.isfinite(first), first, 0.0)
-      ij = jnp.clip((fl - first).astype(jnp.int32), 0, jnp.array([nx - 1, ny - 1])) + 1
-      side = jnp.where(c - jnp.floor(c) < 0.5, -1, 1)
+      cx = (vx / vz - origin[0]) / cell                       # gnomonic direction, in cells
+      cy = (vy / vz - origin[1]) / cell
+      fx, fy = jnp.floor(cx), jnp.floor(cy)
+      ix = _cell_index(fx, facing, nx)
+      iy = _cell_index(fy, facing, ny)
+      sx = jnp.where(cx - fx < 0.5, -1, 1)
+      sy = jnp.where(cy - fy < 0.5, -1, 1)
       stride = ny + 2
-      flat = ij[:, 0] * stride + ij[:, 1]
+      flat = ix * stride + iy
       zbuf = jnp.full(((nx + 2) * stride,), jnp.inf, r.dtype).at[flat].min(
           jnp.where(facing, r, jnp.inf))
-      near = jnp.minimum(jnp.minimum(zbuf[flat], zbuf[flat + side[:, 0] * stride]),
-                         jnp.minimum(zbuf[flat + side[:, 1]], zbuf[flat + side[:, 0] * stride + side[:, 1]]))
+      near = jnp.minimum(jnp.minimum(zbuf[flat], zbuf[flat + sx * stride]),
+                         jnp.minimum(zbuf[flat + sy], zbuf[flat + sx * stride + sy]))
       # The range a patch's own surface spans over two cells at its tilt, plus two spacings.
-      cos_a = v[:, 2] / r                                    # angle off the wall normal
+      cos_a = vz / r                                         # angle off the wall normal
       width = 2.0 * cell * cos_a * cos_a * r                 # gnomonic cells -> metres across
       tan_p = jnp.sqrt(jnp.maximum(1.0 - cos_p * cos_p, 0.0)) / jnp.maximum(cos_p, 0.1)
       tol = 2.0 * spacing + jnp.minimum(width * tan_p, 0.1)
