@@ -80,7 +80,8 @@ commit, and a digest of the project modules that command may run. The "state" co
 that digest on the tree this index was written from: **current** means the code is the same,
 **stale since <commit>** names the first later commit that changed one of those modules (and
 which ones). A stale file is regenerated with its command; until then the README and `docs/`
-mark the numbers they quote from it as stale. The numbers are in the files.
+mark the numbers they quote from it as stale. The numbers are in the files. Files a later study
+supersedes are kept, unindexed, in `results/archive/`, whose README names what replaces each.
 `pip install -e ".[bench]"` installs PyTorch and mambapy, needed only for
 `benchmarks/scan_torch.py`. Imports run downward only: `nlosjax` <- `experiments` <-
 `benchmarks` (provenance and the NumPy twins live in `experiments/`).
