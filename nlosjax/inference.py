@@ -29,10 +29,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from nlosjax import pretrained
 from nlosjax.models.network import triplets  # noqa: F401  (re-exported: part of this module's API)
 from nlosjax.physics.setup import Setup
-
-VARIANTS = ("ours", "ours_s", "usm")
+from nlosjax.pretrained import VARIANTS  # the trained models a run folder holds: one source
 
 
 def _holds_checkpoint(ckpt: pathlib.Path) -> bool:
@@ -254,7 +254,6 @@ def _expected_tree(model_config):
 
 def pretrained_names(root=None) -> list[tuple[str, str]]:
   """``(name, variant)`` of every set of weights shipped in ``nlosjax/weights/`` (or ``root``), sorted."""
-  from nlosjax import pretrained
   return pretrained.shipped(root)
 
 
@@ -291,7 +290,7 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
     ValueError: unknown ``name``/``variant`` (listing the shipped ones), or a
       file that fails a check above.
   """
-  from nlosjax import pretrained, train
+  from nlosjax import train
   if variant not in VARIANTS:
     raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
   folder = pretrained.weights_folder(name, variant, root)

@@ -39,7 +39,7 @@ FORMAT = "nlosjax-weights"
 FORMAT_VERSION = 1
 PARAMS_FILE = "params.npz"
 PROVENANCE_FILE = "provenance.json"
-#: Variants a folder may hold (``nlosjax.inference.VARIANTS``, repeated so this module stays JAX-free).
+#: The trained models a run or weights folder may hold (``nlosjax.inference`` reads them from here).
 VARIANTS = ("ours", "ours_s", "usm")
 #: Keys every ``provenance.json`` must hold (:func:`write_weights` sets the first five).
 REQUIRED_KEYS = ("format", "format_version", "name", "variant", "params_sha256", "config",

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from experiments.configs import cpu as cpu_preset
-from nlosjax.models import ModelConfig, blocks
+from nlosjax.models import ModelConfig, blocks, conv
 from nlosjax.physics import Setup
 from tests.xla_options import xla_optimizations
 
@@ -31,10 +31,10 @@ def _grads(conv, params, x):
     ((3, 1, 1), 2, 2, 2, "zero"), ((1, 3, 5), 1, 1, 1, "zero"), ((3, 3, 3), 1, 2, 2, "edge")])
 def test_direct_conv_equals_xla_3d_conv_with_gradients(kernel, dilation, cin, feats, padding):
   x = jax.random.normal(jax.random.key(0), (2, 9, 5, 6, cin))
-  direct = blocks.Conv3D(feats, kernel, 1, dilation, impl="direct", padding=padding)
+  direct = conv.Conv3D(feats, kernel, 1, dilation, impl="direct", padding=padding)
   params = direct.init(jax.random.key(1), x)
   params = jax.tree.map(lambda p: p + 0.1, params)                 # a nonzero bias too
-  ref = blocks.Conv3D(feats, kernel, 1, dilation, impl="xla", padding=padding)
+  ref = conv.Conv3D(feats, kernel, 1, dilation, impl="xla", padding=padding)
   np.testing.assert_allclose(direct.apply(params, x), ref.apply(params, x), rtol=1e-5, atol=1e-5)
   (v, (gp, gx)), (v_ref, (gp_ref, gx_ref)) = _grads(direct, params, x), _grads(ref, params, x)
   np.testing.assert_allclose(v, v_ref, rtol=1e-5)
@@ -44,18 +44,18 @@ def test_direct_conv_equals_xla_3d_conv_with_gradients(kernel, dilation, cin, fe
 
 
 def test_auto_picks_direct_for_few_channels_only():
-  assert blocks.resolve_conv_impl("auto", (3, 3, 3), 2, 2, 1) == "direct"
-  assert blocks.resolve_conv_impl("auto", (3, 3, 3), 1, 2, 1) == "direct"
-  assert blocks.resolve_conv_impl("auto", (3, 3, 3), 4, 8, 1) == "fold"
-  assert blocks.resolve_conv_impl("auto", (3, 3, 3), 2, 2, 2) == "fold"      # strided
-  assert blocks.resolve_conv_impl("auto", (1, 1, 1), 1, 1, 1) == "fold"      # a matmul
-  assert blocks.resolve_conv_impl("xla", (3, 3, 3), 1, 1, 1) == "xla"
+  assert conv.resolve_conv_impl("auto", (3, 3, 3), 2, 2, 1) == "direct"
+  assert conv.resolve_conv_impl("auto", (3, 3, 3), 1, 2, 1) == "direct"
+  assert conv.resolve_conv_impl("auto", (3, 3, 3), 4, 8, 1) == "fold"
+  assert conv.resolve_conv_impl("auto", (3, 3, 3), 2, 2, 2) == "fold"      # strided
+  assert conv.resolve_conv_impl("auto", (1, 1, 1), 1, 1, 1) == "fold"      # a matmul
+  assert conv.resolve_conv_impl("xla", (3, 3, 3), 1, 1, 1) == "xla"
   with pytest.raises(ValueError, match="impl"):
-    blocks.resolve_conv_impl("im2col", (3, 3, 3), 1, 1, 1)
+    conv.resolve_conv_impl("im2col", (3, 3, 3), 1, 1, 1)
   with pytest.raises(ValueError, match="conv_impl"):
     ModelConfig.cpu(conv_impl="im2col")
   with pytest.raises(ValueError, match="unstrided"):
-    blocks.Conv3D(2, time_stride=2, impl="direct").init(jax.random.key(0), jnp.zeros((1, 4, 3, 3, 1)))
+    conv.Conv3D(2, time_stride=2, impl="direct").init(jax.random.key(0), jnp.zeros((1, 4, 3, 3, 1)))
 
 
 def test_fast_path_equals_the_fold_reference_at_the_cpu_preset():
@@ -66,7 +66,7 @@ def test_fast_path_equals_the_fold_reference_at_the_cpu_preset():
   setup = Setup(wall_size=2.0, grid=(8, 8), bin_width=132e-12, num_bins=64)
   cfg = ModelConfig(setup=setup, stride=4, frames=3, **cpu_preset.get_config()["model"])
   assert cfg.conv_impl == "auto"
-  assert blocks.resolve_conv_impl("auto", (3, 3, 3), cfg.refine_width, cfg.refine_width, 1) == "direct"
+  assert conv.resolve_conv_impl("auto", (3, 3, 3), cfg.refine_width, cfg.refine_width, 1) == "direct"
   fast = blocks.VolumeReconstruction(**cfg.volume_kwargs())
   ref = blocks.VolumeReconstruction(**cfg.replace(conv_impl="fold").volume_kwargs())
   a, b = cfg.time_window

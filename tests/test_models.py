@@ -18,7 +18,7 @@ import pytest
 
 from nlosjax import physics
 from nlosjax.models import (
-  VARIANTS,
+  BLOCK_MIXERS,
   CrossSTMambaBlock,
   FeatureTransform,
   ModelConfig,
@@ -27,6 +27,7 @@ from nlosjax.models import (
   VolumeReconstruction,
   blocks,
   coarsen_setup,
+  conv,
   count_params,
   mirror_spatial_params,
   model_summary,
@@ -150,7 +151,7 @@ def _perturb(x, t0, seed):
 
 @pytest.mark.parametrize("variant", ["st", "tt"])
 def test_st_block_temporal_path_is_causal(variant):
-  block = STMambaBlock(8, d_state=4, mixers=VARIANTS[variant])
+  block = STMambaBlock(8, d_state=4, mixers=BLOCK_MIXERS[variant])
   x = _block_input(jax.random.key(1))
   params = jax.jit(block.init)(jax.random.key(2), x)
   t0 = 6
@@ -161,7 +162,7 @@ def test_st_block_temporal_path_is_causal(variant):
   assert float(jnp.max(jnp.abs(y2[:, t0:] - y[:, t0:]))) > 1e-3
   if variant == "st":
     # The non-causal ablation does see the future (so the check above can fail).
-    nc = STMambaBlock(8, d_state=4, mixers=VARIANTS[variant], temporal_direction="bidirectional")
+    nc = STMambaBlock(8, d_state=4, mixers=BLOCK_MIXERS[variant], temporal_direction="bidirectional")
     apply_nc = jax.jit(nc.apply)
     p_nc = jax.jit(nc.init)(jax.random.key(2), x)
     assert float(jnp.max(jnp.abs(apply_nc(p_nc, x2)[:, :t0] - apply_nc(p_nc, x)[:, :t0]))) > 1e-4
@@ -170,7 +171,7 @@ def test_st_block_temporal_path_is_causal(variant):
 def test_no_ssm_control_is_the_gated_mlp_written_out():
   """variant "none": every SSM is the identity, so the block is ``x + W_out((W_x LN(x)) * SiLU(W_z
   LN(x)))``, written here with plain jnp from the parameters; and no SSM parameter exists."""
-  block = STMambaBlock(8, d_state=4, mixers=VARIANTS["none"])
+  block = STMambaBlock(8, d_state=4, mixers=BLOCK_MIXERS["none"])
   x = _block_input(jax.random.key(11))
   params = block.init(jax.random.key(12), x)["params"]
   assert set(params) == {"norm", "in_proj", "out_proj"}
@@ -180,7 +181,7 @@ def test_no_ssm_control_is_the_gated_mlp_written_out():
   xs, z = jnp.split(ln @ params["in_proj"]["kernel"], 2, axis=-1)
   expected = x + (xs * z * jax.nn.sigmoid(z)) @ params["out_proj"]["kernel"]
   np.testing.assert_allclose(block.apply({"params": params}, x), expected, atol=2e-5, rtol=1e-5)
-  cross = CrossSTMambaBlock(8, d_state=4, mixers=VARIANTS["none"])
+  cross = CrossSTMambaBlock(8, d_state=4, mixers=BLOCK_MIXERS["none"])
   nb = _block_input(jax.random.key(13))
   cp = cross.init(jax.random.key(14), x, nb)["params"]
   assert not any(k.startswith("ssm") for k in cp)
@@ -203,7 +204,7 @@ def test_cross_block_is_causal_in_both_inputs():
 def test_spatial_ssm_mirror_equivariance(variant):
   """Rotating the scan grid by 180 degrees reverses the row-major sequence: with the forward
   and reverse spatial branches' parameters swapped, the block's output rotates with it."""
-  block = STMambaBlock(8, d_state=4, mixers=VARIANTS[variant])
+  block = STMambaBlock(8, d_state=4, mixers=BLOCK_MIXERS[variant])
   x = _block_input(jax.random.key(7))
   params = block.init(jax.random.key(8), x)
   rot = lambda a: a[:, :, ::-1, ::-1]  # noqa: E731
@@ -230,9 +231,9 @@ def test_cross_block_mirror_equivariance():
     ((3, 3, 3), 1, 1), ((3, 3, 3), 2, 1), ((3, 3, 3), 1, 4), ((1, 1, 1), 2, 1), ((3, 1, 1), 1, 2)])
 def test_time_folded_conv_equals_xla_3d_conv(kernel, stride, dilation):
   x = jax.random.normal(jax.random.key(12), (2, 11, 5, 6, 3))
-  fold = blocks.Conv3D(4, kernel, stride, dilation)
+  fold = conv.Conv3D(4, kernel, stride, dilation)
   params = fold.init(jax.random.key(13), x)
-  ref = blocks.Conv3D(4, kernel, stride, dilation, impl="xla").apply(params, x)
+  ref = conv.Conv3D(4, kernel, stride, dilation, impl="xla").apply(params, x)
   out = fold.apply(params, x)
   assert out.shape == (2, -(-11 // stride), 5, 6, 4)
   np.testing.assert_allclose(out, ref, atol=1e-5, rtol=1e-5)

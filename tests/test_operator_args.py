@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from nlosjax.models import blocks
+from nlosjax.models import physics_layer
 from nlosjax.physics import operator_args
 from nlosjax.physics.setup import Setup
 from nlosjax.train import step as train_step_module
@@ -16,7 +16,7 @@ SETUP = Setup(wall_size=1.0, grid=(16, 16), bin_width=64e-12, num_bins=64)
 
 @pytest.mark.parametrize("method", ["phasor", "lct"])
 def test_a_bound_physics_layer_computes_the_same_volume_without_the_psf_constant(method):
-  ft = blocks.FeatureTransform(SETUP, method)
+  ft = physics_layer.FeatureTransform(SETUP, method)
   a, b = ft.window()
   x = jax.random.uniform(jax.random.key(0), (1, b - a, 16, 16, 2))
   fn = lambda v: ft.apply({}, v, time_offset=a)                       # noqa: E731
@@ -47,7 +47,7 @@ def test_the_train_step_reads_the_model_operators_from_its_argument():
   from nlosjax.models.network import ModelConfig
   mcfg = ModelConfig(setup=SETUP, stride=4, **TINY_MODEL)
   table = mcfg.physics_operators()
-  assert len(table.keys) == 1 and table.keys[0][1] == blocks.coarsen_setup(SETUP, mcfg.volume_time_stride)
+  assert len(table.keys) == 1 and table.keys[0][1] == physics_layer.coarsen_setup(SETUP, mcfg.volume_time_stride)
   from nlosjax import losses
   from nlosjax.train.sharding import make_mesh
   step = train_step_module.make_train_step(mcfg, losses.LossWeights(), make_mesh())

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from nlosjax import losses, physics, train
-from nlosjax.models import blocks, count_params, model_summary
+from nlosjax.models import conv, count_params, model_summary, physics_layer
 from nlosjax.models.usm import (
   PUBLISHED_LOSS,
   PUBLISHED_OPTIM,
@@ -136,10 +136,10 @@ def _conv3d_edge_loop(x, k, b):
 def test_replicate_padded_conv_matches_a_loop(impl):
   rng = np.random.default_rng(1)
   x = rng.normal(size=(1, 5, 4, 6, 2)).astype(np.float32)
-  conv = blocks.Conv3D(3, padding="edge", impl=impl)
-  params = conv.init(jax.random.key(0), x)
+  layer = conv.Conv3D(3, padding="edge", impl=impl)
+  params = layer.init(jax.random.key(0), x)
   params = jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape), jnp.float32), params)
-  y = np.asarray(conv.apply(params, x))[0]
+  y = np.asarray(layer.apply(params, x))[0]
   ref = _conv3d_edge_loop(x[0].astype(np.float64), np.asarray(params["params"]["kernel"], np.float64),
                           np.asarray(params["params"]["bias"], np.float64))
   np.testing.assert_allclose(y, ref, rtol=1e-4, atol=1e-4)
@@ -172,7 +172,7 @@ def test_lct_layer_is_nlosjax_physics_lct():
 
     def record(next_fun, args, kwargs, context):
       out = next_fun(*args, **kwargs)
-      if isinstance(context.module, blocks.FeatureTransform) and context.method_name == "__call__":
+      if isinstance(context.module, physics_layer.FeatureTransform) and context.method_name == "__call__":
         seen["x"], seen["out"] = args[0], out
       return out
 

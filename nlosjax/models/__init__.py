@@ -14,15 +14,11 @@ Public API::
 """
 
 from nlosjax.models.blocks import (
-                                   FeatureTransform,
                                    InterlacedResBlock,
                                    InterleavedExtraction,
                                    ResBlock3D,
                                    TransientSpreading,
                                    VolumeReconstruction,
-                                   coarsen_setup,
-                                   physics_window,
-                                   soft_projection,
 )
 from nlosjax.models.network import (
                                    ModelConfig,
@@ -33,11 +29,12 @@ from nlosjax.models.network import (
                                    model_summary,
                                    underscan,
 )
-from nlosjax.models.stmamba import VARIANTS, CrossSTMambaBlock, SelectiveSSM, STMambaBlock, mirror_spatial_params
+from nlosjax.models.physics_layer import FeatureTransform, coarsen_setup, physics_window, soft_projection
+from nlosjax.models.stmamba import BLOCK_MIXERS, CrossSTMambaBlock, SelectiveSSM, STMambaBlock, mirror_spatial_params
 
 __all__ = [
     "ModelConfig", "STMambaNet", "model_summary", "format_summary", "count_params", "underscan",
-    "input_scale", "STMambaBlock", "CrossSTMambaBlock", "SelectiveSSM", "VARIANTS",
+    "input_scale", "STMambaBlock", "CrossSTMambaBlock", "SelectiveSSM", "BLOCK_MIXERS",
     "mirror_spatial_params", "InterleavedExtraction", "TransientSpreading",
     "VolumeReconstruction", "FeatureTransform", "ResBlock3D", "InterlacedResBlock",
     "soft_projection", "coarsen_setup", "physics_window",

@@ -39,11 +39,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nlosjax.models import blocks
-from nlosjax.models.stmamba import VARIANTS, CrossSTMambaBlock, STMambaBlock
+from nlosjax.models import blocks, conv, physics_layer
+from nlosjax.models.stmamba import BLOCK_MIXERS, CrossSTMambaBlock, STMambaBlock
 from nlosjax.physics import _validate, operator_args
-from nlosjax.physics.operators import VARIANTS as OPERATOR_VARIANTS
-from nlosjax.physics.operators import check_variant, lct_domain, public_lct_domain
+from nlosjax.physics.operators import OPERATOR_VARIANTS, check_variant, lct_domain, public_lct_domain
 from nlosjax.physics.setup import Setup
 from nlosjax.ssm import resolve_method
 
@@ -178,7 +177,7 @@ class ModelConfig(ScanInputConfig):
     input_norm: per-sample scale of the counts: "rms" (root mean square over
       the frames' time window, the default), "mean" or "max".
     depth_temperature, depth_threshold, depth_softness, background_depth:
-      the soft depth projection (:func:`~nlosjax.models.blocks.soft_projection`).
+      the soft depth projection (:func:`~nlosjax.models.physics_layer.soft_projection`).
     remat: recompute block activations in the backward pass (less memory).
     volume_activation: how the refined volume is made non-negative, "relu"
       (the clamp) or "softplus" (smooth; no dead columns), see
@@ -194,9 +193,9 @@ class ModelConfig(ScanInputConfig):
       rounding apart): "auto" (the default: "direct" shifted sums for the
       few-channel convolutions -- at the cpu preset the refinement's, a batch-4
       training step 1.2-1.3x faster -- and "fold" elsewhere;
-      :func:`~nlosjax.models.blocks.resolve_conv_impl`),
+      :func:`~nlosjax.models.conv.resolve_conv_impl`),
       "fold" (the reference: every conv a time-folded 2-D convolution), "direct"
-      or "xla" (see :class:`~nlosjax.models.blocks.Conv3D`).
+      or "xla" (see :class:`~nlosjax.models.conv.Conv3D`).
     physics_variant: the physics layer's operators, as ``variant`` of
       ``nlosjax.physics.phasor`` / ``lct``: "refined" (ours, the default:
       gated, linear convolution, centred wavelet) or "public" (the public
@@ -257,8 +256,8 @@ class ModelConfig(ScanInputConfig):
     frames = _positive_int(self.frames, "frames")
     if frames % 2 == 0:
       raise ValueError(f"ModelConfig.frames must be odd (the middle frame is the target), got {frames}")
-    if self.variant not in VARIANTS:
-      raise ValueError(f"ModelConfig.variant must be one of {sorted(VARIANTS)}, got {self.variant!r}")
+    if self.variant not in BLOCK_MIXERS:
+      raise ValueError(f"ModelConfig.variant must be one of {sorted(BLOCK_MIXERS)}, got {self.variant!r}")
     for name in ("width", "extract_blocks", "st_depth", "d_state", "d_conv", "expand",
                  "spread_min_width", "volume_features", "refine_width"):
       _positive_int(getattr(self, name), name)
@@ -269,8 +268,8 @@ class ModelConfig(ScanInputConfig):
     if not self.dilations or any(not isinstance(d, int) or d < 1 for d in self.dilations):
       raise ValueError(f"ModelConfig.dilations must be positive integers, got {self.dilations!r}")
     object.__setattr__(self, "dilations", tuple(self.dilations))
-    if self.physics not in blocks.PHYSICS_METHODS:
-      raise ValueError(f"ModelConfig.physics must be one of {blocks.PHYSICS_METHODS}, got {self.physics!r}")
+    if self.physics not in physics_layer.PHYSICS_METHODS:
+      raise ValueError(f"ModelConfig.physics must be one of {physics_layer.PHYSICS_METHODS}, got {self.physics!r}")
     try:
       check_variant(self.physics_variant)
     except ValueError:
@@ -284,8 +283,8 @@ class ModelConfig(ScanInputConfig):
                        f" got {self.volume_activation!r}")
     if self.skip_frames not in SKIP_FRAMES:
       raise ValueError(f"ModelConfig.skip_frames must be one of {SKIP_FRAMES}, got {self.skip_frames!r}")
-    if self.conv_impl not in blocks.CONV_IMPLS:
-      raise ValueError(f"ModelConfig.conv_impl must be one of {blocks.CONV_IMPLS}, got {self.conv_impl!r}")
+    if self.conv_impl not in conv.CONV_IMPLS:
+      raise ValueError(f"ModelConfig.conv_impl must be one of {conv.CONV_IMPLS}, got {self.conv_impl!r}")
     if self.input_norm not in INPUT_NORMS:
       raise ValueError(f"ModelConfig.input_norm must be one of {INPUT_NORMS}, got {self.input_norm!r}")
     dtype = self.dtype if isinstance(self.dtype, str) else jnp.dtype(self.dtype).name
@@ -346,7 +345,7 @@ class ModelConfig(ScanInputConfig):
   # --------------------------------------------------------------- shapes
   @property
   def mixers(self) -> tuple[str, ...]:
-    return VARIANTS[self.variant]
+    return BLOCK_MIXERS[self.variant]
 
   @property
   def activation_dtype(self):
@@ -355,13 +354,13 @@ class ModelConfig(ScanInputConfig):
   @property
   def coarse_setup(self) -> Setup:
     """The Setup of the physics layer (time merged by ``volume_time_stride``)."""
-    return blocks.coarsen_setup(self.setup, self.volume_time_stride)
+    return physics_layer.coarsen_setup(self.setup, self.volume_time_stride)
 
   @property
   def time_window(self) -> tuple[int, int]:
     """``(a, b)``: the time bins the network reads and recovers (``(0, T)`` without a depth range
     or with the public operators)."""
-    return blocks.volume_window(self.setup, self.volume_time_stride, self.physics,
+    return physics_layer.volume_window(self.setup, self.volume_time_stride, self.physics,
                                 cycles=self.wavelet_cycles, sampling_coeff=self.wavelet_sampling,
                                 variant=self.physics_variant)
 
@@ -485,14 +484,14 @@ class STMambaNet(nn.Module):
                     temporal_direction="causal" if cfg.temporal_causal else "bidirectional",
                     scan_method=cfg.scan_method, chunk_size=cfg.scan_chunk, n_residuals=n_res,
                     dtype=dtype)
-    st_block = blocks.maybe_remat(STMambaBlock, cfg.remat)
+    st_block = conv.maybe_remat(STMambaBlock, cfg.remat)
     for i in range(cfg.st_depth):
       f = st_block(cfg.width, name=f"st_mamba{i}", **mamba_kw)(f)
     f = f.reshape((B, F) + f.shape[1:])
     mid = F // 2
     target = f[:, mid]
     if F > 1 and cfg.cross_depth > 0:
-      cross_block = blocks.maybe_remat(CrossSTMambaBlock, cfg.remat)
+      cross_block = conv.maybe_remat(CrossSTMambaBlock, cfg.remat)
       aligned = []
       for j in range(F):
         if j == mid:
@@ -614,7 +613,7 @@ def _analytic_flops(config: ModelConfig, batch: int) -> tuple[float, float]:
     dom = public_lct_domain(cs)
   else:
     dom = lct_domain(cs, oversample=config.physics_oversample,
-                     fft_length=blocks.physics_fft_length(config.physics))
+                     fft_length=physics_layer.physics_fft_length(config.physics))
   n = math.prod(dom.fft_shape)
   per_apply = 2 * 2.5 * n * math.log2(n)                     # rfftn + irfftn
   applies = 2 if config.physics == "phasor" else 1

@@ -46,7 +46,8 @@ from nlosjax.ssm import mamba_dt_bias_init, s4d_real_a_log_init, selective_scan
 from nlosjax.ssm.mamba import depthwise_conv, resolve_dt_rank, torch_default_init
 
 MIXERS = ("temporal", "spatial", "identity")
-VARIANTS = {
+# The SSMs of each ST-Mamba block, by ``ModelConfig.variant``.
+BLOCK_MIXERS = {
     "st": ("temporal", "spatial"),   # the paper: T-Mamba then S-Mamba
     "s": ("spatial",),               # Table 2 "S-Mamba -"
     "t": ("temporal",),              # Table 2 "- T-Mamba"
@@ -226,7 +227,7 @@ class STMambaBlock(_BlockBase):
     d_model: channels ``C``.
     d_state, d_conv, expand, dt_rank: Mamba's (``d_inner = expand C``; dt_rank
       "auto" is ``ceil(C / 16)``).
-    mixers: the SSMs in order, from "temporal" and "spatial" (see ``VARIANTS``).
+    mixers: the SSMs in order, from "temporal" and "spatial" (see ``BLOCK_MIXERS``).
     temporal_direction: "causal" (the paper) or "bidirectional" (the
       non-causal ablation of the paper's Table 3).
     scan_method, chunk_size: of :func:`nlosjax.ssm.selective_scan`.

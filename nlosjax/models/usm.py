@@ -23,7 +23,7 @@ public code (``EmbedFeatureModel_MUL_gray_former_mask_refine``; facts in
    channels + two residual blocks: ``[B, T/2, H/2, W/2, 1 + extract_width]``.
    Time and space are halved here and only here.
 4. **LCT feature transform**: each channel through
-   :class:`~nlosjax.models.blocks.FeatureTransform` (``method="lct"``: the
+   :class:`~nlosjax.models.physics_layer.FeatureTransform` (``method="lct"``: the
    ``nlosjax.physics.lct`` computation, Wiener ``snr``, ``t^4`` weighting) on
    the half-resolution Setup (:func:`half_setup`), clamped at 0, min-max
    normalised per channel.
@@ -72,7 +72,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nlosjax.models import blocks
+from nlosjax.models import blocks, conv, physics_layer
 from nlosjax.models.network import INPUT_NORMS, ScanInputConfig, input_scale
 from nlosjax.physics import _validate
 from nlosjax.physics.operators import check_falloff, lct_domain
@@ -217,7 +217,7 @@ class USMConfig(ScanInputConfig):
 
   def analytic_flops(self, batch: int) -> tuple[float, float]:
     """``(fft, 0)``: FLOPs of the LCT layer's FFTs (``2.5 N log2 N`` per real FFT), no scan."""
-    dom = lct_domain(self.coarse_setup, fft_length=blocks.physics_fft_length("lct"))
+    dom = lct_domain(self.coarse_setup, fft_length=physics_layer.physics_fft_length("lct"))
     n = math.prod(dom.fft_shape)
     return batch * self.channels * 2 * 2.5 * n * math.log2(n), 0.0
 
@@ -277,7 +277,7 @@ def _minmax(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
 
 
 def _lrelu(x):
-  return blocks.leaky_relu(x)
+  return conv.leaky_relu(x)
 
 
 class ResConv3D(nn.Module):
@@ -289,8 +289,8 @@ class ResConv3D(nn.Module):
   @nn.compact
   def __call__(self, x):
     c = x.shape[-1]
-    y = _lrelu(blocks.Conv3D(c, padding="edge", name="conv1")(x))
-    y = blocks.Conv3D(c, padding="edge", name="conv2")(y)
+    y = _lrelu(conv.Conv3D(c, padding="edge", name="conv1")(x))
+    y = conv.Conv3D(c, padding="edge", name="conv2")(y)
     return _lrelu(y + x)
 
 
@@ -329,11 +329,11 @@ class TransientRecovery(nn.Module):
     x = filled[..., None]
     branches = [_nearest_fill(samples, cfg.setup.grid, cfg.stride)[..., None]]
     for k in cfg.trn_kernels:
-      y = _lrelu(blocks.Conv3D(cfg.trn_width, (3, k, k), name=f"branch_k{k}")(x))
+      y = _lrelu(conv.Conv3D(cfg.trn_width, (3, k, k), name=f"branch_k{k}")(x))
       branches.append(ResConv3D(name=f"branch_k{k}_res")(y))
     y = jnp.concatenate(branches, axis=-1)
     for i, width in enumerate(tuple(cfg.fusion_widths) + (1,)):
-      y = _lrelu(blocks.Conv3D(width, name=f"fuse{i}")(y))
+      y = _lrelu(conv.Conv3D(width, name=f"fuse{i}")(y))
       y = ResConv3D(name=f"fuse{i}_res")(y)
     return y[..., 0]
 
@@ -436,13 +436,13 @@ class USMNet(nn.Module):
     transient = TransientRecovery(cfg, name="trn")(zero_fill(x, (H, W), cfg.stride), x)
     feats = Extraction(cfg.extract_width, name="extract")(_minmax(transient, (1, 2, 3)))
     coarse = cfg.coarse_setup
-    transform = blocks.FeatureTransform(coarse, "lct", snr=cfg.lct_snr, falloff=cfg.falloff,
+    transform = physics_layer.FeatureTransform(coarse, "lct", snr=cfg.lct_snr, falloff=cfg.falloff,
                                         name="lct")
     a, b = transform.window()
     vol = transform(feats[:, a:b], time_offset=a)                       # [B, Zc, h2, w2, C]
     vol = _minmax(vol, (1, 2, 3))
     for i, (width, k) in enumerate(cfg.refine):
-      vol = _lrelu(blocks.Conv3D(width, (k, k, k), name=f"refine{i}")(vol))
+      vol = _lrelu(conv.Conv3D(width, (k, k, k), name=f"refine{i}")(vol))
       vol = ResConv3D(name=f"refine{i}_res")(vol)
     z = vol.shape[1]
     inten_f = jnp.max(vol, axis=1)                                      # [B, h2, w2, C]
@@ -452,7 +452,7 @@ class USMNet(nn.Module):
     intensity = Rendering(cfg.render_widths, "intensity", name="render_intensity")(proj)
     depth = Rendering(cfg.render_widths, "depth", name="render_depth")(proj)
     v0 = jnp.maximum(vol[..., 0], 0.0)                                  # [B, Zc, h2, w2]
-    v0 = blocks.resample_depth(v0, coarse, cfg.setup)                   # [B, Z, h2, w2]
+    v0 = physics_layer.resample_depth(v0, coarse, cfg.setup)                   # [B, Z, h2, w2]
     volume = _upsample2(jnp.moveaxis(v0, 1, -1))
     return {"transient": transient, "volume": jnp.moveaxis(volume, -1, 1),
             "feature_volume": vol, "intensity": intensity, "depth": depth, "scale": scale}

@@ -1,6 +1,6 @@
 """The physics layer's operators as arguments of a jitted function, not constants baked into it.
 
-:class:`~nlosjax.models.blocks.FeatureTransform` reads its LCT operators (PSF
+:class:`~nlosjax.models.physics_layer.FeatureTransform` reads its LCT operators (PSF
 spectrum, resampling matrices) from :func:`~nlosjax.physics.operators.lct_operators`.
 Read inside ``jax.jit`` they are concrete arrays, so XLA receives them as
 constants: at the paper preset's physics layer the PSF spectrum alone is a

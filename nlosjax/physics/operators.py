@@ -417,13 +417,13 @@ def to_depth(vol_u: jax.Array, ops: LCTOperators) -> jax.Array:
 # public MATLAB code (O'Toole's ``resamplingOperator`` and ``definePsf``,
 # nlos-fk's reuse of them), so that a Wiener ``snr`` gives the same image as
 # there. Written from the formulas in shared/reference/nlos-physics.md (section 1).
-VARIANTS = ("public", "refined")
+OPERATOR_VARIANTS = ("public", "refined")
 
 
 def check_variant(variant: str) -> str:
   """Return ``variant`` if it names an LCT operator variant, else raise ValueError."""
-  if variant not in VARIANTS:
-    raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+  if variant not in OPERATOR_VARIANTS:
+    raise ValueError(f"variant must be one of {OPERATOR_VARIANTS}, got {variant!r}")
   return variant
 
 
