@@ -155,6 +155,7 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
   import dataclasses
 
   from experiments import real_undersampling as R
+  from experiments.real_undersampling import report
   from nlosjax import metrics
   from nlosjax.evaluation import baselines as B
   from nlosjax.models.network import ModelConfig
@@ -187,7 +188,7 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
   assert two["scores"][("phasor", 4)] == pytest.approx(expected, rel=1e-6)
   assert two["scores"][("phasor", 4)]["psnr"] != pytest.approx(same["scores"][("phasor", 4)]["psnr"])
   net = {"ours_s": (ModelConfig(setup=coarse, stride=4), None)}
-  table = "\n".join(R._binned_lines({**results, "trained": net}, two))
+  table = "\n".join(report._binned_lines({**results, "trained": net}, two))
   assert f"{entry['scores'][('phasor', 4)]['psnr']:.2f}" in table and f"{expected['psnr']:.2f}" in table
   # The physics layer's operators ("refined"), by hand at both bin widths.
   opts = {**B.default_options("phasor", coarse), "variant": "refined"}
@@ -231,24 +232,25 @@ def test_every_variant_of_the_real_preset_can_build_its_loss_wavelet():
 
 
 def test_time_lines_separate_the_compiling_first_call_from_the_compiled_ones():
-  from experiments import real_undersampling as R
+  from experiments.real_undersampling import report
   times = {"a": (9.0, 1.0), "b": (1.0, 2.0), "c": (3.0, 4.0), "d": (2.0, 8.0)}
   results = {"strides": [4], "methods": ["lct", "ours"],
              "scenes": {sc: {"scores": {("lct", 4): {"time_s": t, "again_s": a},
                                         ("ours", 4): {"time_s": 10 * t, "again_s": 10 * a}}}
                         for sc, (t, a) in times.items()}}
-  lines = R._time_lines(results)
+  lines = report._time_lines(results)
   assert "first call on a" in lines[0]
   assert "| LCT | 9.00 | 3.00 |" in lines and "| Ours | 90.00 | 30.00 |" in lines
   del results["scenes"]["a"]["scores"][("ours", 4)]
   results["scenes"]["b"]["scores"][("ours", 4)].pop("again_s")
-  assert "| Ours | 10.00 | 60.00 |" in R._time_lines(results)
+  assert "| Ours | 10.00 | 60.00 |" in report._time_lines(results)
 
 
 def test_ablated_models_zero_exactly_the_named_parts_and_skip_networks_without_them():
   import jax
 
   from experiments import real_undersampling as R
+  from experiments.real_undersampling import ablation as R_ablation
   from nlosjax import inference
   mcfg, params, _ = inference.load_pretrained("real", "ours_s")
   usm_like = {"decoder": {"kernel": np.ones((2, 2), np.float32)}}
@@ -275,13 +277,14 @@ def test_ablated_models_zero_exactly_the_named_parts_and_skip_networks_without_t
               "scenes": {sc: {"scores": {("ours_s|no_refinement", 4): score(p),
                                          ("ours_s|physics_only", 4): score(p + 1)}}
                          for sc, p in (("a", 15.0), ("b", 16.0))}}
-  lines = R._ablation_lines(results, ablation)
+  lines = R_ablation._ablation_lines(results, ablation)
   assert "| Ours-S | 16 × 16 | 17.00 / 0.500 | 15.50 / 0.500 | 16.50 / 0.500 |" in lines
-  assert R._ablation_lines(results, None) == []
+  assert R_ablation._ablation_lines(results, None) == []
 
 
 def test_adapted_models_and_their_table():
   from experiments import real_undersampling as R
+  from experiments.real_undersampling import ablation as R_ablation
   marker = object()
   out = R.adapted_models({"ours": ("cfg", marker), "usm": ("ucfg", None)})
   assert out == {"ours|adapted": ("cfg", marker, True)}
@@ -292,10 +295,10 @@ def test_adapted_models_and_their_table():
   adaptation = {"methods": ["ours|adapted"],
                 "scenes": {"a": {"scores": {("ours|adapted", 4): score(17.0, 30.0), ("ours|adapted", 8): score(13.0)}},
                            "b": {"scores": {("ours|adapted", 4): score(18.5, 50.0), ("ours|adapted", 8): score(15.0)}}}}
-  lines = R._adaptation_lines(results, adaptation)
+  lines = R_ablation._adaptation_lines(results, adaptation)
   assert "| Ours | 16 × 16 | 16.00 → 17.00 | 18.00 → 18.50 | **17.00 → 17.75** | 40.0 |" in lines
   assert "| Ours | 8 × 8 | 14.00 → 13.00 | 15.00 → 15.00 | **14.50 → 14.00** | 1.0 |" in lines
-  assert R._adaptation_lines(results, None) == []
+  assert R_ablation._adaptation_lines(results, None) == []
 
 
 def test_align_reads_every_offset_of_each_scan_at_the_networks_bins():

@@ -1,0 +1,142 @@
+"""Networks with learned parts zeroed, fitted to each scan (adaptation) or aligned: runs and report lines."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from experiments.real_undersampling.protocol import CLASSIC, LABELS, over_scenes, run, scene_name
+
+#: What each ablation zeroes in an ST-Mamba network (parameter path prefixes). With
+#: ``spread/to_transient`` zero the recovered transient is the skip alone: the sparse
+#: scan bilinearly interpolated (times ``skip_gain``); with ``volume/refine/to_volume``
+#: zero the volume is the physics layer's normalised reconstruction of that transient.
+ABLATIONS = {"no_refinement": ("volume/refine/to_volume",),
+             "physics_only": ("spread/to_transient", "volume/refine/to_volume")}
+ABLATION_TEXT = {"no_refinement": "refinement zeroed",
+                 "physics_only": "spreading residual and refinement zeroed (interpolated scan, physics layer)"}
+
+
+def _zeroed(params, prefixes):
+  """``params`` with every leaf under one of ``prefixes`` (``/``-joined paths) set to 0.
+
+  None unless every prefix names at least one leaf (a network without those parts).
+  """
+  import jax
+  hit = []
+
+  def leaf(path, v):
+    name = "/".join(str(getattr(k, "key", k)) for k in path)
+    if name.startswith(prefixes):
+      hit.append(name)
+      return np.zeros_like(v)
+    return v
+  out = jax.tree_util.tree_map_with_path(leaf, params)
+  return out if {p for p in prefixes if any(h.startswith(p) for h in hit)} == set(prefixes) else None
+
+
+def ablated_models(trained: dict) -> dict:
+  """``"<variant>|<ablation>" -> (model_config, params)`` for each network that has the ablated parts.
+
+  USM has no such parts and is skipped. The ablations (:data:`ABLATIONS`) ask how
+  much of a network's score on measured scans its learned residuals give or take.
+  """
+  out = {}
+  for v, (mcfg, params) in trained.items():
+    for name, prefixes in ABLATIONS.items():
+      zeroed = _zeroed(params, prefixes)
+      if zeroed is not None:
+        out[f"{v}|{name}"] = (mcfg, zeroed)
+  return out
+
+
+def aligned_run(files, strides, results, workdir) -> dict:
+  """Each scan scored by the networks of ``python -m experiments.align --workdir WORKDIR`` that left it out.
+
+  Returns the :func:`run` results of ``"<variant>|aligned"`` (scenes without such a network are absent).
+  """
+  from experiments.align import fold_folder
+  from nlosjax.pretrained import unflatten_params
+  merged = {"strides": list(strides), "methods": [], "scenes": {}, "trained": {}}
+  for path in files:
+    scene = scene_name(path)
+    models = {}
+    for v, (mcfg, _) in results["trained"].items():
+      f = fold_folder(workdir, v, scene) / "params.npz"
+      if f.exists():
+        with np.load(f) as z:
+          models[f"{v}|aligned"] = (mcfg, unflatten_params({k: z[k] for k in z.files}))
+    if not models:
+      continue
+    part = run([path], strides, None, trained=models, classic=False,
+               references={scene: results["scenes"][scene]["references"]})
+    merged["scenes"][scene] = part["scenes"][scene]
+    merged["methods"] = sorted(set(merged["methods"]) | set(models))
+  return merged
+
+
+def adapted_models(trained: dict) -> dict:
+  """``"<variant>|adapted" -> (model_config, params, True)`` for each ST-Mamba network (not USM)."""
+  return {f"{v}|adapted": (mcfg, params, True) for v, (mcfg, params) in trained.items() if v != "usm"}
+
+
+ADAPTATION_TEXT = ("Each network fitted to each scan before reconstructing it (`nlosjax.adaptation.adapt` with"
+                   " its defaults and the retroreflective forward model, nothing chosen on these scans):"
+                   " intensity PSNR (dB), mean over the references, as trained → fitted, per scan and mean;"
+                   " last column the seconds per scan the fitted network took, fitting included:")
+ALIGNED_TEXT = ("Each network after the second training stage on unlabelled measured inputs"
+                " (`python -m experiments.align`: the synthetic loss plus the MMD² of the first ST-Mamba"
+                " block's features to measured inputs), one network per scan, trained on the *other*"
+                " scans' inputs only: intensity PSNR (dB), mean over the references, as trained → aligned"
+                " without that scan, per scan and mean; last column the seconds per scan:")
+
+
+def _adaptation_lines(results, adaptation, suffix: str = "adapted", text: str = ADAPTATION_TEXT) -> list[str]:
+  """Each network as trained and as ``"<variant>|<suffix>"`` in ``adaptation``, per scan and mean."""
+  if not adaptation:
+    return []
+  scenes = list(results["scenes"])
+  lines = [text, "", "| network | input | " + " | ".join(scenes) + " | mean | s per scan |",
+           "|---|---|" + "---|" * (len(scenes) + 2)]
+  for v in [m for m in results["methods"] if f"{m}|{suffix}" in adaptation["methods"]]:
+    for stride in results["strides"]:
+      g = 64 // stride
+      cells, before, after, secs = [], [], [], []
+      for sc in scenes:
+        a = results["scenes"][sc]["scores"].get((v, stride))
+        b = adaptation["scenes"].get(sc, {}).get("scores", {}).get((f"{v}|{suffix}", stride))
+        if a is None or b is None:
+          cells.append("–")
+          continue
+        cells.append(f"{a['psnr']:.2f} → {b['psnr']:.2f}")
+        before.append(a["psnr"])
+        after.append(b["psnr"])
+        secs.append(b["time_s"])
+      mean = f"**{np.mean(before):.2f} → {np.mean(after):.2f}**" if before else "–"
+      lines.append(f"| {LABELS[v]} | {g} × {g} | " + " | ".join(cells) + f" | {mean} | "
+                   f"{np.median(secs) if secs else float('nan'):.1f} |")
+  return lines + [""]
+
+
+def _ablation_lines(results, ablation) -> list[str]:
+  """Mean intensity PSNR / SSIM of each network as trained and with its residuals zeroed."""
+  if not ablation:
+    return []
+  cols = list(ABLATIONS)
+  lines = ["What the networks' learned residuals do on these scans: each network as trained, and with"
+           " parts of it zeroed (" + "; ".join(f"*{c}*: {ABLATION_TEXT[c]}" for c in cols)
+           + "; means over scenes of the mean over references, PSNR (dB) / SSIM):", "",
+           "| network | input | as trained | " + " | ".join(cols) + " |",
+           "|---|---|---|" + "---|" * len(cols)]
+
+  def mean(res, m, stride):
+    vals = over_scenes(res, m, stride)
+    return (f"{np.mean([v['psnr'] for v in vals]):.2f} / {np.mean([v['ssim'] for v in vals]):.3f}"
+            if vals else "–")
+  for v in [m for m in results["methods"] if m not in CLASSIC]:
+    if not any(f"{v}|{c}" in ablation["methods"] for c in cols):
+      continue
+    for stride in results["strides"]:
+      g = 64 // stride
+      lines.append(f"| {LABELS[v]} | {g} × {g} | {mean(results, v, stride)} | "
+                   + " | ".join(mean(ablation, f"{v}|{c}", stride) for c in cols) + " |")
+  return lines + [""]
