@@ -38,6 +38,8 @@ import pathlib
 import sys
 import time
 
+from nlosjax.stats import format_interval as cell
+
 #: row -> (spatial, temporal, L_pf, L_reg, model overrides, loss overrides, optim overrides)
 ROWS = {
     "no_pf_no_reg": ("S", "T", False, False, {}, {"phasor_field": 0.0, "gamma": 0.0}, {}),
@@ -141,12 +143,6 @@ def summarise(results: dict) -> dict:
   return out
 
 
-def _cell(s, digits, signed=False):
-  f = f"{{:{'+' if signed else ''}.{digits}f}}"
-  lo, hi = s["ci95"]
-  return f"{f.format(s['mean'])} [{f.format(lo)}, {f.format(hi)}]"
-
-
 def to_markdown(results: dict, summary: dict, cmd: str, steps: int, base: dict) -> str:
   from experiments.provenance import provenance
   from nlosjax import stats
@@ -174,13 +170,13 @@ def to_markdown(results: dict, summary: dict, cmd: str, steps: int, base: dict) 
     wd = optim.get("weight_decay", tr["optim"].get("weight_decay"))
     m = summary["test"][row]
     d = summary["vs_full"].get(row)
-    dp = _cell(d["psnr"], 2, True) if d else "—"
-    dr = _cell(d["recall"], 3, True) if d else "—"
+    dp = cell(d["psnr"], 2, True) if d else "—"
+    dr = cell(d["recall"], 3, True) if d else "—"
     train_s = sum(x["train_s"] for x in r) / len(r)
     lines.append(
         f"| {row} | {MAMBA_NAMES[first]} | {MAMBA_NAMES[second]} | {tick[pf]} | {tick[reg]} | {wd:g} |"
-        f" {_cell(m['psnr'], 2)} | {_cell(m['ssim'], 3)} | {_cell(m['rmse_object'], 3)} |"
-        f" {_cell(m['recall'], 3)} | {dp} | {dr} | {train_s:.0f} |")
+        f" {cell(m['psnr'], 2)} | {cell(m['ssim'], 3)} | {cell(m['rmse_object'], 3)} |"
+        f" {cell(m['recall'], 3)} | {dp} | {dr} | {train_s:.0f} |")
     if d and stats.excludes_zero(d["psnr"]):
       called.append(f"{row} ({d['psnr']['mean']:+.2f} dB)")
   lines += ["", "Rows whose test PSNR differs from the full model's (interval excludes 0): "
@@ -191,7 +187,7 @@ def to_markdown(results: dict, summary: dict, cmd: str, steps: int, base: dict) 
     chosen = summary["weight_decay_choice"]
     lines += ["", f"Weight decay, chosen on the validation split (mean intensity PSNR): 1e-4 row "
               f"{v['full']['mean']:.2f} dB, 0.95 row {v['wd_0.95']['mean']:.2f} dB, paired"
-              f" difference {_cell(d, 2, True)} dB -> `{chosen}`"
+              f" difference {cell(d, 2, True)} dB -> `{chosen}`"
               + (" (the interval excludes 0)." if chosen == "wd_0.95" else
                  " (the default 1e-4 stays: the interval includes 0).")]
     preset_wd = tr["optim"].get("weight_decay")

@@ -37,14 +37,10 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
 import pathlib
-import platform
 import statistics
 import tempfile
 import time
-
-import numpy as np
 
 from experiments import configs
 from experiments import provenance as _machine_facts
@@ -57,12 +53,8 @@ BATCH = 4
 
 def _machine() -> list[str]:
   import h5py
-  import jax
-  return [f"- CPU: {_machine_facts.cpu_model()}; {_machine_facts.usable_cores()} usable cores"
-          f" ({os.cpu_count()} logical); memory {_machine_facts.memory_text()}",
-          f"- JAX backend: {jax.default_backend()} ({jax.devices()[0]})",
-          f"- Versions: Python {platform.python_version()}, jax {jax.__version__}, numpy"
-          f" {np.__version__}, h5py {h5py.__version__} (HDF5 {h5py.version.hdf5_version})",
+  return [f"- Machine: {_machine_facts.machine_text()}",
+          f"- Versions: {_machine_facts.versions_text('numpy', 'h5py')} (HDF5 {h5py.version.hdf5_version})",
           f"- Commit: {_machine_facts.git_commit()}", _machine_facts.code_line()]
 
 

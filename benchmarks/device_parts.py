@@ -205,13 +205,6 @@ def _scan_fn(method: str, chunk: int):
   return jax.jit(lambda *a: (one(False, *a), one(True, *a)))
 
 
-def ncc(a, b) -> float:
-  a = np.asarray(a, np.float64).ravel()
-  b = np.asarray(b, np.float64).ravel()
-  a, b = a - a.mean(), b - b.mean()
-  return float(a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-300))
-
-
 def shipped_scan(tiny: bool):
   """The shipped exit-sign scan (``experiments.demo``'s), depths 0.2-1.5 m; summed 2 x 2 for ``--tiny``."""
   x, setup = io.load_measurement(io.shipped_scan_path(), spatial_factor=sizes(tiny)["spatial_factor"])
@@ -403,7 +396,7 @@ def correctness(ctx) -> None:
     except Exception as e:                           # noqa: BLE001 - a failed check
       _failed(ctx, name, CLASSIC_NCC, e)
       continue
-    r = ncc(mip, reference[f"mip_{method}"])
+    r = physics_bench.ncc(mip, reference[f"mip_{method}"])
     _check(ctx, name, r, CLASSIC_NCC, np.isfinite(r) and r >= CLASSIC_NCC)
   precision = correctness_precision()
   try:

@@ -42,6 +42,8 @@ import time
 
 import numpy as np
 
+from nlosjax.stats import format_interval as cell
+
 #: Extra per-frame scores of this report: name -> (header, digits).
 RATIOS = {"brightness": ("brightness ratio (1 = true)", 3), "extent": ("extent ratio (1 = true)", 3)}
 COLUMNS = {"psnr": ("PSNR (dB) ↑", 2), "ssim": ("SSIM ↑", 3), "recall": ("object recall ↑", 3),
@@ -114,12 +116,6 @@ def tabulate(result: dict, models, best: str) -> tuple[list[str], dict]:
   per = result["per_frame"]
   summary = {m: {k: stats.summarize(scores.by_sequence(v, seq)) for k, v in s.items()} for m, s in per.items()}
   classic = [m for m in per if m not in models]
-
-  def cell(s, digits, signed=False):
-    if s is None or not np.isfinite(s["mean"]):
-      return "—"
-    f = f"{{:{'+' if signed else ''}.{digits}f}}"
-    return f"{f.format(s['mean'])} [{f.format(s['ci95'][0])}, {f.format(s['ci95'][1])}]"
 
   lines = ["| method | " + " | ".join(h for h, _ in COLUMNS.values()) + " |",
            "|---|" + "---|" * len(COLUMNS)]

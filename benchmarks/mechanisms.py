@@ -71,6 +71,8 @@ import numpy as np
 
 from benchmarks.ablations import ROWS as ABLATION_ROWS
 from benchmarks.ablations import row_config
+from nlosjax import stats
+from nlosjax.stats import format_interval as cell
 
 #: row -> (row of benchmarks.ablations.ROWS it is built from, variant trained, label).
 ROWS = {
@@ -480,14 +482,6 @@ def probe_run_dir(folder: pathlib.Path, results: pathlib.Path, log: Callable[[st
 
 
 # --------------------------------------------------------------- the report
-def _cell(s: dict, digits: int, signed: bool = False) -> str:
-  if s is None or s.get("mean") is None or not math.isfinite(s["mean"]):
-    return "—"
-  f = f"{{:{'+' if signed else ''}.{digits}f}}"
-  lo, hi = s["ci95"]
-  return f"{f.format(s['mean'])} [{f.format(lo)}, {f.format(hi)}]"
-
-
 def _stack(runs: list[dict], metric: str) -> np.ndarray:
   """``[K, N]`` test scores of ``metric`` over a row's runs (seeds)."""
   return np.stack([_array(r["test"]["scores"][metric]) for r in runs])
@@ -548,7 +542,6 @@ def _budget_text(runs: dict, budget: str) -> str:
 
 def _verdict(pair: dict, budget: str, n_seeds: int, metric: str = "psnr") -> str:
   """The plain sentence of one paired difference in ``metric`` (a key of :data:`VERDICTS`)."""
-  from nlosjax import stats
   a, b = pair["a"], pair["b"]
   name = f"full - {b}" if a == "full" else f"{a} - {b}"
   what, unit = VERDICTS[metric]
@@ -711,7 +704,7 @@ def report(runs: dict, design: dict, command: str) -> str:
       s = entry["rows"][row]
       rs = [runs[(budget, row, k)] for k in s["seeds"]]
       lines.append(f"| {row} | {', '.join(map(str, s['seeds']))} | "
-                   + " | ".join(_cell(s[m], d) for m, (_, d) in COLUMNS.items())
+                   + " | ".join(cell(s[m], d) for m, (_, d) in COLUMNS.items())
                    + f" | {_steps_text(rs)} |")
     pairs = [p for p in entry["pairs"] if p["a"] in rows and p["b"] in rows
              and (p["b"] in design["rows"] or p["seeds"])]
@@ -720,7 +713,7 @@ def report(runs: dict, design: dict, command: str) -> str:
                 "| difference | seeds | " + " | ".join(h for h, _ in COLUMNS.values()) + " |",
                 "|---|---|" + "---|" * len(COLUMNS)]
       for p in pairs:
-        cells = (" | ".join(_cell(p["diff"][m], d, True) for m, (_, d) in COLUMNS.items())
+        cells = (" | ".join(cell(p["diff"][m], d, True) for m, (_, d) in COLUMNS.items())
                  if p["diff"] else " | ".join("—" for _ in COLUMNS))
         lines.append(f"| {p['a']} - {p['b']} | {', '.join(map(str, p['seeds'])) or 'none'} | {cells} |")
       lines += [""] + [_verdict(p, budget, len(seeds), m) for p in pairs for m in VERDICTS]
@@ -749,7 +742,7 @@ def report(runs: dict, design: dict, command: str) -> str:
                   "|---|---|" + "---|" * len(COLUMNS)]
         for p in sub:
           lines.append(f"| {p['a']} - {p['b']} | {', '.join(map(str, p['seeds']))} | "
-                       + " | ".join(_cell(p["diff"][m], d, True) for m, (_, d) in COLUMNS.items()) + " |")
+                       + " | ".join(cell(p["diff"][m], d, True) for m, (_, d) in COLUMNS.items()) + " |")
     lines += _probe_lines(runs, budget)
     lines.append("")
   lines += [f"Validation curves: `{FIGURE}` (one panel per budget; a dot marks each run's best step).", ""]

@@ -47,7 +47,6 @@ import datetime
 import multiprocessing
 import os
 import pathlib
-import platform
 import resource
 import statistics
 import sys
@@ -221,16 +220,6 @@ def run_isolated(name, frames, batch, repeats, forward, time_limit, reference=Fa
   return value
 
 
-def machine() -> dict:
-  import jax
-  mem = _machine_facts.memory_gib()
-  dev = jax.devices()[0]
-  return {"cpu": _machine_facts.cpu_model(), "cores": _machine_facts.usable_cores(),
-          "mem_gib": float("nan") if mem is None else mem,
-          "backend": jax.default_backend(), "device": getattr(dev, "device_kind", str(dev)),
-          "versions": f"Python {platform.python_version()}, jax {jax.__version__}"}
-
-
 def _fmt(v, spec=".2f"):
   if isinstance(v, float):
     return format(v, spec)
@@ -275,7 +264,7 @@ NOTES = """
 """
 
 
-def to_markdown(rows, info, cmd, load_before, load_after) -> str:
+def to_markdown(rows, cmd, load_before, load_after) -> str:
   lines = [
       "# ST-Mamba network: one training step (forward + backward)",
       "",
@@ -284,9 +273,8 @@ def to_markdown(rows, info, cmd, load_before, load_after) -> str:
       f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
       f"- Commit: {_machine_facts.git_commit()}",
       _machine_facts.code_line(),
-      f"- Machine: {info['cpu']}; {info['cores']} usable cores; memory {info['mem_gib']:.1f} GiB;"
-      f" JAX backend {info['backend']} ({info['device']})",
-      f"- Versions: {info['versions']}",
+      f"- Machine: {_machine_facts.machine_text()}",
+      f"- Versions: {_machine_facts.versions_text()}",
       f"- Load average (1, 5, 15 min) before: {load_before}; after: {load_after}. The machine was"
       " shared with other jobs while this ran, so times are upper bounds for an idle machine.",
       "",
@@ -354,7 +342,7 @@ def main(argv=None):
       rows.append(r)
   load_after = tuple(round(v, 2) for v in os.getloadavg())
   cmd = "python -m benchmarks.model " + " ".join(argv if argv is not None else sys.argv[1:])
-  text = to_markdown(rows, machine(), cmd.strip(), load_before, load_after)
+  text = to_markdown(rows, cmd.strip(), load_before, load_after)
   print(text)
   if not args.no_write:
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -47,7 +47,6 @@ import argparse
 import datetime
 import math
 import multiprocessing
-import os
 import pathlib
 import platform
 import resource
@@ -61,6 +60,7 @@ import numpy as np
 
 from experiments import numpy_twins
 from experiments import provenance as _machine_facts
+from nlosjax.physics.forward import render_points
 from nlosjax.physics.setup import Setup
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "physics.md"
@@ -90,29 +90,12 @@ def make_setup(n: int, bins: int) -> Setup:
   return Setup(wall_size=WALL_SIZE, grid=(n, n), bin_width=BIN_WIDTH, num_bins=bins)
 
 
-def render_points(setup: Setup, points: np.ndarray, albedo: np.ndarray) -> np.ndarray:
-  """Noise-free transient ``[T, H, W]`` of point scatterers (1/r^4, vectorised).
-
-  Each point adds ``albedo / r^4`` to time bin ``floor(2 r / (c dt))`` of every
-  scan point, ``r`` being their distance; later returns fall off the window.
-  """
-  t, (h, w) = setup.num_bins, setup.grid
-  scan = setup.scan_points  # [H, W, 3]
-  r = np.linalg.norm(scan[None] - points[:, None, None, :], axis=-1)  # [P, H, W]
-  bins = np.floor(2.0 * r / setup.bin_length).astype(np.int64)
-  keep = bins < t
-  flat = bins * (h * w) + np.arange(h * w).reshape(1, h, w)
-  weights = (albedo[:, None, None] / r ** 4)
-  counts = np.bincount(flat[keep], weights=weights[keep], minlength=t * h * w)
-  return counts.reshape(t, h, w)
-
-
 def synthetic_transient(setup: Setup, seed: int = 0) -> np.ndarray:
   """Float32 ``[T, H, W]`` photon counts of :data:`SCENE_POINTS` with Poisson noise."""
   half, depth = setup.wall_size / 2.0, setup.max_depth
   pts = np.array([(x * half, y * half, z * depth) for x, y, z, _ in SCENE_POINTS])
   albedo = np.array([a for *_, a in SCENE_POINTS])
-  clean = render_points(setup, pts, albedo)
+  clean = render_points(pts, albedo, setup)
   clean *= SIGNAL_PHOTONS * setup.height * setup.width / max(clean.sum(), 1e-30)
   rng = np.random.default_rng(seed)
   return rng.poisson(clean + BACKGROUND).astype(np.float32)
@@ -387,7 +370,7 @@ def variant_study(num_points: int = 16, seed: int = 0, repeats: int = 3) -> dict
   half = 0.35 * setup.wall_size
   pts = np.stack([rng.uniform(-half, half, num_points), rng.uniform(-half, half, num_points),
                   rng.uniform(0.5, 1.5, num_points)], axis=1)
-  transients = np.stack([render_points(setup, p[None], np.ones(1)) for p in pts]).astype(np.float32)
+  transients = np.stack([render_points(p[None], np.ones(1), setup) for p in pts]).astype(np.float32)
   true_k = pts[:, 2] / setup.depth_bin_length
   true_i = np.array([np.argmin(np.abs(setup.scan_y - p[1])) for p in pts])
   true_j = np.array([np.argmin(np.abs(setup.scan_x - p[0])) for p in pts])
@@ -466,8 +449,7 @@ def machine_info(jax_status: str) -> list[str]:
       f"- Date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}",
       f"- Commit: {_machine_facts.git_commit()}",
       _machine_facts.code_line(),
-      f"- CPU: {_machine_facts.cpu_model()}; {cores} usable cores ({os.cpu_count()} logical);"
-      f" memory {_machine_facts.memory_text()}",
+      f"- Machine: {_machine_facts.machine_text()}",
       f"- Versions: {', '.join(versions)}",
       f"- JAX side: {jax_status}",
       f"- Load average (1, 5, 15 min) when written: {_machine_facts.load_average(', ')}; above"

@@ -24,6 +24,8 @@ import sys
 
 import numpy as np
 
+from nlosjax.stats import format_interval as cell
+
 
 def load_candidate(source: str, variant: str):
   """``(model_config, params, training config)`` of one candidate's ``variant``."""
@@ -78,10 +80,6 @@ def main(argv=None) -> int:
   labels = list(sources)
   first = labels[0]
 
-  def cell(s, signed=False):
-    f = "{:+.2f}" if signed else "{:.2f}"
-    return f"{f.format(s['mean'])} [{f.format(s['ci95'][0])}, {f.format(s['ci95'][1])}]"
-
   lines = ["# Preset choice: candidate models on every candidate's validation split", ""]
   lines += provenance("python -m benchmarks.preset_choice " + " ".join(argv)) + [""]
   lines += ["Candidates: " + "; ".join(f"`{k}` = `{v}` (data `{splits[k][0]}`)" for k, v in sources.items())
@@ -101,7 +99,7 @@ def main(argv=None) -> int:
       record[f"{variant}/{data_label}"] = {"means": dict(zip(labels, means)),
                                            "differences": dict(zip(labels[1:], diffs))}
       lines.append(f"| {variant} | {data_label} | " + " | ".join(cell(m) for m in means) + " | "
-                   + " | ".join(cell(d, True) for d in diffs) + " |")
+                   + " | ".join(cell(d, signed=True) for d in diffs) + " |")
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
   out.write_text("\n".join(lines) + "\n")

@@ -160,10 +160,8 @@ def render(results, info, cmd, repeats, chunk_size, load_start, load_end) -> str
       f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
       f"- Commit: {_machine_facts.git_commit()}",
       _machine_facts.code_line(),
-      f"- Machine: {info['cpu']}; {info['usable']} usable cores ({info['logical']} logical); "
-      f"backend {info['backend']} {info['device']}",
-      f"- Versions: Python {info['python']}, jax {info['jax']}, jaxlib {info['jaxlib']}, "
-      f"flax {info['flax']}, numpy {info['numpy']}",
+      f"- Machine: {_machine_facts.machine_text()}",
+      f"- Versions: {_machine_facts.versions_text('jaxlib', 'flax', 'numpy')}",
       f"- Load average (1, 5, 15 min) at start: {load_start}; at end: {load_end}. The machine "
       "is shared: wall times are medians of interleaved rounds and still carry this noise.",
       f"- Repeats: median of {repeats} warm calls per variant (one warm-up call first); "

@@ -574,6 +574,24 @@ RUNNERS: dict[str, Callable[[Any, Any], np.ndarray]] = {
 }
 
 
+def load_published(path) -> tuple[np.ndarray, Setup]:
+  """O'Toole et al.'s ``rect_data`` scan with the public code's preparation, read by SciPy alone.
+
+  ``cnlos_reconstruction.m``: zero the first 600 raw 4 ps bins (the direct reflection), sum
+  groups of 4 (16 ps). Returns ``(transient [T, H, W] float32, Setup)`` with
+  ``transient[t, y, x]`` from ``rect_data[x, y, :]`` and a wall of ``2 * width``; written apart
+  from :func:`nlosjax.data.io.load_measurement` so that the twins check it.
+  """
+  import scipy.io
+  raw = scipy.io.loadmat(path, variable_names=("rect_data", "width"))
+  rect = raw["rect_data"].astype(np.float32)                     # [x, y, t], 4 ps bins
+  rect[:, :, :600] = 0
+  x = np.ascontiguousarray(rect.reshape(rect.shape[0], rect.shape[1], -1, 4).sum(-1).transpose(2, 1, 0))
+  setup = Setup(wall_size=2 * float(np.squeeze(raw["width"])), grid=x.shape[1:], bin_width=16e-12,
+                num_bins=x.shape[0])
+  return x, setup
+
+
 def build(setup: Setup, method: str, **options):
   """Prebuilt operators of ``method`` (one of :data:`METHODS`)."""
   if method not in BUILDERS:

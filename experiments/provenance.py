@@ -142,16 +142,43 @@ def git_commit(repo=None) -> str:
   return head + (" +changes (uncommitted edits to tracked files)" if dirty else "")
 
 
+def machine_text() -> str:
+  """One line of hardware for a results header: CPU, clock and cache, cores, memory, JAX backend.
+
+  ``"AMD EPYC; 2596 MHz, cache 1024 KB; 2 usable cores (2 logical); memory 23.5 GiB; JAX
+  backend cpu (cpu)"`` (the backend part says so where JAX is not installed).
+  """
+  import os
+  try:
+    import jax
+    dev = jax.devices()[0]
+    backend = f"JAX backend {jax.default_backend()} ({getattr(dev, 'device_kind', dev)})"
+  except ImportError:
+    backend = "JAX not installed"
+  return (f"{cpu_model()}; {_clock_and_cache()}{usable_cores()} usable cores ({os.cpu_count()} logical); "
+          f"memory {memory_text()}; {backend}")
+
+
+def versions_text(*packages: str) -> str:
+  """``"Python 3.11.7, jax 0.10.2"`` and each of ``packages``' installed version (or "absent")."""
+  import importlib.metadata
+  names = ("jax",) + tuple(p for p in packages if p != "jax")
+  found = []
+  for name in names:
+    try:
+      found.append(f"{name} {importlib.metadata.version(name)}")
+    except importlib.metadata.PackageNotFoundError:
+      found.append(f"{name} absent")
+  return ", ".join([f"Python {platform.python_version()}"] + found)
+
+
 def provenance(command: str) -> list[str]:
   """Markdown lines every results file starts with: command, date, machine, commit, code digest."""
   import datetime
 
-  import jax
   return [f"Produced by `{command}`.", "",
           f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
-          f"- Machine: {cpu_model()}; {_clock_and_cache()}{usable_cores()} usable cores; memory {memory_text()}; "
-          f"JAX backend {jax.default_backend()} ({jax.devices()[0].device_kind}); "
-          f"Python {platform.python_version()}, jax {jax.__version__}",
+          f"- Machine: {machine_text()}; {versions_text()}",
           f"- Commit: {git_commit()}",
           code_line(),
           f"- Load average (1, 5, 15 min) when written: {load_average(', ')}"]

@@ -127,3 +127,16 @@ def excludes_zero(summary: dict) -> bool:
   """Whether a summary's interval lies wholly above or wholly below 0 (a difference to call)."""
   lo, hi = summary["ci95"]
   return bool(lo > 0 or hi < 0)
+
+
+def format_interval(summary: dict | None, digits: int = 2, signed: bool = False, missing: str = "—") -> str:
+  """``"mean [lo, hi]"`` of a :func:`summarize` result, ``digits`` decimals (``signed``: with "+").
+
+  ``missing`` when there is no summary (``None``, or a mean that is ``None`` or not finite).
+  """
+  mean = None if summary is None else summary.get("mean")
+  if mean is None or not np.isfinite(mean):
+    return missing
+  f = f"{{:{'+' if signed else ''}.{digits}f}}"
+  lo, hi = summary["ci95"]
+  return f"{f.format(mean)} [{f.format(lo)}, {f.format(hi)}]"

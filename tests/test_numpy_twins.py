@@ -191,15 +191,8 @@ def test_rsd_matches_direct_propagation():
 
 # ------------------------------------------------------------- measured data
 def test_exit_sign_reconstructs_to_a_compact_object():
-  import scipy.io
-
-  mat = scipy.io.loadmat(EXIT_SIGN)
-  rect = mat["rect_data"].astype(np.float32)  # [y, x, t], 4 ps bins
-  rect[:, :, :600] = 0  # direct reflection
-  rect = rect.reshape(64, 64, 512, 4).sum(axis=-1)  # 16 ps, 512 bins
-  tau = np.ascontiguousarray(rect.transpose(2, 0, 1))
-  width = float(np.squeeze(mat["width"]))  # half wall, m
-  setup = Setup(wall_size=2 * width, grid=(64, 64), bin_width=16e-12, num_bins=512)
+  tau, setup = tw.load_published(EXIT_SIGN)          # 16 ps, 512 bins, direct reflection zeroed
+  assert tau.shape == (512, 64, 64)
   options = {"lct": {"snr": 0.8, "falloff": "retroreflective"},
              "fbp": {"falloff": "retroreflective"}}
   for method in tw.METHODS:
@@ -230,3 +223,13 @@ def test_benchmark_fft_floor_runs_the_methods_ffts(method):
           {"method": "c", "n": 64, "speedup": 2.0, "over_floor": 1.5}]
   line = bench.goal_summary(rows)[0]
   assert line.startswith("- 64²: met by a;") and "b (1.10× floor, 0.90× twin)" in line and "c (1.50×" in line
+
+
+def test_published_preparation_twin_matches_the_library_reader():
+  """The twins' SciPy reading of the exit-sign scan equals ``load_measurement``'s, array and Setup."""
+  from nlosjax.data import load_measurement
+  tau, setup = tw.load_published(EXIT_SIGN)
+  ours, ours_setup = load_measurement(EXIT_SIGN)
+  np.testing.assert_array_equal(ours, tau)
+  assert (ours_setup.wall_size, ours_setup.grid, ours_setup.bin_width, ours_setup.num_bins) == \
+      (setup.wall_size, setup.grid, setup.bin_width, setup.num_bins)

@@ -13,6 +13,7 @@ import json
 import numpy as np
 import pytest
 
+from benchmarks.physics import ncc
 from experiments import numpy_twins as twins
 from nlosjax import physics
 from nlosjax.data import io
@@ -25,12 +26,6 @@ def _optimised_xla():
   # their compile time. The suite turns them off by default (conftest.py).
   with xla_optimizations(True):
     yield
-
-
-def ncc(a, b):
-  a = a.ravel() - a.mean()
-  b = b.ravel() - b.mean()
-  return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
 
 
 @pytest.fixture(scope="module")

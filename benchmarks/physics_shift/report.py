@@ -14,6 +14,7 @@ import pathlib
 import numpy as np
 
 from benchmarks.physics_shift import heldout, study
+from nlosjax import stats
 
 #: The goal margin over the best classic method on a held-out family or condition (dB).
 GOAL_MARGIN_DB = 1.0
@@ -42,12 +43,7 @@ def _arr(values) -> np.ndarray:
 
 
 def _cell(s, digits=2, signed=False) -> str:
-  if s is None:
-    return "(not run)"
-  if not np.isfinite(s["mean"]):
-    return "—"
-  f = f"{{:{'+' if signed else ''}.{digits}f}}"
-  return f"{f.format(s['mean'])} [{f.format(s['ci95'][0])}, {f.format(s['ci95'][1])}]"
+  return "(not run)" if s is None else stats.format_interval(s, digits, signed)
 
 
 def _scores(record_set: dict, metric: str):
@@ -56,7 +52,6 @@ def _scores(record_set: dict, metric: str):
 
 def compare(runs: dict, classic: dict, name: str, design: str) -> dict | None:
   """Ours and Ours-S of ``design`` on set ``name`` against the best classic method there."""
-  from nlosjax import stats
   from nlosjax.evaluation import scores
   c = classic.get((study.classic_design(name), name))
   ours = runs.get((design, "ours"), {}).get("sets", {}).get(name)
@@ -88,7 +83,6 @@ def compare(runs: dict, classic: dict, name: str, design: str) -> dict | None:
 
 def choice(runs: dict, variant: str, name: str, design: str, against: str = "base") -> dict | None:
   """``design`` minus ``against`` (``variant``) on validation split ``name``: means and the paired difference."""
-  from nlosjax import stats
   from nlosjax.evaluation import scores
   a = runs.get((design, variant), {}).get("sets", {}).get(name)
   b = runs.get((against, variant), {}).get("sets", {}).get(name)
@@ -103,7 +97,6 @@ def choice(runs: dict, variant: str, name: str, design: str, against: str = "bas
 
 def _mean(runs: dict, design: str, variant: str, name: str) -> dict | None:
   """Mean intensity PSNR of a run on set ``name`` with its interval over sequences (None: not scored)."""
-  from nlosjax import stats
   from nlosjax.evaluation import scores
   r = runs.get((design, variant), {}).get("sets", {}).get(name)
   if r is None:

@@ -11,13 +11,16 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 
+from nlosjax.evaluation.baselines import CLASSIC_METHODS
+from nlosjax.evaluation.report import METHOD_LABELS
+
 DEFAULT_OUT_DIR = pathlib.Path(__file__).resolve().parent.parent / "results"
 DEFAULT_WORKDIR = pathlib.Path("runs/tradeoff")
 QUICK_STEPS, FULL_STEPS = 150, 300
 QUICK_REPEATS, FULL_REPEATS = 9, 15
 
-CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
-LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "RSD"}
+CLASSIC = CLASSIC_METHODS
+LABELS = {m: METHOD_LABELS[m] for m in CLASSIC}
 DENSITY_STRIDES = (8, 4, 2, 1)
 EXPOSURES = (0.1, 0.3, 1.0, 3.0)
 KNOBS = ("method", "density", "exposure", "frames", "model", "kernel", "gating")

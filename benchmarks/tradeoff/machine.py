@@ -6,10 +6,7 @@ from experiments import provenance as _machine_facts
 
 
 def machine_line() -> str:
-  from benchmarks.model import machine
-  m = machine()
-  return (f"{m['cpu']}; {m['cores']} usable cores; {m['mem_gib']:.1f} GiB; JAX backend"
-          f" {m['backend']} ({m['device']}); {m['versions']}")
+  return f"{_machine_facts.machine_text()}; {_machine_facts.versions_text()}"
 
 
 def load_average() -> str:

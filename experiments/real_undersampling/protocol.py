@@ -7,11 +7,13 @@ import time
 
 import numpy as np
 
+from nlosjax.evaluation.baselines import CLASSIC_METHODS
+from nlosjax.evaluation.report import METHOD_LABELS
+
 REPO = pathlib.Path(__file__).resolve().parents[2]
-CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
+CLASSIC = CLASSIC_METHODS
 VARIANTS = ("ours_s", "ours", "usm")
-LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "RSD",
-          "ours_s": "Ours-S", "ours": "Ours", "usm": "USM"}
+LABELS = METHOD_LABELS
 #: Options of the classic methods on these retroreflective scans (O'Toole et al. 2018: snr 0.8, t^2).
 OPTIONS = {"fbp": {"falloff": "retroreflective"}, "lct": {"snr": 0.8, "falloff": "retroreflective"},
            "fk": {}, "phasor": {}, "rsd": {}}

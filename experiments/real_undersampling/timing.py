@@ -17,16 +17,9 @@ from experiments.real_undersampling.protocol import OPTIONS, REPO
 _TWIN_SCRIPT = r"""
 import json, sys, time
 t0 = time.perf_counter()
-import numpy as np, scipy.io
 from experiments import numpy_twins as twins
-from nlosjax.physics.setup import Setup
 t1 = time.perf_counter()
-raw = scipy.io.loadmat(sys.argv[1], variable_names=("rect_data", "width"))
-rect = raw["rect_data"].astype(np.float32)
-rect[:, :, :600] = 0
-x = np.ascontiguousarray(rect.reshape(rect.shape[0], rect.shape[1], -1, 4).sum(-1).transpose(2, 1, 0))
-setup = Setup(wall_size=2 * float(raw["width"].squeeze()), grid=x.shape[1:], bin_width=16e-12,
-              num_bins=x.shape[0])
+x, setup = twins.load_published(sys.argv[1])
 t2 = time.perf_counter()
 ops = twins.build(setup, sys.argv[2], **json.loads(sys.argv[3]))
 t3 = time.perf_counter()

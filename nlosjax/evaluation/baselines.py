@@ -37,11 +37,12 @@ from typing import Callable
 import jax.numpy as jnp
 import numpy as np
 
+from nlosjax.physics.reconstruct import METHODS as CLASSIC_METHODS  # one source: the five methods
+
 __all__ = ["CLASSIC_METHODS", "THRESHOLDS", "DEFAULT_THRESHOLD", "interpolation_matrix",
            "upsample_scan", "default_options", "option_grid", "classic_volume",
            "classic_images", "tune"]
 
-CLASSIC_METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
 #: Surface thresholds (fraction of the image's peak intensity) tried on validation.
 THRESHOLDS = (0.05, 0.1, 0.2, 0.3, 0.5)
 #: :func:`nlosjax.physics.intensity_depth`'s default, used where nothing was tuned.

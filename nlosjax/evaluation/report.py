@@ -46,11 +46,7 @@ def label(method: str) -> str:
 
 
 def _cell(s: dict, digits: int, signed: bool = False) -> str:
-  if not math.isfinite(s["mean"]):
-    return "n/a"
-  f = f"{{:{'+' if signed else ''}.{digits}f}}"
-  lo, hi = s["ci95"]
-  return f"{f.format(s['mean'])} [{f.format(lo)}, {f.format(hi)}]"
+  return stats.format_interval(s, digits, signed, missing="n/a")
 
 
 def _header(metric: str) -> str:
