@@ -12,6 +12,7 @@ import pytest
 
 from nlosjax.data import scenes
 from nlosjax.data.scenes import Helix, Scene, SceneObject, SceneParams
+from nlosjax.data.scenes import raster as scene_raster
 from nlosjax.physics import Setup
 
 # 2 m wall, 41 x 41 scan points (5 cm apart, a point at the wall centre), 2.53 m of depth.
@@ -423,9 +424,9 @@ def test_deformed_object_casts_the_footprint_of_its_explicitly_mapped_outline():
                          {"name": "uniform", "albedo": 0.7})
     warped = SceneObject(posed.kind, posed.anchor, posed.rotation, posed.size, posed.radius,
                          posed.shape, {"name": "uniform", "albedo": 0.7})
-    ox, oy = scenes._ray_origins(SETUP, 3)
-    t_a, a_a = scenes._cast(warped, warped.anchor, ox, oy)
-    t_b, a_b = scenes._cast(mapped, mapped.anchor, ox, oy)
+    ox, oy = scene_raster._ray_origins(SETUP, 3)
+    t_a, a_a = scene_raster._cast(warped, warped.anchor, ox, oy)
+    t_b, a_b = scene_raster._cast(mapped, mapped.anchor, ox, oy)
     hit_a, hit_b = np.isfinite(t_a), np.isfinite(t_b)
     assert hit_a.sum() > 50
     assert np.sum(hit_a != hit_b) <= 2          # rays exactly on an edge may round either way

@@ -2,7 +2,7 @@
 
 from experiments import configs
 from nlosjax import train as T
-from nlosjax.data import scenes
+from nlosjax.data.scenes import params as scene_params
 
 # 16 x 16 capture, every 4th point in (4 x 4), 64 bins of 264 ps; a model a few thousand parameters big.
 # The cpu preset's first data recipe: the light-cone renderer, 1e3-1e4 photons, and the
@@ -10,7 +10,7 @@ from nlosjax.data import scenes
 # training and dataset tests' margins were measured there; the transport renderer the preset
 # uses is tested against its own brute-force loop in tests/test_transport.py.
 LCT_DATA = dict(renderer="lct", retroreflective=0.0, photons=(1e3, 1e4))
-LCT_SCENE = dict(scenes._LATER_FIELDS)
+LCT_SCENE = dict(scene_params._LATER_FIELDS)
 TINY_DATA = dict(grid=16, num_bins=64, bin_width=264e-12, frames=4, input_stride=4, input_offset=2,
                  num_sequences={"train": 2, "val": 1, "test": 1}, render_batch=4, **LCT_DATA)
 # conv_impl="fold": at these widths "auto" would pick the unrolled "direct" sums for every
