@@ -252,7 +252,7 @@ def main(argv=None):
   results = {}
   for shape in shapes:
     Bt, L, D, N = shape
-    auto_as = resolve_method("auto", length=L, channels=D, state=N, batch=Bt)
+    auto_as = resolve_method("auto")
     print(f"shape {shape} (auto -> {auto_as})", flush=True)
     rows = bench_shape(shape, args.methods, repeats, args.chunk_size)
     results[shape] = (rows, auto_as)

@@ -2,7 +2,7 @@
 
 These are plain NumPy/SciPy ports of the algorithms in the public reference
 code (nlos-fk ``cnlos_reconstruction.m`` and O'Toole's LCT code), written from
-the description in ``shared/reference/nlos-physics.md``. They serve two
+their published formulas. They serve two
 purposes:
 
 * the baseline that ``benchmarks/physics.py`` times the JAX methods against

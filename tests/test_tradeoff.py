@@ -218,7 +218,8 @@ def test_end_to_end_classic_configuration(tmp_path):
   net = dict(row, name="ours", label="Ours", kind="learned", time=row["time"] * 3,
              psnr=[sc["psnr"][0] + 2, 0.0])
   res = {"configs": [row, fast, net], "steps": 1, "batch": 2, "rounds": 3, "frames": 3,
-         "data": "tiny", "wall_s": 1.0, "executables": 1, "timing_s": 0.1}
+         "data": "tiny", "wall_s": 1.0, "executables": 1, "timing_s": 0.1, "grid": [8, 8], "stride": 4, "num_bins": 48,
+         "bin_width": 64e-12, "wall_size": 1.0, "depth_range": [0.3, 0.7]}
   md = tradeoff.to_markdown(res, "cmd", "machine", ("0", "0"), gating=False)
   assert "| fastest | FBP |" in md and "| best | Ours |" in md
   assert "more accurate than every faster classic one: Ours." in md

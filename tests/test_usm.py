@@ -1,7 +1,7 @@
 """nlosjax.models.usm: USM's published size, its input convention, its LCT layer, gradients, errors.
 
 Independent references: the parameter count of the public code (115,042,
-counted by hand from its layer list in ``shared/reference/usm-predecessor.md``),
+counted by hand from the layer list of the authors' public release),
 the public code's scan mask written out for 128 x 128 at stride 8, brute-force
 NumPy loops (replicate-padded convolution, 2 x 2 x 2 average pooling, the mask
 times the full transient), ``nlosjax.physics.lct`` (the LCT layer must

@@ -46,6 +46,8 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
   beats = learned_beats_classic(default)
   from experiments.provenance import code_line, git_commit
   by_name = {r["name"]: r for r in rows}
+  (h, w), stride = res["grid"], res["stride"]
+  full, sparse = f"{h} x {w}", f"{-(-h // stride)} x {-(-w // stride)}"   # the scan and the network's input
   out = [
       "# Speed and accuracy of every reconstruction knob",
       "",
@@ -62,7 +64,9 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
       " of the shared machine moves absolute times much more than that; ratios between rows of"
       " this file are the stable quantity.",
       f"- Data: test split of `{res['data']}`, {res['frames']} frames (8 sequences x middle frames"
-      " 1-6), 32 x 32 scan grid, 128 bins of 132 ps, 2 m wall; objects at 0.5-1.5 m.",
+      f" 1-6), {res['grid'][0]} x {res['grid'][1]} scan grid, {res['num_bins']} bins of"
+      f" {res['bin_width'] * 1e12:.0f} ps, {res['wall_size']:g} m wall; objects at"
+      f" {res['depth_range'][0]:g}-{res['depth_range'][1]:g} m.",
       f"- Learned configurations: trained by this benchmark, {res['steps']} AdamW steps of batch 4"
       " each (the CPU preset's optimiser with the cosine schedule over those steps, seed 0, the"
       f" main job's batches; the main job trains {_main_job_steps()} steps, so `Ours` here is not"
@@ -73,13 +77,13 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
       " (constants not counted; not the process RSS).",
       "- Accuracy: mean ± std over frames of intensity PSNR; means of SSIM, depth RMSE and MAD"
       " (background 0 m), against the ground truth, as Table 1. Classic methods read the"
-      " under-scanned input interpolated bilinearly to 32 x 32 (the paper's protocol).",
+      f" under-scanned input interpolated bilinearly to {full} (the paper's protocol).",
       "",
       "## Pareto front and recommended settings",
       "",
       "![time per frame vs PSNR](tradeoff.png)",
       "",
-      "The front is taken over the configurations that read the same capture (8 x 8 scan"
+      f"The front is taken over the configurations that read the same capture ({sparse} scan"
       " points, the stored exposure): different reconstructions of the same data. Scan-density"
       " and exposure points (hollow in the plot) change the capture, not the reconstruction,"
       " and are shown for reference.",
@@ -110,7 +114,7 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
                     key=lambda p: p["time"])
     out.append("")
     out.append(f"Across captures, the classic configurations at or above the best learned PSNR"
-               f" ({top:.2f} dB, 8 x 8 scan points) are: "
+               f" ({top:.2f} dB, {sparse} scan points) are: "
                + (", ".join(f"{p['label']} ({p['psnr']:.2f} dB, {_ms(p['time'])} ms)" for p in denser)
                   if denser else "none")
                + (" -- they read 4-16x more scan points than the networks." if denser else "."))
@@ -118,8 +122,8 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
 
   sections = [
       ("method", "Method (default capture)", None),
-      ("density", "Scan density (classic methods; the networks are trained for 8 x 8)",
-       "The 8 x 8 rows are those of the method table."),
+      ("density", f"Scan density (classic methods; the networks are trained for {sparse})",
+       f"The {sparse} rows are those of the method table."),
       ("exposure", "Exposure (stored noise-free transients re-noised with `add_spad_noise`;"
        " x1 is a fresh draw at the stored exposure)", "Each exposure runs the default capture's"
        " executable on other data, so its time and compile columns are that executable's."),

@@ -48,7 +48,9 @@ def run(args) -> dict:
   gt_i, gt_d = test.gt()
   B = args.batch
   res: dict = {"configs": [], "gating": {}, "stages": {}, "steps": args.steps, "batch": B,
-               "max_depth": setup.max_depth, "wall_size": setup.wall_size, "rounds": args.repeats, "frames": len(test),
+               "max_depth": setup.max_depth, "wall_size": setup.wall_size, "grid": list(setup.grid),
+               "num_bins": setup.num_bins, "bin_width": setup.bin_width, "stride": stride,
+               "depth_range": list(config["data"]["scene"]["depth_range"]), "rounds": args.repeats, "frames": len(test),
                "data": str(data_path), "knobs": sorted(args.knobs)}
   labels = {**LABELS, **METHOD_LABELS}
 

@@ -627,7 +627,7 @@ def _analytic_flops(config: ModelConfig, batch: int) -> tuple[float, float]:
   per_block = sum(1 if m == "temporal" and config.temporal_causal else 2 for m in config.mixers)
   n_blocks = config.frames * config.st_depth + 2 * (config.frames - 1) * config.cross_depth
   scan = 9.0 * tokens * d_inner * N * per_block * n_blocks
-  method = resolve_method(config.scan_method, length=tp, channels=d_inner, state=N, batch=tokens)
+  method = resolve_method(config.scan_method)
   if method == "associative":                                # no lax.scan: XLA counts it
     scan = 0.0
   return fft, scan

@@ -1,8 +1,8 @@
 """USM, the under-scanning network the paper compares with (Li et al., NeurIPS 2023), in Flax linen.
 
 One static frame; no Mamba, no temporal path. The architecture is that of the
-public code (``EmbedFeatureModel_MUL_gray_former_mask_refine``; facts in
-``shared/reference/usm-predecessor.md``), in this project's conventions
+public code (``EmbedFeatureModel_MUL_gray_former_mask_refine`` of the authors' release), in
+this project's conventions
 (channels-last activations, shapes from the :class:`Setup`):
 
 1. **Zero fill** (:func:`zero_fill`): the ``h x w`` under-scanned counts

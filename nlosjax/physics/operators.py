@@ -416,7 +416,7 @@ def to_depth(vol_u: jax.Array, ops: LCTOperators) -> jax.Array:
 # ``variant="public"`` of the LCT-based reconstructions: the operators of the
 # public MATLAB code (O'Toole's ``resamplingOperator`` and ``definePsf``,
 # nlos-fk's reuse of them), so that a Wiener ``snr`` gives the same image as
-# there. Written from the formulas in shared/reference/nlos-physics.md (section 1).
+# there. Written from the formulas of that public code (O'Toole et al. 2018's LCT release).
 OPERATOR_VARIANTS = ("public", "refined")
 
 

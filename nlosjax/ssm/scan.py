@@ -39,7 +39,7 @@ Methods (all exact; they differ in speed and memory):
   associative scan over blocks), then forms each block's cotangents step by
   step, one block at a time, so that one block's ``[K, ..., N, Dch]`` states
   are the largest transient. Block size 64 by default.
-* ``"auto"``: chosen per backend and shape by :func:`resolve_method` from the
+* ``"auto"``: chosen per backend by :func:`resolve_method` from the
   numbers in ``benchmarks/results/scan.md``.
 
 Gradients of every method come from one custom VJP whose residuals are the
@@ -144,8 +144,7 @@ def _accum_dtype(*arrays) -> jnp.dtype:
 
 
 # --------------------------------------------------------------- auto choice
-def resolve_method(method: str, *, length: int, channels: int, state: int, batch: int,
-                   backend: str | None = None) -> str:
+def resolve_method(method: str, *, backend: str | None = None) -> str:
   """The concrete method ``"auto"`` stands for (other methods pass through).
 
   Rule (measured in ``benchmarks/results/scan.md``, 2 cores, XLA:CPU): on CPU
@@ -162,10 +161,8 @@ def resolve_method(method: str, *, length: int, channels: int, state: int, batch
 
   Args:
     method: one of :data:`METHODS`.
-    length, channels, state, batch: ``L``, ``Dch``, ``N`` and the flattened batch.
     backend: ``jax.default_backend()`` when None.
   """
-  del length, channels, state, batch
   if method != "auto":
     return method
   backend = backend or jax.default_backend()
@@ -553,7 +550,7 @@ def selective_scan(x, dt, A, B, C, D=None, *, reverse: bool = False, method: str
   *batch, L, Dch = x.shape
   N = A.shape[1]
   Bt = int(np.prod(batch, dtype=np.int64))
-  method = resolve_method(method, length=L, channels=Dch, state=N, batch=Bt)
+  method = resolve_method(method)
   chunk = int(chunk_size or DEFAULT_CHUNK.get(method, L))
   chunk = min(chunk, L)
 
