@@ -157,7 +157,7 @@ def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch
     M.write_json(M.run_json(results, budget, row, seed), record)
     return record
 
-  monkeypatch.setattr(M, "run_one", fake_run_one)
+  monkeypatch.setattr(M.cli, "run_one", fake_run_one)   # where main looks it up
   args = ["--results", str(tmp_path), "--workdir", str(tmp_path / "runs"), "--budgets", "tenth"]
   M.main(args + ["--max-runs", "2"])
   assert calls == [("tenth", "full", 0), ("tenth", "ours_s", 0)]          # seed by seed, every row first
@@ -212,7 +212,7 @@ def test_tiny_study_end_to_end_resumes_and_probes(tmp_path, monkeypatch, capsys)
   def no_run(*a, **k):
     raise AssertionError("a run with a JSON file was trained again")
 
-  monkeypatch.setattr(M, "run_one", no_run)
+  monkeypatch.setattr(M.cli, "run_one", no_run)
   capsys.readouterr()
   assert M.main(args) == 0
   assert "2 of 2 runs already have their JSON" in capsys.readouterr().out

@@ -188,7 +188,8 @@ def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=pri
 
   ``meta``: written to ``folder/run.json`` with the run's config (:func:`run_meta`).
   """
-  from benchmarks.mechanisms import _subsample, write_json
+  from benchmarks.mechanisms.records import write_json
+  from benchmarks.mechanisms.study import _subsample
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
   cfg = copy.deepcopy(cfg)

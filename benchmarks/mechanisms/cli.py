@@ -1,0 +1,106 @@
+"""``python -m benchmarks.mechanisms``: the command line (resumable runs, ``--report-only``, ``--tiny``)."""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+from benchmarks.mechanisms.design import (
+  BUDGETS,
+  EXTRA_ROWS,
+  MAIN_ROWS,
+  ROWS,
+  SEEDS,
+  TINY_DESIGN,
+  TINY_STOP,
+  check_same_data,
+  run_config,
+  run_json,
+  study_stop,
+)
+from benchmarks.mechanisms.records import _array, code_at_start
+from benchmarks.mechanisms.report import write_report
+from benchmarks.mechanisms.study import probe_run_dir, run_one
+
+
+def tiny_base(workdir: pathlib.Path) -> dict:
+  """The tiny config of ``tests/tiny_run.py`` with its data under ``workdir``."""
+  try:
+    from tests.tiny_run import tiny_config
+  except ImportError as e:
+    raise SystemExit(f"--tiny needs the repository's tests/ package on the path ({e}); run from the "
+                     "repository root") from None
+  return tiny_config(pathlib.Path(workdir) / "data" / "tiny.h5", stop=dict(TINY_STOP))
+
+
+def main(argv=None) -> int:
+  from experiments.cli import config_parser, parse_config
+  code_at_start()                          # before any run: the code this process loads
+  parser = config_parser(__doc__.split("\n\n")[0])
+  parser.add_argument("--budgets", nargs="+", choices=list(BUDGETS), default=None,
+                      help="photon budgets to run (default: all; --tiny: full)")
+  parser.add_argument("--rows", nargs="+", choices=list(ROWS), default=None,
+                      help=f"rows to run (default: {' '.join(MAIN_ROWS)}, plus --extra-rows)")
+  parser.add_argument("--extra-rows", action="store_true", help=f"also run {' and '.join(EXTRA_ROWS)}")
+  parser.add_argument("--seeds", nargs="+", type=int, default=None, help="training seeds (default: 0 1 2)")
+  parser.add_argument("--max-runs", type=int, default=None, help="train at most this many runs")
+  parser.add_argument("--time-limit-s", type=float, default=None,
+                      help="start no run after this many seconds (a started run finishes)")
+  parser.add_argument("--workdir", default=None, help="run folders (default: runs/mechanisms)")
+  parser.add_argument("--results", default=None, help="JSON files and report (default: benchmarks/results)")
+  parser.add_argument("--report-only", action="store_true", help="only rewrite the report from the JSON files")
+  parser.add_argument("--probe", metavar="RUN_DIR", default=None,
+                      help="probe the SSMs of a finished run folder, store it in its JSON, rewrite the report")
+  parser.add_argument("--tiny", action="store_true", help="the tiny config of tests/tiny_run.py (a smoke run)")
+  argv = sys.argv[1:] if argv is None else list(argv)
+  args, base, overrides = parse_config(parser, argv)
+  from experiments.cli import override_key
+  keep_loss = tuple(k[2] for k, _ in map(override_key, overrides) if k[:2] == ("train", "loss") and len(k) == 3)
+  command = "python -m benchmarks.mechanisms " + " ".join(argv)
+  workdir = pathlib.Path(args.workdir or ("runs/mechanisms-tiny" if args.tiny else "runs/mechanisms"))
+  results = pathlib.Path(args.results or (workdir / "results" if args.tiny else "benchmarks/results"))
+  if args.tiny:
+    base = tiny_base(workdir)
+    design = dict(TINY_DESIGN)
+  else:
+    from nlosjax.train import with_defaults
+    stop = study_stop(base)
+    base = with_defaults(base)
+    base["train"]["stop"] = stop
+    design = {"budgets": tuple(BUDGETS), "rows": MAIN_ROWS, "seeds": SEEDS}
+  if args.extra_rows:
+    design["rows"] = tuple(design["rows"]) + EXTRA_ROWS
+  budgets = tuple(args.budgets or design["budgets"])
+  rows = tuple(args.rows or design["rows"])
+  seeds = tuple(args.seeds if args.seeds is not None else design["seeds"])
+  if args.probe:
+    probe_run_dir(pathlib.Path(args.probe), results)
+  elif not args.report_only:
+    from tqdm import tqdm
+    stop = dict(base["train"]["stop"])
+    jobs = [(b, r, s) for s in seeds for b in budgets for r in rows]
+    todo = [j for j in jobs if not run_json(results, *j).exists()]
+    print(f"mechanisms: {len(jobs) - len(todo)} of {len(jobs)} runs already have their JSON "
+          f"in {results / 'mechanisms'}; {len(todo)} to train")
+    for budget, row, seed in todo:
+      check_same_data(results, budget,
+                      {**run_config(base, budget, row, seed, stop, keep_loss), "_study_row": row})
+    t0, trained = time.perf_counter(), 0
+    for budget, row, seed in tqdm(todo, desc="mechanisms", unit="run"):
+      if args.max_runs is not None and trained >= args.max_runs:
+        tqdm.write(f"mechanisms: --max-runs {args.max_runs} reached")
+        break
+      if args.time_limit_s is not None and time.perf_counter() - t0 > args.time_limit_s:
+        tqdm.write(f"mechanisms: --time-limit-s {args.time_limit_s:g} passed; no new run starts")
+        break
+      rec = run_one(base, budget, row, seed, stop, workdir, results, log=tqdm.write, keep_loss=keep_loss)
+      trained += 1
+      tqdm.write(f"mechanisms: {budget}/{row}-seed{seed}: {rec['steps_taken']} steps "
+                 f"({rec['stop_reason']}), best step {rec['best_step']}, test PSNR "
+                 f"{np.nanmean(_array(rec['test']['scores']['psnr'])):.2f} dB")
+  text = write_report(results, design, command.strip())
+  print(text)
+  return 0
