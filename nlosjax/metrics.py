@@ -1,118 +1,20 @@
 """Image and depth-map quality metrics: PSNR, SSIM, RMSE, MAD, and object-aware depth scores.
 
-Whole-image depth RMSE/MAD count every background pixel (true depth 0 m), which
-a method scores well on by writing 0 m everywhere but the brightest object. The
-object-aware scores (:func:`surface_scores`: ``rmse_object``, ``mad_object``,
-``recall``, ``precision``, ``f1``) score the objects themselves; see
-"Surfaces" below.
-
 Every function takes ``pred`` and ``target`` of the same shape ``[..., H, W]``
-(any number of leading batch dimensions, ``H, W`` being the last two axes) and
-returns one value per image, shape ``[...]``; the temporal scores take
-sequences ``[..., F, H, W]`` instead (see "Temporal consistency" below).
-Everything is pure ``jax.numpy``: the functions can be jitted, vmapped and
-differentiated.
+(leading batch dimensions allowed) and returns one value per image, ``[...]``;
+the temporal scores (:data:`TEMPORAL_METRICS`) take sequences ``[..., F, H, W]``
+and return one value per consecutive pair, ``[..., F - 1]`` (or per sequence with
+``pooled=True``). Intensities are in ``[0, 1]`` (``data_range`` 1), depths in
+metres; sums run in float32 (float64 for float64 inputs). Pure ``jax.numpy``:
+jit, vmap and grad apply; concrete inputs are checked for NaN, masks for 0/1.
 
-Conventions:
+The object-aware scores (:func:`surface_scores`: ``rmse_object``, ``mad_object``,
+``recall``, ``precision``, ``f1``) score the objects themselves, where
+whole-image depth RMSE/MAD reward writing 0 m everywhere but the brightest object.
 
-* Dtypes: inputs of any real dtype are cast to float32 and all sums run in
-  float32 (float64 when an input is float64, which needs ``jax_enable_x64``).
-  Outputs have that dtype.
-* Intensity images live in ``[0, 1]``, so ``data_range`` (max - min of the
-  possible values) defaults to 1. Depth maps are metres; :func:`rmse` and
-  :func:`mad` return the units of their inputs (metres for depth).
-* ``mask`` (optional, ``[..., H, W]``, the shape of ``pred``): boolean, or
-  numbers that are all 0 or 1. A metric with a mask is the metric over the
-  pixels where the mask is true, image by image. SSIM filters the full images
-  (the mask does not change the local statistics) and averages its SSIM map
-  over the masked pixels that survive the border crop (below).
-* PSNR of identical images (MSE 0) is not infinite: the MSE is floored at
-  ``data_range**2 * 1e-10``, which caps PSNR at :data:`PSNR_CAP_DB` = 100 dB,
-  finite and with finite gradients.
-* SSIM reproduces ``skimage.metrics.structural_similarity(pred, target,
-  gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-  data_range=1.0)`` (Wang et al. 2004): Gaussian weighting with ``sigma = 1.5``
-  truncated at ``3.5 * sigma`` (an 11-tap window; radius
-  ``int(3.5 * sigma + 0.5)``), symmetric ("reflect", ``d c b a | a b c d``)
-  padding at the image borders, population (co)variances, ``K1 = 0.01``,
-  ``K2 = 0.03``; the SSIM map is then cropped by ``(win_size - 1) // 2 = 5``
-  pixels on every side before it is averaged. As in scikit-image,
-  ``win_size`` only sets that crop and the smallest accepted image
-  (``H, W >= win_size``); the Gaussian's extent is set by ``sigma`` alone.
-* Validation: shapes are always checked (they are static under ``jit``).
-  When an argument is concrete (not a JAX tracer) it is also checked, before
-  anything compiles, for NaN (``pred``, ``target``), for values other than
-  0/1 and for images with no masked pixel (``mask``). Under ``jit`` these
-  value checks cannot run: NaN then propagates to the output (the score of
-  an image holding a NaN is NaN; with a mask, RMSE, MAD and PSNR leave out a
-  NaN at a pixel outside the mask, SSIM does not), and an image whose mask
-  selects no pixel scores as if it had no error (MSE 0: RMSE and MAD 0, PSNR
-  the 100 dB cap, SSIM 1). ``inf`` is not rejected, eagerly or under
-  ``jit``: it gives a non-finite score (RMSE and MAD ``inf``, PSNR ``-inf``,
-  SSIM NaN; RMSE, MAD and PSNR only where the mask selects it).
-
-Surfaces (one definition for every method, learned or classic):
-
-* A pixel is a **true surface** where the ground-truth depth is > 0 (the
-  datasets write 0 m at background).
-* A pixel is **reconstructed as surface** where the predicted depth is
-  >= :data:`SURFACE_MIN_DEPTH` (0.1 m). Classic methods write 0 m where their
-  intensity is below the surface threshold
-  (:func:`nlosjax.physics.intensity_depth`); the networks' soft depth fades
-  towards 0 m without reaching it, so "0 m exactly" would call their
-  background surface.
-* With ``TP`` true surface pixels reconstructed as surface, ``FN`` true
-  surface pixels not, ``FP`` background pixels reconstructed as surface:
-  ``recall = TP / (TP + FN)``, ``precision = TP / (TP + FP)``,
-  ``f1 = 2 TP / (2 TP + FP + FN)``; ``rmse_object`` and ``mad_object`` are the
-  depth errors (metres) over the true surface pixels, whatever was
-  reconstructed there.
-* A score whose denominator is empty is NaN, not a number chosen for it: an
-  image with no true surface has NaN ``recall``, ``rmse_object`` and
-  ``mad_object``; one with nothing reconstructed as surface has NaN
-  ``precision``; ``f1`` is NaN only when both are empty. Tables average these
-  with NaN skipped and report how many frames each mean covers.
-* NaN in either depth map (possible under ``jit`` only; a concrete one
-  raises) makes all five scores of that image NaN: ``NaN >= min_depth`` and
-  ``NaN > 0`` are false, so without this a NaN pixel would silently count as
-  background. ``+inf`` is a depth like any other (surface; an ``inf`` error
-  where it is scored).
-
-Temporal consistency (:data:`TEMPORAL_METRICS`; one definition for every method):
-
-* Inputs are sequences ``[..., F, H, W]``: frames on axis -3, consecutive in
-  time (frame ``t`` follows frame ``t - 1``), ``F >= 2``; leading axes are
-  independent sequences (batches broadcast, no ``vmap`` needed). The scores
-  compare how the reconstruction changes between consecutive frames with how
-  the ground truth changes: for the pair ``(t - 1, t)`` the error image is
-  ``e_t = (pred_t - pred_{t-1}) - (target_t - target_{t-1})``.
-* Output: one value per consecutive pair, ``[..., F - 1]`` (entry ``t - 1``
-  is the pair ``(t - 1, t)``); with ``pooled=True`` one value per sequence,
-  ``[...]``, whose mean square pools every pair's (selected) pixels.
-* :func:`temporal_rmse`: ``sqrt(mean(e_t**2))`` over ``H, W`` (the units of
-  the inputs). A reconstruction equal to the truth plus a per-sequence
-  constant (a bias, even one that differs pixel to pixel, as long as it does
-  not change over time) scores 0; against a static truth it is the RMS of the
-  reconstruction's frame-to-frame change (its flicker).
-* :func:`temporal_psnr`: ``10 * log10(data_range**2 / max(MSE_t, data_range**2
-  * 1e-10))`` with ``MSE_t = mean(e_t**2)``: the peak is the *images'* data
-  range, the :func:`psnr` convention (1 for intensities in ``[0, 1]``), not
-  the range of a change (``2 * data_range``, which would add 6.02 dB); so
-  ``temporal_psnr(p, y)[..., t-1] == psnr(p_t - p_{t-1}, y_t - y_{t-1})``, in
-  dB on the per-frame PSNR's scale, with the same 100 dB cap.
-* :func:`temporal_rmse_object`: depth (metres) over the pixels that are true
-  surface (ground-truth depth > 0, "Surfaces") in *both* frames ``t - 1`` and
-  ``t``, whatever was reconstructed there. A pair with no such pixel is NaN
-  (pooled: a sequence where no pair has one); tables skip it like any NaN
-  score, so such a pair adds no frame pair to the counts, and a sequence with
-  no defined pair no sequence. As for :func:`surface_scores`, a NaN anywhere
-  in either depth map of either frame (possible under ``jit`` only) makes the
-  pair NaN.
-* Validation: fewer than 2 frames (``F < 2``) or rank < 3 raises
-  ``ValueError``, eagerly and under ``jit`` (shapes are static); NaN in a
-  concrete input raises as for every metric. Under ``jit`` a NaN in frame
-  ``t`` makes the pairs ``(t - 1, t)`` and ``(t, t + 1)`` NaN (pooled: the
-  sequence); the other pairs keep their values.
+The definitions (masks, the PSNR cap, SSIM's scikit-image settings, behaviour
+under ``jit`` with NaN and inf, what counts as surface, the temporal scores) are
+in ``docs/evaluation.md``, "Metric definitions".
 """
 
 from __future__ import annotations
@@ -137,13 +39,13 @@ _PSNR_MSE_FLOOR = 10.0 ** (-PSNR_CAP_DB / 10.0)  # relative to data_range**2
 _GAUSSIAN_TRUNCATE = 3.5  # scikit-image's truncation for gaussian_weights=True
 
 SURFACE_MIN_DEPTH = 0.1
-"""Depth (metres) from which a reconstructed pixel counts as surface (see "Surfaces")."""
+"""Depth (metres) from which a reconstructed pixel counts as surface (docs/evaluation.md, "Surfaces")."""
 
 OBJECT_METRICS = ("rmse_object", "mad_object", "recall", "precision", "f1")
 """The keys of :func:`surface_scores`, in table order."""
 
 TEMPORAL_METRICS = ("temporal_rmse", "temporal_psnr", "temporal_rmse_object")
-"""The temporal-consistency scores (see "Temporal consistency"), in table order."""
+"""The temporal-consistency scores (docs/evaluation.md, "Temporal consistency"), in table order."""
 
 
 # --------------------------------------------------------------------------
@@ -521,7 +423,7 @@ def surface(depth, *, min_depth: float = SURFACE_MIN_DEPTH):
 
 
 def _true_surface(target_depth):
-  """True surface pixels of a ground-truth depth map: depth > 0 (see "Surfaces")."""
+  """True surface pixels of a ground-truth depth map: depth > 0 (docs/evaluation.md, "Surfaces")."""
   return target_depth > 0
 
 
@@ -553,7 +455,7 @@ def _surface_scores(pred, target, min_depth):
 
 
 def surface_scores(pred_depth, target_depth, *, min_depth: float = SURFACE_MIN_DEPTH) -> dict:
-  """Object-aware depth scores of each image (see "Surfaces" in the module docstring).
+  """Object-aware depth scores of each image (docs/evaluation.md, "Surfaces").
 
   Args:
     pred_depth: ``[..., H, W]`` reconstructed depth map, metres (background
@@ -566,7 +468,7 @@ def surface_scores(pred_depth, target_depth, *, min_depth: float = SURFACE_MIN_D
     ``rmse_object``, ``mad_object`` (metres, over true surface pixels),
     ``recall``, ``precision``, ``f1`` (in [0, 1]). NaN where the score's
     denominator is empty, and every score NaN for an image holding a NaN
-    (traced input; module docstring).
+    (traced input; docs/evaluation.md, "Conventions").
 
   Raises:
     ValueError: shapes differ, rank < 2, NaN in a concrete input, ``min_depth`` <= 0.
@@ -677,7 +579,7 @@ def _temporal_rmse_object(pred, target, *, pooled):
 
 
 def temporal_rmse(pred, target, *, pooled: bool = False):
-  """RMSE of the change between consecutive frames against the true change ("Temporal consistency").
+  """RMSE of the change between consecutive frames against the true change (docs/evaluation.md).
 
   ``sqrt(mean(e_t**2))`` over ``H, W`` with ``e_t = (pred_t - pred_{t-1}) -
   (target_t - target_{t-1})``; the units of the inputs.
@@ -708,7 +610,7 @@ def temporal_psnr(pred, target, *, data_range=1.0, pooled: bool = False):
 
   ``10 * log10(data_range**2 / max(MSE_t, data_range**2 * 1e-10))``, ``MSE_t
   = mean(e_t**2)`` (:func:`temporal_rmse` squared): the peak is the images'
-  data range, as in :func:`psnr` (module docstring, "Temporal consistency"),
+  data range, as in :func:`psnr` (docs/evaluation.md, "Temporal consistency"),
   capped at :data:`PSNR_CAP_DB`.
 
   Args:
@@ -734,7 +636,7 @@ def temporal_rmse_object(pred_depth, target_depth, *, pooled: bool = False):
   """Depth RMSE (metres) of the change between consecutive frames, over the objects.
 
   ``sqrt(mean(e_t**2))`` over the pixels that are true surface (ground-truth
-  depth > 0) in both frames ``t - 1`` and ``t`` (module docstring,
+  depth > 0) in both frames ``t - 1`` and ``t`` (docs/evaluation.md,
   "Temporal consistency").
 
   Args:
