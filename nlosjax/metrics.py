@@ -38,14 +38,15 @@ _PSNR_MSE_FLOOR = 10.0 ** (-PSNR_CAP_DB / 10.0)  # relative to data_range**2
 
 _GAUSSIAN_TRUNCATE = 3.5  # scikit-image's truncation for gaussian_weights=True
 
+# "Surfaces" and "Temporal consistency" below are sections of docs/evaluation.md.
 SURFACE_MIN_DEPTH = 0.1
-"""Depth (metres) from which a reconstructed pixel counts as surface (docs/evaluation.md, "Surfaces")."""
+"""Depth (metres) from which a reconstructed pixel counts as surface (see "Surfaces")."""
 
 OBJECT_METRICS = ("rmse_object", "mad_object", "recall", "precision", "f1")
 """The keys of :func:`surface_scores`, in table order."""
 
 TEMPORAL_METRICS = ("temporal_rmse", "temporal_psnr", "temporal_rmse_object")
-"""The temporal-consistency scores (docs/evaluation.md, "Temporal consistency"), in table order."""
+"""The temporal-consistency scores (see "Temporal consistency"), in table order."""
 
 
 # --------------------------------------------------------------------------
