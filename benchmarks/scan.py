@@ -37,15 +37,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
 import pathlib
-import platform
 import statistics
 import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from experiments import provenance as _machine_facts
 from nlosjax.ssm import resolve_method, selective_scan
@@ -138,22 +135,11 @@ def bench_shape(shape, methods, repeats, chunk_size, log=print):
   return rows
 
 
-def machine_info() -> dict:
-  model = _machine_facts.cpu_model()
-  usable = _machine_facts.usable_cores()
-  import flax
-  dev = jax.devices()[0]
-  return dict(cpu=model, usable=usable, logical=os.cpu_count(), python=platform.python_version(),
-              jax=jax.__version__, jaxlib=jax.lib.__version__ if hasattr(jax.lib, "__version__")
-              else jax.__version__, flax=flax.__version__, numpy=np.__version__,
-              backend=jax.default_backend(), device=f"{dev.platform}:{dev.id} ({dev.device_kind})")
-
-
 def _load() -> str:
   return _machine_facts.load_average()
 
 
-def render(results, info, cmd, repeats, chunk_size, load_start, load_end) -> str:
+def render(results, cmd, repeats, chunk_size, load_start, load_end) -> str:
   lines = [
       "# Selective-scan kernels: methods vs the exp and copy floors", "",
       f"Produced by `{cmd}`.", "",
@@ -246,8 +232,7 @@ def main(argv=None):
     shapes = args.shapes or [parse_shape(s) for s in DEFAULT_SHAPES]
     repeats = args.repeats
     out = args.out or DEFAULT_OUT
-  info = machine_info()
-  print(f"{info['cpu']}, {info['usable']} usable cores, jax {info['jax']}, backend {info['backend']}")
+  print(f"{_machine_facts.machine_text()}; {_machine_facts.versions_text()}")
   load_start = _load()
   results = {}
   for shape in shapes:
@@ -264,7 +249,7 @@ def main(argv=None):
   if argv is None:
     import sys
     cmd = "python -m benchmarks.scan " + " ".join(sys.argv[1:])
-  text = render(results, info, cmd.strip(), repeats, args.chunk_size, load_start, _load())
+  text = render(results, cmd.strip(), repeats, args.chunk_size, load_start, _load())
   print()
   print(text)
   if out is not None:

@@ -64,7 +64,7 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
       " of the shared machine moves absolute times much more than that; ratios between rows of"
       " this file are the stable quantity.",
       f"- Data: test split of `{res['data']}`, {res['frames']} frames (8 sequences x middle frames"
-      f" 1-6), {res['grid'][0]} x {res['grid'][1]} scan grid, {res['num_bins']} bins of"
+      f" 1-6), {full} scan grid, {res['num_bins']} bins of"
       f" {res['bin_width'] * 1e12:.0f} ps, {res['wall_size']:g} m wall; objects at"
       f" {res['depth_range'][0]:g}-{res['depth_range'][1]:g} m.",
       f"- Learned configurations: trained by this benchmark, {res['steps']} AdamW steps of batch 4"

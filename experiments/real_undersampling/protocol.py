@@ -25,7 +25,6 @@ CAPTURE_BIN_WIDTH = 16e-12
 DEFAULT_PRETRAINED = "real"
 
 
-
 def default_files(data_dir=None) -> list[pathlib.Path]:
   """The real scans: ``data_dir/*.mat``, else ``../shared/data/real``, else the shipped scan."""
   from nlosjax.data import io
