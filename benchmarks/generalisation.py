@@ -86,7 +86,7 @@ def load_model(spec: str):
   config = run["config"]
   mcfg = train.model_config_for(config, inference.training_setup(config), run["variant"])
   params, _ = inference.restore_params(run["checkpoints"], mcfg, step=run["step"],
-                                       config_file=run["source"], allow_added_fields=True)
+                                       config_file=run["source"])
   return mcfg, params, config
 
 

@@ -286,7 +286,7 @@ def export(run_path, name: str, variant: str, *, command: str | None = None, com
   config = run["config"]
   mcfg = train.model_config_for(config, inference.training_setup(config), variant)
   params, restored = inference.restore_params(run["checkpoints"], mcfg, step=run["step"],
-                                              config_file=run["source"], allow_added_fields=True)
+                                              config_file=run["source"])
   params = jax.tree.map(np.asarray, params)
   log(f"restored step {restored['step']} from {restored['checkpoint']} ({time.perf_counter() - t0:.1f} s)"
       + (f"; its recorded model config predates the fields {restored['added_fields']} (at their defaults)"
@@ -326,7 +326,7 @@ def export(run_path, name: str, variant: str, *, command: str | None = None, com
                      "metric": "mean over the split's frames of the intensity PSNR (dB), the model's"
                                " intensity clamped to [0, 1] (nlosjax.evaluation.protocol.validation_psnr);"
                                " per sequence: the mean over that sequence's frames"},
-      "model_config": repr(mcfg),
+      "model_config": train.model_record(mcfg),
       "param_fingerprint": train.param_fingerprint(params),
       "exported": {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                    "commit": git_commit(), "command": export_command, "cpu": cpu_model(),

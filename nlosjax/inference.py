@@ -23,7 +23,6 @@ import functools
 import json
 import logging
 import pathlib
-import re
 
 import jax
 import jax.numpy as jnp
@@ -144,42 +143,16 @@ def training_setup(config: dict) -> Setup:
                bin_width=data["bin_width"], num_bins=data["num_bins"])
 
 
-def added_default_fields(recorded: str, model_config) -> list[str] | None:
-  """Fields of ``model_config`` that a recorded ``repr`` lacks, when that is its only difference.
-
-  A checkpoint written before a field was added to the model config records a
-  ``repr`` without it. Returns ``[]`` when ``recorded == repr(model_config)``;
-  the names of the fields absent from ``recorded`` when removing them (each at
-  its dataclass default) from ``repr(model_config)`` gives ``recorded``; else
-  None (another config).
-  """
-  now = repr(model_config)
-  if recorded == now:
-    return []
-  added = []
-  for f in dataclasses.fields(model_config):
-    if re.search(rf"[(, ]{f.name}=", recorded) or f.default is dataclasses.MISSING:
-      continue
-    value = getattr(model_config, f.name)
-    if value != f.default:
-      continue
-    text = f", {f.name}={value!r}"
-    if text in now:
-      now = now.replace(text, "", 1)
-      added.append(f.name)
-  return added if added and now == recorded else None
-
-
-def restore_params(ckpt, model_config, *, step: int | None = None, config_file=None,
-                   allow_added_fields: bool = False) -> tuple[dict, dict]:
+def restore_params(ckpt, model_config, *, step: int | None = None,
+                   config_file=None) -> tuple[dict, dict]:
   """The parameters of one orbax checkpoint, checked against ``model_config``; compiles nothing.
 
   Reads the ``state`` item (``{"params", "opt_state", "step"}``) and the
   ``meta`` item (the run signature, :func:`nlosjax.train.run_signature`) of a
-  :class:`~nlosjax.train.Checkpointer` folder. The recorded model ``repr`` must
-  equal ``repr(model_config)`` (with ``allow_added_fields``: or differ only by
-  fields added to the config class since, at their defaults,
-  :func:`added_default_fields`); the parameter tree must have the shapes
+  :class:`~nlosjax.train.Checkpointer` folder. The recorded model config (a
+  field-by-field record, or the ``repr`` older checkpoints hold) must match
+  ``model_config`` (:func:`nlosjax.train.compare_model`: equal fields, and a
+  field the checkpoint predates at its default); the parameter tree must have the shapes
   ``model_config`` initialises; the recorded parameter fingerprint
   (:func:`nlosjax.train.param_fingerprint`, when recorded) must match.
 
@@ -188,11 +161,10 @@ def restore_params(ckpt, model_config, *, step: int | None = None, config_file=N
     model_config: the config the checkpoint must have been written by.
     step: the step to restore (default: the latest).
     config_file: the file ``model_config`` was rebuilt from (named in errors).
-    allow_added_fields: see above.
   Returns:
     ``(params, info)``: params a nested dict of float32 ``jax.Array``; info
-    ``{"checkpoint": step folder, "step", "recorded_model": recorded repr or
-    None, "added_fields": [names]}``.
+    ``{"checkpoint": step folder, "step", "recorded_model": the recorded record
+    or repr, or None, "added_fields": [fields the checkpoint predates]}``.
   Raises:
     ValueError: naming the folder for a missing step, an unreadable checkpoint or a mismatch.
   """
@@ -226,16 +198,15 @@ def restore_params(ckpt, model_config, *, step: int | None = None, config_file=N
   signature = _signature(meta.get("model_config") if isinstance(meta, dict) else None)
   recorded = signature.get("model")
   added = []
-  # A run's signature leaves out fields added later at their defaults (train.checkpoint.model_repr).
-  if recorded is not None and recorded not in (repr(model_config),
-                                               train.checkpoint.model_repr(model_config)):
-    added = added_default_fields(recorded, model_config) if allow_added_fields else None
-    if added is None:
+  if recorded is not None:
+    try:
+      differ, added = train.compare_model(recorded, model_config)
+    except ValueError as e:
+      differ = [str(e)]
+    if differ:
       source = config_file if config_file is not None else "the run config"
-      label = pathlib.Path(config_file).name if config_file is not None else "run config"
-      raise ValueError(f"checkpoint {where} was written by another model config than"
-                       f" {source} gives:\n  checkpoint: {recorded}\n"
-                       f"  {label}: {model_config!r}")
+      raise ValueError(f"checkpoint {where} was written by another model config than {source}"
+                       " gives:\n  " + "\n  ".join(differ))
   params = jax.tree.map(jnp.asarray, item["params"])
   _check_tree(where, params, _expected_tree(model_config))
   if "params" in signature and signature["params"] != train.param_fingerprint(params):
@@ -266,8 +237,8 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
   the provenance's run config as :func:`load_trained` does
   (:func:`nlosjax.train.model_config_for` for the training Setup). Checked,
   each a ValueError naming the file: the sha256 of ``params.npz``, that the
-  rebuilt config's ``repr`` equals the recorded ``model_config`` (or differs
-  only by fields added since, at their defaults), that the
+  rebuilt config matches the recorded ``model_config``
+  (:func:`nlosjax.train.compare_model`), that the
   parameter tree has the shapes the config initialises (``jax.eval_shape``),
   and the recorded parameter-tree fingerprint.
 
@@ -308,10 +279,14 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
     mcfg = train.model_config_for(config, training_setup(config), variant)
   except (KeyError, TypeError, ValueError) as e:
     raise ValueError(f"{where}: its config does not rebuild a model ({type(e).__name__}: {e})") from None
-  if added_default_fields(prov["model_config"], mcfg) is None:     # [] when equal
+  try:
+    differ = train.compare_model(prov["model_config"], mcfg)[0]
+  except ValueError as e:
+    differ = [str(e)]
+  if differ:
     raise ValueError(f"{where}: the model config rebuilt from its config differs from the one"
-                     f" recorded (another version of nlosjax, or an edited file):\n  recorded: "
-                     f"{prov['model_config']}\n  rebuilt:  {mcfg!r}")
+                     " recorded (another version of nlosjax, or an edited file):\n  "
+                     + "\n  ".join(differ))
   params = jax.tree.map(jnp.asarray, params)
   _check_tree(folder / pretrained.PARAMS_FILE, params, _expected_tree(mcfg), what="weights")
   fingerprint = train.param_fingerprint(params)

@@ -10,7 +10,7 @@ One folder per model, ``<root>/<name>-<variant>/`` (``variant`` one of
   parameters give the same bytes (and the same sha256).
 * ``provenance.json`` -- where the parameters came from and how to check them
   (:func:`write_weights` documents the keys it requires): the run's whole
-  config, the model config ``repr``, the parameter-tree fingerprint, the
+  config, the model config (a field-by-field record), the parameter-tree fingerprint, the
   sha256 of ``params.npz`` and the validation score recomputed at export.
 
 This module reads and writes the two files and checks the file-level facts
@@ -142,7 +142,8 @@ def write_weights(folder, params, provenance: dict, *, overwrite: bool = False) 
       ``name`` and ``variant``.
     params: the parameter tree (nested dict of float32 arrays).
     provenance: JSON-able dict; must hold ``config`` (the run config dict),
-      ``model_config`` (``repr`` of the model config), ``param_fingerprint``
+      ``model_config`` (:func:`nlosjax.train.model_record` of the model config;
+      weights exported before records hold its ``repr``), ``param_fingerprint``
       and ``validation`` (``{"psnr_db", "per_sequence_psnr_db", ...}``); the
       ``format``, ``format_version``, ``name``, ``variant``, ``params_sha256``
       and ``num_params`` keys are set here.

@@ -294,9 +294,9 @@ def test_feature_transform_with_public_operators_is_the_public_physics(method):
 def test_model_config_physics_variant_reaches_the_layer_and_is_checked():
   """``ModelConfig.physics_variant`` builds the public layer (reading every bin, its own
   operators, another output from the same parameters) and the refined one by default; bad
-  values fail when the config is made; a refined run's signature is the one written before
-  the field existed, a public run's names it."""
-  from nlosjax.train import checkpoint
+  values fail when the config is made; a checkpoint written before the field existed (its
+  ``repr`` lacks it) matches a refined run and not a public one."""
+  from nlosjax.train import compare_model
   gated = ModelConfig.cpu(TINY.with_depth_range(0.08, 0.25), **TINY_KW)
   public = dataclasses.replace(gated, physics_variant="public")
   assert gated.physics_variant == "refined"
@@ -319,9 +319,11 @@ def test_model_config_physics_variant_reaches_the_layer_and_is_checked():
     dataclasses.replace(gated, physics_variant="published")
   with pytest.raises(ValueError, match="physics_oversample"):
     dataclasses.replace(gated, physics_variant="public", physics_oversample=2)
-  assert checkpoint.model_repr(gated) == repr(gated).replace(", physics_variant='refined'", "")
-  assert "physics_variant" not in checkpoint.model_repr(gated)
-  assert checkpoint.model_repr(public) == repr(public) and "physics_variant='public'" in repr(public)
+  before = repr(gated).replace(", physics_variant='refined'", "")
+  assert "physics_variant" not in before
+  assert compare_model(before, gated) == ([], ["setup.aperture", "physics_variant"])
+  differ, _ = compare_model(before, public)
+  assert len(differ) == 1 and differ[0].startswith("physics_variant: not recorded, 'public' now")
 
 
 def test_volume_stage_physics_channel_is_the_physics_of_the_pooled_transient():

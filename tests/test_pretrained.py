@@ -140,7 +140,7 @@ def test_load_pretrained_equals_the_model_restored_from_its_run(regenerated):
   run_cfg = train.model_config_for(run, inference.training_setup(run), "ours")
   assert run_cfg == mcfg
   restored, info = inference.restore_params(RUN / "model" / "best_checkpoint", run_cfg,
-                                            step=prov["best_step"], allow_added_fields=True)
+                                            step=prov["best_step"])
   jax.tree.map(np.testing.assert_array_equal, params, restored)
   # As host arrays: orbax's committed device arrays would make jit compile the forward again.
   restored = jax.tree.map(lambda x: jax.numpy.asarray(np.asarray(x)), restored)
@@ -181,14 +181,14 @@ def _tamper_config(folder):
   prov = json.loads((folder / "provenance.json").read_text())
   prov["config"]["model"]["width"] = 2 * prov["config"]["model"]["width"]
   (folder / "provenance.json").write_text(json.dumps(prov))
-  return ["provenance.json", "differs from the one", "width=16"]
+  return ["provenance.json", "differs from the one", "width: 8 recorded, 16 now"]
 
 
 def _tamper_recorded_config(folder):
   prov = json.loads((folder / "provenance.json").read_text())
   prov["model_config"] = prov["model_config"].replace("d_state=4", "d_state=8")
   (folder / "provenance.json").write_text(json.dumps(prov))
-  return ["provenance.json", "recorded", "d_state=8"]
+  return ["provenance.json", "recorded", "d_state: 8 recorded, 4 now"]
 
 
 @pytest.mark.parametrize("tamper", [_tamper_shape, _tamper_values, _tamper_config, _tamper_recorded_config])

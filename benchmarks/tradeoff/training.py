@@ -76,6 +76,7 @@ def train_learned(spec: Learned, config: dict, setup, root: pathlib.Path, steps:
     make_mesh,
     make_optimizer,
     make_train_step,
+    model_record,
     select_frames,
     shard_batch,
     training_recipe,
@@ -91,11 +92,11 @@ def train_learned(spec: Learned, config: dict, setup, root: pathlib.Path, steps:
     return create_train_state(mcfg.module(), (batch_size,) + mcfg.input_shape()[1:],
                               make_optimizer(optim, steps), init_key, mesh)
 
-  signature = json.dumps({"benchmark": "tradeoff", "model": repr(mcfg),
+  signature = json.dumps({"benchmark": "tradeoff", "model": model_record(mcfg),
                           "optim": dataclasses.asdict(optim), "loss": dataclasses.asdict(weights),
                           "batch_size": batch_size, "seed": seed, "steps": steps}, sort_keys=True)
   vdir = root / spec.name
-  ckpt = Checkpointer(vdir / "checkpoints", signature, every=50, keep=1)
+  ckpt = Checkpointer(vdir / "checkpoints", signature, every=50, keep=1, model=mcfg)
   latest = ckpt.latest_step()
   if latest is not None and latest >= steps:
     # Finished: restore into shapes only (no compiled initialisation).

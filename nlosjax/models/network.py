@@ -202,9 +202,8 @@ class ModelConfig(ScanInputConfig):
       code's resampling matrix and wavelet, every bin read; needs
       ``physics_oversample`` 1). On the measured scans of ``real.md``, on the
       networks' 64 ps input, the public phasor scores about 1.2 dB above the
-      refined one at 16 x 16 and 0.2 dB at 8 x 8. A field added after
-      checkpoints were written (``metadata["added"]``): at its default it is
-      left out of a run's signature, so those checkpoints still resume.
+      refined one at 16 x 16 and 0.2 dB at 8 x 8. Added after checkpoints were
+      written: those match it at its default (:func:`nlosjax.train.compare_model`).
   """
 
   setup: Setup
@@ -244,7 +243,7 @@ class ModelConfig(ScanInputConfig):
   volume_activation: str = "relu"
   skip_frames: str = "middle"
   conv_impl: str = "auto"
-  physics_variant: str = dataclasses.field(default="refined", metadata={"added": True})
+  physics_variant: str = "refined"
 
   def __post_init__(self):
     if not isinstance(self.setup, Setup):

@@ -17,6 +17,9 @@ One concern per module, each usable alone; everything is importable from
 * :mod:`~nlosjax.train.checkpoint` -- :class:`Checkpointer` (orbax: params,
   optimizer state, step and data position; refuses another run's checkpoint),
   :func:`run_signature`.
+* :mod:`~nlosjax.train.config_record` -- :func:`model_record`: a model config
+  field by field as JSON, and :func:`compare_model` (the one rule: a field a file
+  predates passes at its default; ``repr`` strings of older files are parsed).
 * :mod:`~nlosjax.train.stopping` -- :class:`StopRule` (``train.stop``): a fixed
   step count (the default) or the plateau of the validation PSNR
   (:func:`plateau_reached`), the learning-rate horizon it implies, and the
@@ -31,6 +34,8 @@ is :func:`nlosjax.main_job.train_and_evaluate`; the dry run is :mod:`nlosjax.pla
 """
 
 from nlosjax.train.checkpoint import Checkpointer, param_fingerprint, run_signature
+from nlosjax.train.config_record import compare as compare_model
+from nlosjax.train.config_record import model_record
 from nlosjax.train.loop import (
     TRAIN_DEFAULTS,
     USM_RECIPES,
@@ -52,10 +57,11 @@ from nlosjax.train.step import BATCH_KEYS, make_targets, make_train_step, train_
 from nlosjax.train.stopping import StopRule, plateau_reached, read_curve, stop_reason
 
 __all__ = [
-    "BATCH_KEYS", "Checkpointer", "OptimConfig", "StopRule", "TRAIN_DEFAULTS", "TrainState", "USM_RECIPES",
-    "VARIANT_FRAMES", "abstract_train_state", "create_train_state", "ensure_dataset", "initialize_distributed",
-    "learning_rate_at", "make_loader", "make_mesh", "make_optimizer", "make_targets", "make_train_step",
-    "mesh_for", "model_config_for", "network", "param_fingerprint", "plateau_reached", "read_curve",
-    "read_metrics", "read_selection", "run_signature", "select_frames", "shard_batch", "stop_reason",
-    "to_host", "train_model", "train_step", "training_recipe", "with_defaults",
+    "BATCH_KEYS", "Checkpointer", "OptimConfig", "StopRule", "TRAIN_DEFAULTS", "TrainState",
+    "USM_RECIPES", "VARIANT_FRAMES", "abstract_train_state", "compare_model", "create_train_state",
+    "ensure_dataset", "initialize_distributed", "learning_rate_at", "make_loader", "make_mesh",
+    "make_optimizer", "make_targets", "make_train_step", "mesh_for", "model_config_for", "model_record",
+    "network", "param_fingerprint", "plateau_reached", "read_curve", "read_metrics", "read_selection",
+    "run_signature", "select_frames", "shard_batch", "stop_reason", "to_host", "train_model",
+    "train_step", "training_recipe", "with_defaults"
 ]

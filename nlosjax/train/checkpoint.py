@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 
 from nlosjax import losses
+from nlosjax.train.config_record import compare as compare_model
+from nlosjax.train.config_record import model_record
 from nlosjax.train.optimizer import OptimConfig
 from nlosjax.train.state import TrainState
 
@@ -26,17 +28,22 @@ class Checkpointer:
 
   Args:
     directory: the checkpoint folder (created).
-    model_config: a description of the model (``repr`` of its config) that
-      must match on restore.
+    model_config: the run signature (:func:`run_signature`, JSON) that must
+      match on restore.
     every: save interval in steps.
     keep: checkpoints kept.
+    model: the run's model config; when given, the signature's ``"model"``
+      record is matched by :func:`nlosjax.train.config_record.compare` (a field
+      the checkpoint predates passes at its default) and every other entry
+      must be equal; without it the whole signature must be equal.
   """
 
-  def __init__(self, directory, model_config: str, *, every: int, keep: int = 2):
+  def __init__(self, directory, model_config: str, *, every: int, keep: int = 2, model=None):
     import orbax.checkpoint as ocp
     self._ocp = ocp
     self.directory = pathlib.Path(directory).absolute()
     self.model_config = model_config
+    self.model = model
     self.every = int(every)
     options = ocp.CheckpointManagerOptions(max_to_keep=keep, save_interval_steps=1, create=True)
     self.manager = ocp.CheckpointManager(self.directory, options=options)
@@ -77,10 +84,10 @@ class Checkpointer:
     except Exception as e:  # orbax raises many types for a damaged folder
       raise ValueError(f"checkpoint {where} is unreadable ({type(e).__name__}: {e}); "
                        "move it away to resume from an earlier one") from None
-    if meta.get("model_config") != self.model_config:
-      raise ValueError(f"checkpoint {where} was written by another model config:\n"
-                       f"  checkpoint: {meta.get('model_config')}\n  this run:   {self.model_config}\n"
-                       "use another --workdir or the matching config")
+    differ = signature_differences(meta.get("model_config"), self.model_config, self.model)
+    if differ:
+      raise ValueError(f"checkpoint {where} was written by another model config:\n  "
+                       + "\n  ".join(differ) + "\nuse another --workdir or the matching config")
     target = {"params": state.params, "opt_state": state.opt_state, "step": state.step}
     abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, target)
     try:
@@ -113,29 +120,44 @@ def param_fingerprint(params) -> str:
   return hashlib.sha256(desc.encode()).hexdigest()[:16]
 
 
-def model_repr(mcfg) -> str:
-  """``repr(mcfg)`` less each field added later (``metadata["added"]``) that is at its default.
-
-  So a checkpoint written before such a field existed keeps resuming, as long
-  as the run leaves the field at its default.
-  """
-  text = repr(mcfg)
-  if dataclasses.is_dataclass(mcfg):
-    for f in dataclasses.fields(mcfg):
-      if f.metadata.get("added") and getattr(mcfg, f.name) == f.default:
-        text = text.replace(f", {f.name}={f.default!r}", "", 1)
-  return text
-
-
 def run_signature(mcfg, params, optim: OptimConfig, weights: losses.LossWeights, batch_size: int,
                   seed: int) -> str:
   """What a checkpoint must have been trained with to be resumed or restored.
 
-  The model config (:func:`model_repr`), the parameter tree (:func:`param_fingerprint`), the
+  The model config (:func:`~nlosjax.train.config_record.model_record`, field by field), the
+  parameter tree (:func:`param_fingerprint`), the
   optimiser, the loss weights (:meth:`~nlosjax.losses.LossWeights.to_dict`:
   a weight added later is absent at its default, so older checkpoints still
   resume), the batch size and the seed, as sorted JSON.
   """
-  return json.dumps({"model": model_repr(mcfg), "params": param_fingerprint(params),
+  return json.dumps({"model": model_record(mcfg), "params": param_fingerprint(params),
                      "optim": dataclasses.asdict(optim), "loss": weights.to_dict(),
                      "batch_size": int(batch_size), "seed": int(seed)}, sort_keys=True)
+
+
+def signature_differences(recorded, signature: str, model=None) -> list[str]:
+  """What keeps a checkpoint's recorded signature from matching ``signature`` (empty: it matches).
+
+  ``recorded`` and ``signature``: run signatures (JSON text). With ``model``,
+  the ``"model"`` entries are matched by :func:`nlosjax.train.config_record.compare`
+  (a record or, from older checkpoints, a ``repr`` string); every other entry
+  must be equal. One line per difference.
+  """
+  if recorded == signature:
+    return []
+  try:
+    rec, mine = json.loads(recorded), json.loads(signature)
+  except (TypeError, json.JSONDecodeError):
+    rec = mine = None
+  if not isinstance(rec, dict) or not isinstance(mine, dict):
+    return [f"checkpoint: {recorded}", f"this run:   {signature}"]
+  out = []
+  for key in sorted(set(rec) | set(mine)):
+    if key == "model" and model is not None and key in rec:
+      try:
+        out += [f"model.{d}" for d in compare_model(rec[key], model)[0]]
+      except ValueError as e:
+        out.append(f"model: {e}")
+    elif rec.get(key) != mine.get(key):
+      out.append(f"{key}: {rec.get(key)!r} in the checkpoint, {mine.get(key)!r} in this run")
+  return out

@@ -207,7 +207,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   state = create_train_state(model, shape, make_optimizer(optim, steps), init_key, mesh)
   signature = run_signature(mcfg, state.params, optim, weights, batch_size, seed)
   ckpt = Checkpointer(vdir / "checkpoints", signature, every=int(tr.get("checkpoint_every", 50)),
-                      keep=int(tr.get("keep_checkpoints", 2)))
+                      keep=int(tr.get("keep_checkpoints", 2)), model=mcfg)
   start = 0
   restored = ckpt.restore_latest(state)
   if restored is not None:
@@ -215,7 +215,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     log(f"[{variant}] resumed from step {start} ({ckpt.directory})")
   tracker = None
   if stop.rule == "plateau":
-    best = Checkpointer(vdir / BEST_FOLDER, signature, every=1, keep=1)
+    best = Checkpointer(vdir / BEST_FOLDER, signature, every=1, keep=1, model=mcfg)
     tracker = PlateauTracker(vdir, stop, best, validate, lambda s: learning_rate_at(optim, steps, s - 1),
                              primary=primary)
     tracker.resume(start)
