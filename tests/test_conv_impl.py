@@ -85,3 +85,59 @@ def test_fast_path_equals_the_fold_reference_at_the_cpu_preset():
   for u, w in zip(jax.tree.leaves(g), jax.tree.leaves(g_ref)):
     np.testing.assert_allclose(u, w, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(w))))
   assert float(jnp.max(jnp.abs(g[0]["refine"]["conv1"]["kernel"]))) > 0    # direct convs got gradients
+
+
+@pytest.mark.parametrize("cin, feats, kh, kw", [(3, 1, 3, 3), (2, 2, 1, 3), (1, 3, 3, 3), (3, 1, 3, 4)])
+def test_conv2d_kernel_grad_equals_a_loop_over_shifts(cin, feats, kh, kw):
+  """Both orientations of ``conv2d_kernel_grad`` (the first two cases run the swapped one)
+  against the defining sum, one shift at a time."""
+  rng = np.random.default_rng(cin * 10 + feats)
+  lhs = rng.normal(size=(5, 4 + kh, 4 + kw, cin)).astype(np.float32)     # a 5 x 5 output
+  g = rng.normal(size=(5, 5, 5, feats)).astype(np.float32)
+  want = np.zeros((kh, kw, cin, feats))
+  for b in range(kh):
+    for c in range(kw):
+      want[b, c] = np.einsum("pyxi,pyxf->if", lhs[:, b:b + 5, c:c + 5].astype(np.float64), g)
+  np.testing.assert_allclose(conv.conv2d_kernel_grad(jnp.asarray(lhs), jnp.asarray(g)), want,
+                             rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("kernel, stride, dilation, cin, feats", [
+    ((3, 3, 3), 1, 1, 3, 4), ((3, 3, 3), 2, 1, 4, 2), ((3, 1, 5), 1, 2, 2, 2), ((2, 3, 3), 1, 1, 1, 3)])
+def test_time_folded_conv_gradients_equal_xla_3d_conv(kernel, stride, dilation, cin, feats):
+  """"fold" (the 2-D convolution with its own kernel gradient) against XLA's 3-D convolution."""
+  x = jax.random.normal(jax.random.key(2), (2, 9, 5, 6, cin))
+  fold = conv.Conv3D(feats, kernel, stride, dilation, impl="fold")
+  params = jax.tree.map(lambda p: p + 0.1, fold.init(jax.random.key(3), x))
+  ref = conv.Conv3D(feats, kernel, stride, dilation, impl="xla")
+  (v, (gp, gx)), (v_ref, (gp_ref, gx_ref)) = _grads(fold, params, x), _grads(ref, params, x)
+  np.testing.assert_allclose(v, v_ref, rtol=1e-5)
+  np.testing.assert_allclose(gx, gx_ref, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(gx_ref))))
+  for a, b in zip(jax.tree.leaves(gp), jax.tree.leaves(gp_ref)):
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(b))))
+
+
+@pytest.mark.parametrize("shape, kernel, stride, cin, feats", [
+    ((10, 8, 6), (3, 3, 3), 2, 1, 3), ((9, 7, 11), (3, 3, 3), 2, 2, 1), ((11, 9, 10), (3, 2, 4), 3, 1, 2)])
+def test_strided_conv3d_equals_xla_strided_conv_with_gradients(shape, kernel, stride, cin, feats):
+  """The polyphase form (USM's extraction) against ``lax.conv_general_dilated`` with a stride."""
+  x = jax.random.normal(jax.random.key(4), (2,) + shape + (cin,))
+  k = jax.random.normal(jax.random.key(5), kernel + (cin, feats))
+
+  def xla(x, k):
+    return jax.lax.conv_general_dilated(x, k, (stride,) * 3, "VALID",
+                                        dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
+
+  def loss(fn):
+    return jax.jit(jax.value_and_grad(lambda x, k: jnp.sum(jnp.sin(fn(x, k))), argnums=(0, 1)))
+
+  y, y_ref = conv.strided_conv3d(x, k, stride), xla(x, k)
+  assert y.shape == y_ref.shape
+  np.testing.assert_allclose(y, y_ref, rtol=1e-5, atol=1e-5)
+  (v, (gx, gk)), (v_ref, (gx_ref, gk_ref)) = loss(lambda a, b: conv.strided_conv3d(a, b, stride))(x, k), \
+      loss(xla)(x, k)
+  np.testing.assert_allclose(v, v_ref, rtol=1e-5)
+  np.testing.assert_allclose(gx, gx_ref, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(gx_ref))))
+  np.testing.assert_allclose(gk, gk_ref, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(gk_ref))))
+  with pytest.raises(ValueError, match="smaller than the kernel"):
+    conv.strided_conv3d(x[:, :2], k, stride)

@@ -346,7 +346,6 @@ class Extraction(nn.Module):
   @nn.compact
   def __call__(self, x):
     x = x[..., None]
-    dims = ("NDHWC", "DHWIO", "NDHWC")
 
     def pool_init(key, shape, dtype=jnp.float32):
       k = np.zeros(shape, np.float32)
@@ -354,13 +353,14 @@ class Extraction(nn.Module):
       return jnp.asarray(k, dtype)
 
     kernel = self.param("pool", pool_init, (3, 3, 3, 1, 1), jnp.float32)
-    pooled = jax.lax.conv_general_dilated(x, kernel, (2, 2, 2), ((1, 1),) * 3,
-                                          dimension_numbers=dims)
+    # Both stride-2 convolutions run as unstrided ones over polyphase channels
+    # (conv.strided_conv3d: the same sums, an input gradient without base dilation).
+    pooled = conv.strided_conv3d(jnp.pad(x, ((0, 0),) + ((1, 1),) * 3 + ((0, 0),)), kernel)
     xp = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (1, 1), (0, 0)), mode="edge")
     conv_k = self.param("conv_kernel", nn.initializers.lecun_normal(), (3, 3, 3, 1, self.width),
                         jnp.float32)
     conv_b = self.param("conv_bias", nn.initializers.zeros, (self.width,), jnp.float32)
-    y = jax.lax.conv_general_dilated(xp, conv_k, (2, 2, 2), "VALID", dimension_numbers=dims) + conv_b
+    y = conv.strided_conv3d(xp, conv_k) + conv_b
     for i in range(2):
       y = ResConv3D(name=f"res{i}")(y)
     return jnp.concatenate([pooled, y], axis=-1)
