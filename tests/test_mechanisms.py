@@ -80,6 +80,12 @@ def test_each_row_trains_its_variant_with_the_plateau_rule():
   no_ssm = M.run_config(base, "tenth", "no_ssm", 2, M.STUDY_STOP)
   assert no_ssm["model"]["variant"] == "none" and no_ssm["data"]["photons"] == (5.0, 200.0)
   assert M.run_config(base, "full", "no_pf", 0, M.STUDY_STOP)["train"]["loss"]["phasor_field"] == 0.0
+  # USM, for Table 1 at the plateau: Ours' data, stopping rule and recipe; its widths recorded.
+  usm = M.run_config(base, "full", "usm", 0, M.STUDY_STOP)
+  assert usm["train"]["variants"] == ("usm",) and usm["usm"]["recipe"] == "ours"
+  assert usm["data"] == full["data"] and usm["train"]["stop"] == M.STUDY_STOP
+  assert M.essentials(usm)["usm"] == usm["usm"] and "usm" not in M.essentials(full)
+  assert ("full", "usm") in M.PAIRS and ("ours_s", "usm") in M.PAIRS
   with pytest.raises(SystemExit, match="plateau"):
     M.study_stop({"train": {"stop": {"rule": "steps"}}})
 

@@ -10,7 +10,9 @@ Rows (:data:`ROWS`, built with :func:`benchmarks.ablations.row_config`):
 ``full`` (Ours, three frames), ``ours_s`` (Ours-S, the middle frame alone) and
 ``no_ssm`` (Ours with every SSM replaced by the identity, all else equal);
 ``--extra-rows`` adds ``bidirectional`` (the temporal SSM runs both ways) and
-``no_pf`` (no phasor-field loss). Each row is trained from seeds 0, 1 and 2 at
+``no_pf`` (no phasor-field loss); ``--rows usm`` trains the learned baseline USM
+(``usm.recipe = "ours"``: Ours' data, stopping rule and loss) for Table 1 at the plateau,
+paired with ``full`` and ``ours_s``. Each row is trained from seeds 0, 1 and 2 at
 two photon budgets (:data:`BUDGETS`): the preset's (``full``) and one tenth of
 its signal and ambient photons (``tenth``: the preset's ``data.photons`` and
 ``data.ambient`` divided by 10 and its own dataset file,
@@ -71,6 +73,7 @@ from benchmarks.mechanisms.design import (
     ROWS,
     SEEDS,
     STUDY_STOP,
+    TABLE1_ROWS,
     TINY_DESIGN,
     TINY_STOP,
     VERDICTS,
@@ -96,10 +99,10 @@ from benchmarks.mechanisms.study import (
 
 __all__ = [
     "BUDGETS", "BUDGET_LOSS", "COLUMNS", "EXTRA_ROWS", "FIGURE", "LOSS_POINTS", "MAIN_ROWS",
-    "PAIRS", "PROBE", "REPORT", "ROWS", "SEEDS", "STUDY_STOP", "TINY_DESIGN", "TINY_STOP",
-    "VERDICTS", "budget_config", "check_consistent", "check_same_data", "essentials", "run_config",
-    "run_dir", "run_json", "study_stop", "code_at_start", "load_runs", "machine", "write_json",
-    "probe_model", "probe_run_dir", "run_one", "run_record", "test_frames", "train_and_score",
-    "barely_trained", "empty_output", "plot_curves", "summarise", "write_report", "main",
-    "tiny_base",
+    "TABLE1_ROWS", "PAIRS", "PROBE", "REPORT", "ROWS", "SEEDS", "STUDY_STOP", "TINY_DESIGN",
+    "TINY_STOP", "VERDICTS", "budget_config", "check_consistent", "check_same_data", "essentials",
+    "run_config", "run_dir", "run_json", "study_stop", "code_at_start", "load_runs", "machine",
+    "write_json", "probe_model", "probe_run_dir", "run_one", "run_record", "test_frames",
+    "train_and_score", "barely_trained", "empty_output", "plot_curves", "summarise", "write_report",
+    "main", "tiny_base"
 ]

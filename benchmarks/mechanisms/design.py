@@ -17,9 +17,14 @@ ROWS = {
     "no_ssm": ("no_ssm", "ours", "Ours, every SSM the identity"),
     "bidirectional": ("bidirectional", "ours", "Ours, bidirectional T-Mamba"),
     "no_pf": ("no_pf", "ours", "Ours without L_pf"),
+    "usm": ("full", "usm", "USM"),
 }
 MAIN_ROWS = ("full", "ours_s", "no_ssm")
 EXTRA_ROWS = ("bidirectional", "no_pf")
+#: Rows beside the study for Table 1 at the plateau (``--rows usm``): USM on the same data, under
+#: the same stopping rule and recipe (``usm.recipe = "ours"``) as Ours; the report pairs it with
+#: Ours and Ours-S seed by seed.
+TABLE1_ROWS = ("usm",)
 #: Photon budget -> divisor of the preset's ``data.photons`` and ``data.ambient``.
 BUDGETS = {"full": 1, "tenth": 10}
 #: Loss weights per budget over the config's ``train.loss``, chosen on validation. At a tenth
@@ -39,7 +44,8 @@ TINY_DESIGN = {"budgets": ("full",), "rows": ("full", "no_ssm"), "seeds": (0,)}
 #: The run whose model the SSM probe reads (per budget).
 PROBE = ("full", 0)
 #: Paired differences of the report: (a, b) -> a - b.
-PAIRS = (("full", "no_ssm"), ("full", "ours_s"), ("full", "bidirectional"), ("full", "no_pf"))
+PAIRS = (("full", "no_ssm"), ("full", "ours_s"), ("full", "bidirectional"), ("full", "no_pf"),
+         ("full", "usm"), ("ours_s", "usm"))
 #: Report columns: metric -> (header, digits).
 COLUMNS = {"psnr": ("PSNR (dB) ↑", 2), "ssim": ("SSIM ↑", 3), "rmse_object": ("object depth RMSE (m) ↓", 3),
            "recall": ("object recall ↑", 3), "temporal_psnr": ("temporal PSNR (dB) ↑", 2)}
@@ -106,9 +112,12 @@ def essentials(cfg: dict) -> dict:
   data_keys = ("path", "grid", "num_bins", "bin_width", "wall_size", "input_stride", "frames",
                "num_sequences", "seed", "efficiency", "photons", "ambient", "dark_counts", "renderer")
   tr = cfg["train"]
-  return {"data": {k: cfg["data"][k] for k in data_keys if k in cfg["data"]},
-          "model": dict(cfg.get("model", {})),
-          "train": {k: tr.get(k) for k in ("seed", "batch_size", "eval_batch_size", "optim", "loss", "stop")}}
+  out = {"data": {k: cfg["data"][k] for k in data_keys if k in cfg["data"]},
+         "model": dict(cfg.get("model", {})),
+         "train": {k: tr.get(k) for k in ("seed", "batch_size", "eval_batch_size", "optim", "loss", "stop")}}
+  if "usm" in tuple(tr.get("variants", ())):
+    out["usm"] = dict(cfg.get("usm", {}))      # USM's widths and recipe
+  return out
 
 
 def check_same_data(results: pathlib.Path, budget: str, cfg: dict) -> None:
