@@ -292,6 +292,8 @@ def test_export_weights_from_a_main_job_workdir(regenerated, tmp_path):
     export_weights.export(workdir, "test", "ours", root=tmp_path / "w", commit="abc", log=lambda s: None)
   got_cfg, got, written = inference.load_pretrained("test", "ours", root=tmp_path / "w")
   assert got_cfg == mcfg and written["commit"] == "abc" and written["best_step"] == 7
+  # The checkpoint recorded the repr; the export records the config field by field.
+  assert written["model_config"] == json.loads(json.dumps(train.model_record(mcfg)))
   assert written["validation"]["per_sequence_psnr_db"] == {"val-00000": score}
   assert written["param_fingerprint"] == prov["param_fingerprint"]
   jax.tree.map(np.testing.assert_array_equal, got, params)
