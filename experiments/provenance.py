@@ -317,7 +317,13 @@ def code_modules(roots: Iterable[str], files: Collection[str] | None = None,
 
 @functools.lru_cache(maxsize=4096)
 def _behaviour(source: str, path: str = "<module>") -> str:
-  """``source``'s syntax tree without docstrings, as text: comments, layout and docs do not count."""
+  """``source``'s syntax tree without docstrings, as text: comments, layout and docs do not count.
+
+  The text is Python 3.11's ``ast.dump`` on every Python from 3.11 on (3.12 added an empty
+  ``type_params`` to each function and class and empty pieces to nested f-string formats, 3.13
+  leaves empty lists out), so a results file
+  written on a machine with another Python (the GPU image's 3.12) has a comparable digest.
+  """
   tree = ast.parse(source, filename=path)
   for node in ast.walk(tree):
     body = getattr(node, "body", None)
@@ -325,6 +331,12 @@ def _behaviour(source: str, path: str = "<module>") -> str:
         and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
         and isinstance(body[0].value.value, str)):
       node.body = body[1:] or [ast.Pass()]
+    if getattr(node, "type_params", None) == []:  # a field Python 3.12 added: absent in 3.11's text
+      del node.type_params
+    if isinstance(node, ast.JoinedStr):             # 3.12's f-string parser adds empty pieces
+      node.values = [v for v in node.values if not (isinstance(v, ast.Constant) and v.value == "")]
+  if sys.version_info >= (3, 13):                 # 3.13 leaves empty lists out unless asked
+    return ast.dump(tree, annotate_fields=False, show_empty=True)
   return ast.dump(tree, annotate_fields=False)
 
 
@@ -366,3 +378,49 @@ def code_line(paths: Iterable[str] | None = None, digest: str | None = None, not
           f"(their static import closure; code only, not comments or docstrings){note}; "
           f"`python -m benchmarks.index` recomputes it to say whether this file is current "
           f"<!-- modules: {' '.join(paths)} -->")
+
+
+def recompute_at_commit(text: str) -> str | None:
+  """``text`` (a results file) with its code digest recomputed here from its recorded commit, or None.
+
+  A digest is a function of a commit's code, but a file written on another machine was
+  digested by that machine's Python; before :func:`_behaviour` gave every Python from 3.11 on
+  the same text, the GPU image's 3.12 gave another digest for the same code. For a file
+  written from a clean tree (its ``- Commit:`` line without ``+changes``) at a commit git has,
+  the digest is recomputed from that commit's files; the line then says so. None where the
+  file has no such commit or code line, or the recomputed digest is the recorded one.
+  """
+  import subprocess
+  code = CODE_LINE.search(text)
+  commit = re.search(r"^- Commit: ([0-9a-f]{7,40})\s*$", text, re.MULTILINE)
+  if not code or not commit:
+    return None
+
+  def read(path: str) -> str:
+    return subprocess.run(["git", "show", f"{commit.group(1)}:{path}"], cwd=ROOT, check=True,
+                          capture_output=True, text=True).stdout
+
+  modules = code.group(2).split()
+  digest = code_digest(modules, read)
+  if digest == code.group(1):
+    return None
+  note = (f", recomputed by `python -m experiments.provenance --recompute` from commit {commit.group(1)}"
+          f" (where it was written, its Python gave `{code.group(1)}` for the same code)")
+  return text[:code.start()] + code_line(modules, digest, note) + text[code.end():]
+
+
+def main(argv=None) -> int:
+  """``python -m experiments.provenance --recompute FILE ...``: see :func:`recompute_at_commit`."""
+  import argparse
+  p = argparse.ArgumentParser(description="Recompute results files' code digests from their recorded commits.")
+  p.add_argument("--recompute", nargs="+", type=pathlib.Path, metavar="FILE", required=True)
+  for path in p.parse_args(argv).recompute:
+    new = recompute_at_commit(path.read_text())
+    if new is not None:
+      path.write_text(new)
+    print(f"{path}: {'recomputed' if new is not None else 'unchanged'}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
