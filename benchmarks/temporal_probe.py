@@ -16,7 +16,7 @@ blocks, upsampling) matters at all: both models with the features entering the
 spreading stage zeroed, so the transient is the interpolated measurement alone
 (:func:`without_learned_transient`). The split is ``val`` by default (no
 choice is made from this file; it explains Ours - Ours-S in ``table1.md`` and
-the mechanism rows of ``table2.md``).
+the mechanism rows of ``archive/table2.md``).
 """
 
 from __future__ import annotations
