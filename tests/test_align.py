@@ -41,16 +41,17 @@ def test_the_loss_is_the_papers_plus_lam_times_the_feature_mmd(tiny):
   # lam traced, not static: one compile serves both weights.
   loss = jax.jit(lambda p, lam: A.align_loss(p, batch, jnp.asarray(measured), key, lam=lam, **kw))
   total0, _ = loss(params, jnp.float32(0.0))
-  out = jax.jit(model.apply)({"params": params}, batch["measurement"])
-  want, _ = losses.total_loss(out, T.make_targets(batch, mcfg.time_window), weights0, None)
+  # Each reference in one jit: run eagerly, every operation compiles on its own (hundreds).
+  want, _ = jax.jit(lambda p: losses.total_loss(model.apply({"params": p}, batch["measurement"]),
+                                                T.make_targets(batch, mcfg.time_window), weights0, None))(params)
   assert float(total0) == pytest.approx(float(want), rel=1e-5)
   total2, terms2 = loss(params, jnp.float32(2.0))
   assert float(total2) == pytest.approx(float(want) + 2.0 * float(terms2["mmd"]), rel=1e-5)
   _, f = jax.jit(lambda p: A.layer_features(model, p, batch["measurement"]))(params)
   b, n = batch["measurement"].shape[:2]
   assert f.ndim == 2 and f.shape[1] == mcfg.width and f.shape[0] % (b * n) == 0
-  with pytest.raises(ValueError, match="not a module"):
-    A.layer_features(model, params, batch["measurement"], "nowhere")
+  with pytest.raises(ValueError, match="not a module"):           # raised while tracing: nothing compiles
+    jax.eval_shape(lambda p: A.layer_features(model, p, batch["measurement"], "nowhere"), params)
 
 
 def test_align_trains_writes_its_record_and_refuses_bad_measured_inputs(tiny, tmp_path):

@@ -15,6 +15,11 @@ SETUP = Setup(0.8, (6, 6), 32e-12, 48)
 RNG = np.random.default_rng(0)
 
 
+def _total_loss(out, tgt, weights, wavelet):
+  """``losses.total_loss`` under one ``jit``: run eagerly, each of its operations compiles on its own."""
+  return jax.jit(lambda o, t: losses.total_loss(o, t, weights, wavelet))(out, tgt)
+
+
 def _batch(b=2):
   return {
       "transient": RNG.uniform(size=(b, 48, 6, 6)).astype(np.float32),
@@ -78,7 +83,7 @@ def test_object_intensity_is_the_rmse_over_true_surface_pixels_by_a_loop():
                                             jnp.asarray(depth))) == pytest.approx(float(got), rel=1e-5)
   out, t = _batch(), _batch()
   w = losses.LossWeights(phasor_field=0.0, alpha1=0.0, gamma=0.0, object_intensity=2.0)
-  loss, terms = losses.total_loss(out, t, w, None)
+  loss, terms = _total_loss(out, t, w, None)
   assert float(loss) == pytest.approx(float(terms["int"] + terms["dep"] + 2.0 * terms["obj"]), rel=1e-6)
   g = jax.grad(lambda i: losses.object_intensity_loss(i, i, jnp.zeros((2, 3))))(jnp.ones((2, 3)))
   assert np.all(np.isfinite(np.asarray(g)))
@@ -88,10 +93,10 @@ def test_total_loss_does_not_depend_on_batch_size_and_composes_as_the_paper():
   wl = illumination_wavelet(SETUP)
   out, tgt = _batch(1), _batch(1)
   w = losses.LossWeights()
-  one, terms = losses.total_loss(out, tgt, w, wl)
+  one, terms = _total_loss(out, tgt, w, wl)
   two = {k: np.concatenate([v, v]) for k, v in out.items()}
   two_t = {k: np.concatenate([v, v]) for k, v in tgt.items()}
-  both, _ = losses.total_loss(two, two_t, w, wl)
+  both, _ = _total_loss(two, two_t, w, wl)
   assert float(both) == pytest.approx(float(one), rel=1e-5)
   expect = (terms["pf"] + 0.5 * terms["t"] + 1.0 * (terms["int"] + terms["dep"])
             + 1e-5 * (terms["ls"] + 0.1 * terms["tv"]))
@@ -101,7 +106,7 @@ def test_total_loss_does_not_depend_on_batch_size_and_composes_as_the_paper():
 def test_zero_weights_switch_terms_off():
   out, tgt = _batch(), _batch()
   w = losses.LossWeights(phasor_field=0.0, gamma=0.0, alpha2=0.0)
-  loss, terms = losses.total_loss(out, tgt, w, None)
+  loss, terms = _total_loss(out, tgt, w, None)
   assert set(terms) == {"t", "int", "m", "v", "r"}
   assert float(loss) == pytest.approx(float(0.5 * terms["t"] + terms["int"]), rel=1e-6)
   with pytest.raises(ValueError, match="wavelet"):
@@ -120,7 +125,7 @@ def test_gradients_are_finite_and_zero_at_zero_error():
   def f(out):
     return losses.total_loss(out, tgt, losses.LossWeights(), wl)[0]
 
-  grads = jax.grad(f)(jax.tree.map(jnp.asarray, flat))
+  grads = jax.jit(jax.grad(f))(jax.tree.map(jnp.asarray, flat))
   for name, g in grads.items():
     g = np.asarray(g)
     assert np.all(np.isfinite(g)), name
@@ -142,7 +147,7 @@ def _mmd2_loop(x, y, bandwidths):
 
 
 def test_mmd2_matches_the_pairwise_loop_and_tells_distributions_apart():
-  from nlosjax.losses import mmd2
+  mmd2 = jax.jit(losses.mmd2, static_argnums=2)      # one compile per shape, not one per operation
   rng = np.random.default_rng(0)
   x, y = rng.normal(size=(12, 3)), rng.normal(size=(9, 3)) + 0.7
   assert float(mmd2(x, y, (0.5, 2.0))) == pytest.approx(_mmd2_loop(x, y, (0.5, 2.0)), rel=1e-4, abs=1e-6)
@@ -150,4 +155,4 @@ def test_mmd2_matches_the_pairwise_loop_and_tells_distributions_apart():
   apart = float(mmd2(rng.normal(size=(64, 4)), rng.normal(size=(64, 4)) + 1.0))
   assert max(abs(v) for v in same) < 0.15 < 0.4 < apart
   with pytest.raises(ValueError, match="n, m >= 2"):
-    mmd2(x[:1], y)
+    losses.mmd2(x[:1], y)

@@ -25,9 +25,9 @@ def test_a_bound_physics_layer_computes_the_same_volume_without_the_psf_constant
   assert key[0] == "lct_operators" and key[1] == SETUP
   psf = table.values[0].psf_fft
   bound = operator_args.bind(fn, table)
-  np.testing.assert_allclose(np.asarray(bound(x)), np.asarray(jax.jit(fn)(x)), rtol=1e-5, atol=1e-6)
-  np.testing.assert_allclose(np.asarray(bound.lower(x).compile()(x)), np.asarray(fn(x)),
-                             rtol=1e-5, atol=1e-6)
+  ref = np.asarray(jax.jit(fn)(x))             # the layer with its operators as constants
+  np.testing.assert_allclose(np.asarray(bound(x)), ref, rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(np.asarray(bound.lower(x).compile()(x)), ref, rtol=1e-5, atol=1e-6)
   # The PSF spectrum is an argument: the bound program's text is far smaller than the spectrum's bytes,
   # the constant program's text holds it (hex, two characters a byte).
   assert len(bound.lower(x).as_text()) < psf.nbytes / 4 < len(jax.jit(fn).lower(x).as_text()) / 8
