@@ -37,7 +37,9 @@ ImportError deep in one module. Here instead:
 
 from __future__ import annotations
 
+import glob
 import importlib.metadata
+import json
 import os
 import re
 import shutil
@@ -148,6 +150,7 @@ def pytest_configure(config: pytest.Config) -> None:
     from experiments import xla_cache
     if os.environ.get(xla_cache.COUNTS_ENV):        # the controller set the cache up
       xla_cache.count()
+      _listen_to_compiles()
     return                         # the controller has checked already and set the cache
   missing = missing_test_requirements()
   if missing:
@@ -166,14 +169,64 @@ def pytest_configure(config: pytest.Config) -> None:
   if config._nlosjax_cache and not getattr(config.option, "numprocesses", None):
     from experiments import xla_cache
     xla_cache.count()              # -n 0 or without xdist: the tests compile in this process
+    _listen_to_compiles()
+
+
+#: XLA compiles per test in this process (test id -> [compiles, seconds compiling]), for the
+#: summary's "most compiles" lines: a test that runs its model or loss operation by operation
+#: compiles each operation alone (hundreds of programs), which :func:`jax.jit` turns into one.
+_COMPILES: dict[str, list] = {}
+_CURRENT: list = [None]
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+MOST_COMPILES = 8
+
+
+def _on_compile(event: str, duration: float, **kwargs) -> None:
+  if event == COMPILE_EVENT and _CURRENT[0] is not None:
+    row = _COMPILES.setdefault(_CURRENT[0], [0, 0.0])
+    row[0] += 1
+    row[1] += duration
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+  _CURRENT[0] = item.nodeid
+  try:
+    yield
+  finally:
+    _CURRENT[0] = None
+
+
+def _listen_to_compiles() -> None:
+  import jax.monitoring
+  jax.monitoring.register_event_duration_secs_listener(_on_compile)
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
-  """A worker writes its cache counts for the controller (before xdist reports it finished)."""
+  """A worker writes its cache and compile counts for the controller (before xdist reports it finished)."""
   from experiments import xla_cache
   folder = os.environ.get(xla_cache.COUNTS_ENV)
   if hasattr(session.config, "workerinput") and folder:
     xla_cache.write_counts(folder)
+    # Not .json: xla_cache.read_counts reads every .json file there as one process's cache counts.
+    with open(os.path.join(folder, f"{os.getpid()}.compiles"), "w") as f:
+      json.dump(_COMPILES, f)
+
+
+def most_compiles(config: pytest.Config, n: int = MOST_COMPILES) -> list[str]:
+  """Lines naming the ``n`` tests that compiled most, over every test process of this run."""
+  rows = dict(_COMPILES)
+  folder = getattr(config, "_nlosjax_counts", None)
+  for path in glob.glob(os.path.join(folder, "*.compiles")) if folder else ():
+    with open(path) as f:
+      rows.update(json.load(f))
+  if not rows:
+    return []
+  total, seconds = sum(r[0] for r in rows.values()), sum(r[1] for r in rows.values())
+  top = sorted(rows.items(), key=lambda kv: -kv[1][0])[:n]
+  return ([f"XLA programs built (compiled or read from the cache): {total} in {len(rows)} tests, {seconds:.0f} s;"
+           " most:"]
+          + [f"  {c:5d} programs {s:6.1f} s  {name}" for name, (c, s) in top])
 
 
 def cache_summary(config: pytest.Config) -> str | None:
@@ -201,6 +254,8 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config: pytest.Config)
     return
   line = cache_summary(config)
   if line:
+    terminalreporter.write_line(line)
+  for line in most_compiles(config):
     terminalreporter.write_line(line)
 
 

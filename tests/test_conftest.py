@@ -169,3 +169,25 @@ def test_suite_xla_flags_are_added_once_and_only_where_known():
       "--xla_cpu_use_fusion_emitters=true"
   assert conftest.suite_xla_flags("", unknown) == ""
   assert not conftest._xla_flag_known("--xla_no_such_flag_for_nlosjax=1")
+
+
+def test_the_tests_that_build_most_programs_are_named_over_every_process(tmp_path, monkeypatch):
+  import jax
+  import numpy as np
+  (tmp_path / "1.compiles").write_text(json.dumps({"a::t1": [300, 9.0], "a::t2": [3, 0.5]}))
+  (tmp_path / "2.compiles").write_text(json.dumps({"b::t3": [40, 2.0]}))
+
+  class Config:
+    _nlosjax_counts = str(tmp_path)
+  monkeypatch.setattr(conftest, "_COMPILES", {})
+  lines = conftest.most_compiles(Config(), n=2)
+  assert lines[0].startswith("XLA programs built") and "343 in 3 tests, 12 s" in lines[0]
+  assert "a::t1" in lines[1] and "b::t3" in lines[2] and len(lines) == 3
+  # This process's listener counts a program under the test that built it, and only then.
+  monkeypatch.setattr(conftest, "_CURRENT", ["here"])
+  jax.jit(lambda x: x * 3.0 + 1.0)(np.arange(7.0, dtype=np.float32))   # one program no other test builds
+  monkeypatch.setattr(conftest, "_CURRENT", [None])
+  jax.jit(lambda x: x * 5.0 - 2.0)(np.arange(9.0, dtype=np.float32))
+  if not conftest._COMPILES:
+    pytest.skip("the listener is registered where the compilation cache is on")
+  assert conftest._COMPILES["here"][0] == 1
