@@ -389,6 +389,9 @@ def recompute_at_commit(text: str) -> str | None:
   written from a clean tree (its ``- Commit:`` line without ``+changes``) at a commit git has,
   the digest is recomputed from that commit's files; the line then says so. None where the
   file has no such commit or code line, or the recomputed digest is the recorded one.
+
+  Raises:
+    ValueError: git lacks the recorded commit, or one of the recorded modules at it.
   """
   import subprocess
   code = CODE_LINE.search(text)
@@ -397,8 +400,12 @@ def recompute_at_commit(text: str) -> str | None:
     return None
 
   def read(path: str) -> str:
-    return subprocess.run(["git", "show", f"{commit.group(1)}:{path}"], cwd=ROOT, check=True,
-                          capture_output=True, text=True).stdout
+    got = subprocess.run(["git", "show", f"{commit.group(1)}:{path}"], cwd=ROOT,
+                         capture_output=True, text=True)
+    if got.returncode:
+      raise ValueError(f"git has no {path} at commit {commit.group(1)}, which the file records: "
+                       f"{got.stderr.strip()}")
+    return got.stdout
 
   modules = code.group(2).split()
   digest = code_digest(modules, read)

@@ -109,3 +109,5 @@ def test_a_digest_written_by_another_python_is_recomputed_from_its_commit():
   assert "`000000000000` for the same code" in new and new.endswith("- Date: x\n")
   assert provenance.recompute_at_commit(new) is None                     # already right: unchanged
   assert provenance.recompute_at_commit(text.replace(commit, commit + " +changes")) is None
+  with pytest.raises(ValueError, match="git has no nlosjax/stats.py at commit 0000000"):
+    provenance.recompute_at_commit(text.replace(commit, "0000000"))

@@ -87,7 +87,8 @@ def _regenerate(name, variant, folder):
   spec = D.DatasetSpec.from_config(config["data"], num_train=0, num_val=1, num_test=0)
   assert spec.generation_key() == D.DatasetSpec.from_config(prov["data_spec"]).generation_key()
   path = folder / "val.h5"
-  with xla_optimizations(True):   # rendering runs long: 185 s without XLA's optimisations, 73 s with
+  # Rendering runs long: 185 s without XLA's optimisations, 73 s with (2 cores, a training run beside).
+  with xla_optimizations(True):
     D.write_dataset(path, spec, progress=False)
   config["data"]["path"] = str(path)
   return mcfg, params, prov, config, path
