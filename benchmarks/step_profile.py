@@ -38,6 +38,9 @@ DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "step_profil
 RATE = 0.5           # Poisson rate per bin of the synthetic measurement
 WARM = 3
 SMALL = 0.01         # parts below this share of the op time share one row
+#: Top-level modules whose parts are told apart one level down (the volume stage's physics and
+#: refinement; each ST-Mamba block's SSMs, norms and projections).
+TWO_LEVELS = ("volume", "st_mamba", "cross_")
 
 #: Op kinds by the name XLA gives a thunk: the first rule whose pattern the name (its index
 #: dropped) matches wins.
@@ -56,26 +59,26 @@ def op_kind(name: str) -> str:
   return next(kind for kind, pattern in KINDS if re.search(pattern, base))
 
 
-def op_part(op_name: str | None) -> tuple[str, str]:
+def op_part(op_name: str | None, model: str = "STMambaNet") -> tuple[str, str]:
   """``(part, direction)`` of one HLO op from its ``op_name`` metadata.
 
-  ``part``: the network's module path to two levels (``"volume/refine"``, ``"extract"``), or
-  ``"loss and optimiser"`` for traced code outside the network, or ``"XLA-inserted (no
-  metadata)"``. ``direction``: ``"forward"``, ``"backward"`` or ``"-"``.
+  ``model``: the network's class name, as JAX writes it in ``op_name``. ``part``: the network's
+  module path, two levels deep under :data:`TWO_LEVELS` (``"volume/refine"``) and one elsewhere
+  (``"extract"``), or ``"loss and optimiser"`` for traced code outside the network, or
+  ``"XLA-inserted (no metadata)"``. ``direction``: ``"forward"``, ``"backward"`` or ``"-"``.
   """
   if not op_name:
     return "XLA-inserted (no metadata)", "-"
-  m = re.search(r"(transpose\()?jvp\(STMambaNet\)\)?/(.*)", op_name)
+  m = re.search(rf"(transpose\()?jvp\({re.escape(model)}\)\)?/(.*)", op_name)
   if m is None:
     return "loss and optimiser", "-"
   direction = "backward" if m.group(1) else "forward"
   path = [p for p in m.group(2).split("/") if p and not p.startswith(("jit(", "while", "body",
                                                                       "closed_call"))]
-  modules = [p for p in path[:-1] if re.fullmatch(r"[a-z_]+\d*(_\d+)?", p)]  # the op itself is last
+  modules = [p for p in path[:-1] if re.fullmatch(r"[A-Za-z_]+\d*(_\d+)?", p)]  # the op itself is last
   if not modules:
     return "network (top level)", direction
-  top = modules[0]
-  depth = 2 if top in ("volume", "st_mamba0") or top.startswith("cross_") else 1
+  depth = 2 if modules[0].startswith(TWO_LEVELS) else 1
   return "/".join(modules[:depth]), direction
 
 
@@ -144,6 +147,7 @@ def profile_variant(config: dict, variant: str, steps: int) -> dict:
   compiled = step.lower(state, data, key).compile()
   compile_s = time.perf_counter() - t
   names = hlo_op_names(compiled.as_text())
+  model = type(T.network(mcfg)).__name__
   module = re.search(r"HloModule\s+([\w.\-]+)", compiled.as_text()).group(1)
   for _ in range(WARM):
     state, metrics = step(state, data, key)
@@ -168,7 +172,7 @@ def profile_variant(config: dict, variant: str, steps: int) -> dict:
     s = us / 1e6 / steps
     if op in names:
       found += s
-    parts[op_part(names.get(op))] += s
+    parts[op_part(names.get(op), model)] += s
     kinds[op_kind(op)] += s
   total = sum(own.values()) / 1e6 / steps
   return {"variant": variant, "input": list(mcfg.input_shape(batch)), "compile_s": compile_s,

@@ -85,6 +85,9 @@ def test_op_parts_from_op_name_metadata():
   assert S.op_part("jit(with_table)/jvp(STMambaNet)/cross_prev1_0/in_proj_ref/dot_general") \
       == ("cross_prev1_0/in_proj_ref", "forward")
   assert S.op_part("jit(with_table)/mul") == ("loss and optimiser", "-")
+  usm = "jit(with_table)/transpose(jvp(USMNet))/Conv_0/conv_general_dilated"
+  assert S.op_part(usm, "USMNet") == ("Conv_0", "backward")
+  assert S.op_part(usm) == ("loss and optimiser", "-")             # another network's ops
   assert S.op_part(None) == ("XLA-inserted (no metadata)", "-")
 
 
