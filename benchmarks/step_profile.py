@@ -3,8 +3,9 @@
     python -m benchmarks.step_profile [--config cpu] [--variants ours_s ours] [--steps 5]
                                       [--out benchmarks/results/step_profile.md]
 
-For each variant, in this process: the run's own train step (``nlosjax.train.make_train_step``,
-the preset's batch, mesh and loss weights) on a fixed synthetic batch of the preset's shapes
+For each variant, in this process: the run's own train step (``nlosjax.plan.compile_train_step``:
+the preset's batch, mesh, optimiser and loss weights, compiled once; the profiled program is the
+one whose HLO text is read) on a fixed synthetic batch of the preset's shapes
 (Poisson counts, rate 0.5 per bin); 3 warm steps, ``--steps`` timed steps (median), then
 ``--steps`` more under ``jax.profiler.trace``. Each XLA op the profile records (``hlo_op``) is
 looked up in the compiled step's HLO text, whose ``op_name`` metadata names the JAX code it came
@@ -129,26 +130,24 @@ def profile_variant(config: dict, variant: str, steps: int) -> dict:
   import jax
   import numpy as np
 
-  from nlosjax import inference
+  from nlosjax import inference, plan
   from nlosjax import train as T
-  from nlosjax.plan import _abstract_batch
   mcfg = T.model_config_for(config, inference.training_setup(config), variant)
   mesh = T.mesh_for(config)
   batch = int(config["train"]["batch_size"])
-  optim, weights = T.training_recipe(config, variant)
+  t = time.perf_counter()
+  step, _, batch_shapes = plan.compile_train_step(config, mcfg, variant, mesh)   # the run's own step
+  compile_s = time.perf_counter() - t
+  text = step.as_text()
+  names, model = hlo_op_names(text), type(T.network(mcfg)).__name__
+  module = re.search(r"HloModule\s+([\w.\-]+)", text).group(1)
+  optim, _ = T.training_recipe(config, variant)
   state = T.create_train_state(T.network(mcfg), tuple(mcfg.input_shape(batch)),
                                T.make_optimizer(optim, int(config["train"]["steps"])), jax.random.key(0), mesh)
   rng = np.random.default_rng(0)
-  data = {k: jax.device_put((rng.poisson(RATE, v.shape) if k == "measurement" else rng.random(v.shape))
-                            .astype(np.float32), v.sharding)
-          for k, v in _abstract_batch(mcfg, batch, mesh).items()}
-  step, key = T.make_train_step(mcfg, weights, mesh), jax.random.key(1)
-  t = time.perf_counter()
-  compiled = step.lower(state, data, key).compile()
-  compile_s = time.perf_counter() - t
-  names = hlo_op_names(compiled.as_text())
-  model = type(T.network(mcfg)).__name__
-  module = re.search(r"HloModule\s+([\w.\-]+)", compiled.as_text()).group(1)
+  data = T.shard_batch({k: (rng.poisson(RATE, s.shape) if k == "measurement" else rng.random(s.shape))
+                        .astype(np.float32) for k, s in batch_shapes.items()}, mesh)
+  key = jax.random.key(1)
   for _ in range(WARM):
     state, metrics = step(state, data, key)
     jax.block_until_ready(metrics)
