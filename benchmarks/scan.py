@@ -206,7 +206,7 @@ def render(results, cmd, repeats, chunk_size, load_start, load_end) -> str:
                  + ", ".join(f"{m} {r:.2f}x" for m, r in peaks.items())
                  + (f" (NOT met by {', '.join(over)}; goal <= {GOAL_PEAK}x)" if over
                     else f" (met, goal <= {GOAL_PEAK}x)"))
-  lines += ["", "Goals (issue 21):", ""] + goals + [""]
+  lines += ["", "Goals:", ""] + goals + [""]
   return "\n".join(lines)
 
 
