@@ -5,7 +5,7 @@ code (nlos-fk ``cnlos_reconstruction.m`` and O'Toole's LCT code), written from
 their published formulas. They serve two
 purposes:
 
-* the baseline that ``benchmarks/physics.py`` times the JAX methods against
+* the baseline that ``benchmarks/physics/`` times the JAX methods against
   (operators prebuilt, ``scipy.fft`` on all cores, single precision), and
 * our stand-in for "the public reference implementation" when checking the JAX
   reconstructions on measured scans.
