@@ -2,7 +2,6 @@
 
     python -m benchmarks.index             # rewrite benchmarks/README.md, print each file's state
     python -m benchmarks.index --check     # exit 1 if it differs from what the files say
-    python -m benchmarks.index --backfill  # give files without a code digest the one of their commit
 
 Each row is read from one results file's header: its title, the command that
 wrote it ("Produced by `...`"), its date, machine and commit, and its code
@@ -227,51 +226,6 @@ def state(entry: Entry, files=None) -> str:
   return f"stale {where} ({what})" if what else f"stale {where}"
 
 
-def backfill(path: pathlib.Path) -> bool:
-  """Give a results file without a code line the digest of the code at its recorded commit.
-
-  The modules are the static import closure of the command's entry module (and of what it
-  runs in a subprocess) at that commit, read with git; the line says it was backfilled. Also
-  drops the hand-written "Still holds"/"Stale at" banners that this digest replaces (git
-  keeps them). Returns whether the file changed.
-
-  Raises:
-    ValueError: the file names no commit git knows, or no ``python -m`` command.
-  """
-  text = path.read_text()
-  lines = text.splitlines(keepends=True)
-  produced = next(i for i, line in enumerate(lines) if line.startswith("Produced by"))
-  head = [line for line in lines[:produced] if not line.startswith(">")]
-  while len(head) >= 2 and head[-1].strip() == "" and head[-2].strip() == "":
-    head.pop()
-  lines = head + lines[produced:]
-  entry = read_entry(path)
-  if not entry.digest:
-    commit = entry.commit.split()[0]
-    listing = _git("ls-tree", "-r", "--name-only", commit)
-    m = re.match(r"python -m (\S+)", entry.command)
-    if listing is None or m is None:
-      raise ValueError(f"{path.name}: cannot backfill (commit {commit!r}, command {entry.command!r})")
-    files = {f for f in listing.splitlines() if f.endswith(".py")}
-    show = _GitFiles()
-    read = lambda p: show(commit, p)
-    roots = [m.group(1), *provenance.SUBPROCESS_ROOTS.get(m.group(1), ())]
-    try:
-      modules = provenance.code_modules(roots, files, read)
-      digest = provenance.code_digest(modules, read)
-    finally:
-      show.close()
-    note = (f", backfilled from commit {commit} by `python -m benchmarks.index --backfill`"
-            + ("; the run had uncommitted edits the digest cannot see" if "+changes" in entry.commit else ""))
-    line = provenance.code_line(modules, digest, note) + "\n"
-    at = next(i for i, l in enumerate(lines) if l.startswith("- Commit:"))
-    lines.insert(at + 1, line)
-  new = "".join(lines)
-  if new != text:
-    path.write_text(new)
-  return new != text
-
-
 def entries(results: pathlib.Path = RESULTS) -> list[Entry]:
   """Every ``*.md`` results file, sorted by name."""
   return [read_entry(p) for p in sorted(results.glob("*.md"))]
@@ -321,14 +275,7 @@ def render(results: pathlib.Path = RESULTS, computed: dict[str, str] | None = No
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--check", action="store_true", help="exit 1 if benchmarks/README.md is out of date")
-  p.add_argument("--backfill", action="store_true",
-                 help="add the code digest of their recorded commit to files that have none (and drop the "
-                      "hand-written 'Still holds' banners it replaces)")
   args = p.parse_args(argv)
-  if args.backfill:
-    for path in sorted(RESULTS.glob("*.md")):
-      if backfill(path):
-        print(f"backfilled {path.relative_to(provenance.ROOT)}")
   computed = states()
   text = render(computed=computed)
   if args.check:

@@ -15,7 +15,7 @@ def test_every_results_file_names_its_command_date_machine_commit_and_code_diges
   for e in index.entries():
     assert e.command.startswith("python -m "), e
     assert e.date[:4].isdigit() and e.machine != "?" and e.commit != "?", e
-    assert len(e.digest) == 12 and e.modules, f"{e.name}.md has no code digest (python -m benchmarks.index --backfill)"
+    assert len(e.digest) == 12 and e.modules, f"{e.name}.md has no code digest (rerun the command its header names)"
   for path in index.RESULTS.glob("*.md"):
     assert "Still holds at" not in path.read_text(), f"{path.name}: the digest replaces hand-written banners"
 
