@@ -5,13 +5,14 @@ Each block runs in a fresh interpreter from a temporary folder, with the reposit
 lacks, and write only into the folder they run from.
 """
 
-import os
 import pathlib
 import re
 import subprocess
 import sys
 
 import pytest
+
+from tests.xla_options import user_environment
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -43,7 +44,17 @@ def test_the_readme_has_the_composition_examples():
 
 @pytest.mark.parametrize("name, index, block", BLOCKS, ids=[f"{n}:{i}" for n, i, _ in BLOCKS])
 def test_python_block_runs(name, index, block, tmp_path):
-  env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
+  env = {**user_environment(), "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
   res = subprocess.run([sys.executable, "-c", block], cwd=tmp_path, env=env,
                        capture_output=True, text=True, timeout=600)
   assert res.returncode == 0, f"{name} Python block {index}:\n{block}\n{res.stderr[-3000:]}"
+
+
+def test_blocks_run_without_the_suites_xla_settings():
+  """The settings the suite adds are removed and the user's own restored (absent stays absent)."""
+  import json
+  env = {"NLOSJAX_TEST_USER_XLA": json.dumps({"JAX_DISABLE_MOST_OPTIMIZATIONS": None, "XLA_FLAGS": "--a=1"}),
+         "JAX_DISABLE_MOST_OPTIMIZATIONS": "1", "XLA_FLAGS": "--a=1 --xla_cpu_use_fusion_emitters=false",
+         "OTHER": "x"}
+  assert user_environment(env) == {"XLA_FLAGS": "--a=1", "OTHER": "x"}
+  assert user_environment({"OTHER": "x"}) == {"OTHER": "x"}
