@@ -164,8 +164,8 @@ def pytest_configure(config: pytest.Config) -> None:
   # optimisations they compile several times faster (the temporal probe's test: 36 s -> 10 s).
   # Modules whose programs run long (measured scans, samplers, rendering) switch them back on
   # with tests.xla_options.xla_optimizations(True). Set before the workers and subprocesses start.
-  user = {name: os.environ.get(name) for name in ("JAX_DISABLE_MOST_OPTIMIZATIONS", "XLA_FLAGS")}
-  os.environ[USER_ENV] = json.dumps(user)    # tests.xla_options.user_environment restores these
+  from tests.xla_options import record_user_environment
+  record_user_environment(os.environ)        # tests.xla_options.user_environment restores these
   os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
   os.environ["XLA_FLAGS"] = suite_xla_flags(os.environ.get("XLA_FLAGS", ""))
   if config._nlosjax_cache and not getattr(config.option, "numprocesses", None):
@@ -260,9 +260,6 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config: pytest.Config)
   for line in most_compiles(config):
     terminalreporter.write_line(line)
 
-
-#: Where the suite records the environment's own XLA settings before it changes them (JSON).
-USER_ENV = "NLOSJAX_TEST_USER_XLA"
 
 #: XLA flags the suite adds (name -> value), each only where the environment does not set it.
 #: Measured on 2 EPYC cores, tiny Ours' gradient: 5.1 s -> 3.2 s to compile, its train step 7.1 -> 5.0 s.

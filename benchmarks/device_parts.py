@@ -563,17 +563,16 @@ def _inference(ctx, mcfg, batch: int, params) -> dict:
           "ms_per_frame": run_s * 1e3 / batch, "planned_peak_bytes": p.peak_bytes, "peak_after": _peak_bytes()}
 
 
-def _inference_search(ctx, mcfg, params, search: dict, last: int) -> None:
-  """Inference at batch ``search["batch"]``, doubling up to ``last``, while each fits the budget.
+def _inference_search(ctx, mcfg, params, batch: int, estimate: float, last: int) -> tuple[int | None, float]:
+  """Inference at ``batch``, doubling up to ``last``, while each fits the budget.
 
-  ``search`` carries the next batch and the time estimate between calls; the first failure
-  ends the search (``search["batch"]`` is set past every batch).
+  ``estimate`` is the seconds the first batch is expected to take. Returns the next batch to
+  try and its estimate, so a later call continues the search; the batch is None once a
+  batch failed or did not fit the budget (the search is over).
   """
-  while search["batch"] <= min(last, sizes(ctx.tiny)["max_batch"]):
-    batch = search["batch"]
-    if not ctx.fits(search["estimate"], f"inference at batch {batch}"):
-      search["batch"] = float("inf")
-      return
+  while batch <= min(last, sizes(ctx.tiny)["max_batch"]):
+    if not ctx.fits(estimate, f"inference at batch {batch}"):
+      return None, estimate
     t = time.perf_counter()
     try:
       row = _inference(ctx, mcfg, batch, params)
@@ -581,13 +580,13 @@ def _inference_search(ctx, mcfg, params, search: dict, last: int) -> None:
       ctx.data["inference"].append({"batch": batch, "error": _error(e)})
       ctx.save()
       ctx.log(f"inference batch {batch}: {_error(e)} (search stops)")
-      search["batch"] = float("inf")
-      return
+      return None, estimate
     ctx.data["inference"].append(row)
     ctx.save()
     ctx.log(f"inference batch {batch}: {row['ms_per_frame']:.2f} ms/frame, {row['fps']:.1f} frames/s")
-    search["estimate"] = 2.5 * (time.perf_counter() - t)
-    search["batch"] = 2 * batch
+    estimate = 2.5 * (time.perf_counter() - t)
+    batch *= 2
+  return batch, estimate
 
 
 def paper_scale(ctx) -> None:
@@ -607,8 +606,7 @@ def paper_scale(ctx) -> None:
   model = train.network(mcfg)
   abstract = jax.eval_shape(model.init, jax.random.key(0), jax.ShapeDtypeStruct(mcfg.input_shape(1), jnp.float32))
   params = jax.device_put(synthetic_params(abstract["params"]))
-  search = {"batch": 1, "estimate": 15.0 if ctx.tiny else 60.0}
-  _inference_search(ctx, mcfg, params, search, last=1)
+  batch, estimate = _inference_search(ctx, mcfg, params, 1, 15.0 if ctx.tiny else 60.0, last=1)
   if ctx.fits(20.0 if ctx.tiny else 120.0, "the train step"):
     try:
       _train_step_measure(ctx, cfg, variant)
@@ -618,7 +616,8 @@ def paper_scale(ctx) -> None:
       ctx.log(f"train step failed: {_error(e)}")
   _COMPILED.clear()
   gc.collect()
-  _inference_search(ctx, mcfg, params, search, last=sizes(ctx.tiny)["max_batch"])
+  if batch is not None:
+    _inference_search(ctx, mcfg, params, batch, estimate, last=sizes(ctx.tiny)["max_batch"])
   ok = [r for r in ctx.data["inference"] if "fps" in r]
   ctx.data["largest_batch"] = max((r["batch"] for r in ok), default=None)
   ctx.save()

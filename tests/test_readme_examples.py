@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from tests.xla_options import user_environment
+from tests.xla_options import record_user_environment, user_environment
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -52,9 +52,8 @@ def test_python_block_runs(name, index, block, tmp_path):
 
 def test_blocks_run_without_the_suites_xla_settings():
   """The settings the suite adds are removed and the user's own restored (absent stays absent)."""
-  import json
-  env = {"NLOSJAX_TEST_USER_XLA": json.dumps({"JAX_DISABLE_MOST_OPTIMIZATIONS": None, "XLA_FLAGS": "--a=1"}),
-         "JAX_DISABLE_MOST_OPTIMIZATIONS": "1", "XLA_FLAGS": "--a=1 --xla_cpu_use_fusion_emitters=false",
-         "OTHER": "x"}
+  env = {"XLA_FLAGS": "--a=1", "OTHER": "x"}
+  record_user_environment(env)
+  env.update({"JAX_DISABLE_MOST_OPTIMIZATIONS": "1", "XLA_FLAGS": "--a=1 --xla_cpu_use_fusion_emitters=false"})
   assert user_environment(env) == {"XLA_FLAGS": "--a=1", "OTHER": "x"}
   assert user_environment({"OTHER": "x"}) == {"OTHER": "x"}
