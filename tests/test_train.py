@@ -150,7 +150,7 @@ def test_upsample_scan_interpolates_linearly_between_samples():
   np.testing.assert_allclose(y[15], 7.0)
 
 
-def test_train_cli_seeds_flag_sets_the_config(monkeypatch):
+def test_train_cli_seeds_flag_sets_the_config(monkeypatch, tmp_path):
   from experiments import independent_set
   from experiments import train as cli
   from nlosjax import main_job
@@ -158,6 +158,7 @@ def test_train_cli_seeds_flag_sets_the_config(monkeypatch):
   monkeypatch.setattr(main_job, "train_and_evaluate",
                       lambda config, workdir, **kw: seen.update(config=config, workdir=workdir, **kw))
   monkeypatch.setattr(independent_set, "ensure_independent_set", lambda path, *a: path)
+  monkeypatch.chdir(tmp_path)             # the command records its invocation under the workdir
   cli.main(["--seeds", "3", "--workdir", "runs/x", "--config.train.steps=5"])
   assert seen["config"]["train"]["seeds"] == 3 and seen["config"]["train"]["steps"] == 5
   assert seen["workdir"] == "runs/x"
