@@ -8,6 +8,10 @@ Usage::
   python -m experiments.train --config.data.renderer=lct --config.data.retroreflective=0.0
   python -m experiments.train --seeds 3 --workdir runs/seeds3   # Table 1 over 3 training seeds
   python -m experiments.train --config paper --dry-run      # memory and time, nothing trained
+  # a long run: state mirrored into a folder to commit, resumed from it on a fresh clone,
+  # paused cleanly after 2 hours (exit status 75; the same command continues it)
+  python -m experiments.train --config real --workdir ~/.cache/nlosjax/runs/real \
+      --resume-from experiments/studies/real_preset/state/real --hours 2
   # several hosts (or processes): the same command on each, process ids 0 .. N-1
   python -m experiments.train --config paper --coordinator host0:1234 --num-processes N --process-id I
 
@@ -41,6 +45,8 @@ run compiled; the last line printed is the cache's hit rate.
 
 from experiments.cli import config_parser, parse_config
 
+#: Exit status of a run paused at its ``--hours`` deadline (``EX_TEMPFAIL``: run the same command again).
+EXIT_PAUSED = 75
 #: One JSON line per invocation of this command on a workdir (experiments.provenance.run_record).
 INVOCATIONS = "invocations.jsonl"
 
@@ -77,6 +83,14 @@ def main(argv=None):
                       help="predict memory and time per device, then exit (no data, no training)")
   parser.add_argument("--no-measure", action="store_true",
                       help="with --dry-run: compile only, no timed steps at a reduced size")
+  parser.add_argument("--resume-from", default=None, metavar="DIR",
+                      help="mirror each model's resumable state into DIR at every checkpoint and "
+                           "resume from it where it is ahead of --workdir (commit DIR to continue "
+                           "on a fresh clone)")
+  parser.add_argument("--hours", type=float, default=None,
+                      help="pause training after this many hours (state exported; exit status 75)")
+  parser.add_argument("--allow-data-change", action="store_true",
+                      help="with --resume-from: resume even if the regenerated data's digest differs")
   parser.add_argument("--coordinator", default=None,
                       help="host:port of process 0 for multi-process training (jax.distributed)")
   parser.add_argument("--num-processes", type=int, default=1, help="processes in all (default 1)")
@@ -84,7 +98,13 @@ def main(argv=None):
   args, config, _ = parse_config(parser, argv)
   from experiments import xla_cache
   xla_cache.enable(tidy=True)        # before anything compiles
-  run(args, config, parser, argv)
+  from nlosjax.train import TrainingPaused
+  try:
+    run(args, config, parser, argv)
+  except TrainingPaused as e:
+    print(f"{e}; rerun the same command to continue", flush=True)
+    print(xla_cache.summary(), flush=True)
+    raise SystemExit(EXIT_PAUSED) from None
   print(xla_cache.summary(), flush=True)
 
 
@@ -99,6 +119,10 @@ def run(args, config, parser, argv=None):
       parser.error("--num-processes > 1 needs --coordinator host:port (process 0's address)")
     from nlosjax.train import initialize_distributed
     initialize_distributed(args.coordinator, args.num_processes, args.process_id)
+  if args.hours is not None and not args.hours > 0:
+    parser.error(f"--hours must be > 0, got {args.hours}")
+  if (args.hours is not None or args.allow_data_change) and not args.resume_from:
+    parser.error("--hours and --allow-data-change need --resume-from DIR (where the paused state goes)")
   if args.dry_run:
     from nlosjax.plan import dry_run, format_plan
     print(format_plan(dry_run(config, measure=not args.no_measure)))
@@ -113,7 +137,31 @@ def run(args, config, parser, argv=None):
     extra["independent"] = ensure_independent_set(
         spec["path"], config["data"], spec.get("sequences", 8), spec.get("frames", 8),
         spec.get("seed", 2026))
-  train_and_evaluate(config, args.workdir, **({"extra_test_sets": extra} if extra else {}))
+  kwargs = {"extra_test_sets": extra} if extra else {}
+  if args.resume_from:
+    kwargs["export"] = _state_export(args)
+  train_and_evaluate(config, args.workdir, **kwargs)
+
+
+def _state_export(args):
+  """The run's :class:`~nlosjax.train.StateExport` of ``--resume-from``, ``--hours``, ``--allow-data-change``.
+
+  The export folder also gets this invocation's line (``invocations.jsonl``), so a
+  committed state says every commit and machine its steps came from.
+  """
+  import json
+  import pathlib
+  import time
+
+  from nlosjax.train import StateExport
+  folder = pathlib.Path(args.resume_from)
+  if args.process_id == 0:
+    folder.mkdir(parents=True, exist_ok=True)
+    line = (pathlib.Path(args.workdir) / INVOCATIONS).read_text().splitlines()[-1]
+    with open(folder / INVOCATIONS, "a") as f:
+      f.write(json.dumps({**json.loads(line), "workdir": str(args.workdir)}) + "\n")
+  return StateExport(folder, deadline=None if args.hours is None else time.time() + 3600 * args.hours,
+                     allow_data_change=args.allow_data_change)
 
 
 if __name__ == "__main__":

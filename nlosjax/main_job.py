@@ -70,8 +70,15 @@ def tune_classic(config: dict, data_path, log) -> dict:
                         data["stride"], batch_size=batch_size, log=log)
 
 
-def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print) -> dict:
+def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print,
+                       export: train.StateExport | None = None) -> dict:
   """Run the main job (module docstring); returns the test table ``method -> metric -> summary``.
+
+  ``export``: each model's resumable state mirrored into ``export.directory /
+  <model folder>`` and resumed from there when it is ahead of ``workdir``
+  (:mod:`nlosjax.train.run_state`); the data's content digest is recorded and
+  checked. Past ``export.deadline`` training pauses with
+  :class:`~nlosjax.train.TrainingPaused` (nothing is evaluated).
 
   ``extra_test_sets``: optional ``name -> path`` of further test files in the
   dataset layout (test split; no choice is made on them), each scored like
@@ -98,6 +105,12 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
   if n_seeds < 1:
     raise ValueError(f"train.seeds must be >= 1, got {n_seeds}")
   base = int(tr.get("seed", 0))
+  if export is not None and export.data_digest is None:
+    import dataclasses
+
+    from nlosjax.data.dataset import dataset_digest
+    export = dataclasses.replace(export, data_digest=dataset_digest(data_path))
+    log(f"dataset: content digest {export.data_digest}")
   validate = protocol.validation_psnr(config, data_path)
   trained, logs, checkpoints = {}, {}, {}
   for variant in tr.get("variants", ("ours_s", "ours")):
@@ -105,7 +118,7 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
       folder = model_folder(variant, seed, base)
       run_config = {**config, "train": {**tr, "seed": seed}}
       mcfg, state = train.train_model(run_config, data_path, workdir, variant, folder=folder,
-                                      validate=validate, log=log)
+                                      validate=validate, log=log, export=export)
       trained.setdefault(variant, []).append((mcfg, train.to_host(state.params)))
       if seed == base:
         logs[variant] = train.read_metrics(workdir / folder / "metrics.jsonl")

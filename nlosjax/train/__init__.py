@@ -24,6 +24,9 @@ One concern per module, each usable alone; everything is importable from
   step count (the default) or the plateau of the validation PSNR
   (:func:`plateau_reached`), the learning-rate horizon it implies, and the
   resumable validation curve (:func:`read_curve`).
+* :mod:`~nlosjax.train.run_state` -- :class:`StateExport`: a run's resumable
+  state as a small folder to commit, resumed on a fresh clone; pausing at a
+  deadline (:class:`TrainingPaused`).
 * :mod:`~nlosjax.train.loop` -- :func:`train_model`: one variant, one seed,
   resumable; the config pieces it reads (:data:`TRAIN_DEFAULTS`,
   :func:`model_config_for`, :func:`make_loader`, :func:`ensure_dataset`, ...).
@@ -51,13 +54,15 @@ from nlosjax.train.loop import (
     with_defaults,
 )
 from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
+from nlosjax.train.run_state import StateExport, TrainingPaused, export_state, import_state
 from nlosjax.train.sharding import initialize_distributed, make_mesh, mesh_for, shard_batch, to_host
 from nlosjax.train.state import TrainState, abstract_train_state, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_targets, make_train_step, train_step
 from nlosjax.train.stopping import StopRule, plateau_reached, read_curve, stop_reason
 
 __all__ = [
-    "BATCH_KEYS", "Checkpointer", "OptimConfig", "StopRule", "TRAIN_DEFAULTS", "TrainState",
+    "BATCH_KEYS", "Checkpointer", "OptimConfig", "StateExport", "StopRule", "TRAIN_DEFAULTS", "TrainState",
+    "TrainingPaused", "export_state", "import_state",
     "USM_RECIPES", "VARIANT_FRAMES", "abstract_train_state", "compare_model", "create_train_state",
     "ensure_dataset", "initialize_distributed", "learning_rate_at", "make_loader", "make_mesh",
     "make_optimizer", "make_targets", "make_train_step", "mesh_for", "model_config_for", "model_record",

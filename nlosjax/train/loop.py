@@ -20,6 +20,7 @@ import numpy as np
 from nlosjax import losses
 from nlosjax.train.checkpoint import Checkpointer, run_signature
 from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
+from nlosjax.train.run_state import StateExport, TrainingPaused, copy_logs, export_state, import_state, read_meta
 from nlosjax.train.sharding import mesh_for, shard_batch, to_host
 from nlosjax.train.state import TrainState, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_train_step
@@ -154,7 +155,8 @@ def read_metrics(path) -> list[dict]:
 
 def train_model(config: dict, data_path, workdir, variant: str, *, folder: str | None = None,
                 validate: Callable[[Any, Any], float] | None = None,
-                log: Callable[[str], None] = print) -> tuple[Any, TrainState]:
+                log: Callable[[str], None] = print,
+                export: StateExport | None = None) -> tuple[Any, TrainState]:
   """Train one variant (``"ours"``, ``"ours_s"`` or ``"usm"``), resuming from ``workdir/<folder>``.
 
   Args:
@@ -175,6 +177,12 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
       goes to ``<folder>/validation_curve.json``, the steps taken and the stop
       reason to ``selection.json`` too. A rerun of a stopped run trains nothing.
     log: progress messages.
+    export: where the run's resumable state is mirrored at every checkpoint
+      (:class:`~nlosjax.train.run_state.StateExport`, folder ``export.directory /
+      <folder>``): resumed from when it is ahead of ``workdir`` (a fresh clone or
+      machine), refused when trained under another signature or data digest; past
+      ``export.deadline`` the run saves, exports and raises
+      :class:`~nlosjax.train.run_state.TrainingPaused`.
   Returns:
     ``(model_config, state)``: after ``config["train"]["steps"]`` steps, or at
     the checkpoint chosen on validation (the plateau rule's best).
@@ -213,9 +221,27 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   if restored is not None:
     state, start = restored
     log(f"[{variant}] resumed from step {start} ({ckpt.directory})")
+  name = folder or variant
+  imported_best = None
+  exported = read_meta(export.folder(name)) if export is not None else None
+  if exported is not None and exported["step"] > start and primary:
+    state, imported_best, _ = import_state(export.folder(name), state, signature=signature, model=mcfg,
+                                           data_digest=export.data_digest,
+                                           allow_data_change=export.allow_data_change)
+    start = int(state.step)
+    copy_logs(export.folder(name), vdir)
+    ckpt.save(state, start, force=True)
+    ckpt.wait()
+    log(f"[{variant}] resumed from step {start} of the exported state {export.folder(name)}")
+  elif exported is not None and exported["step"] > start:
+    raise ValueError("resuming from an exported state needs a single process; resume once with one, "
+                     "then continue with several")
   tracker = None
   if stop.rule == "plateau":
     best = Checkpointer(vdir / BEST_FOLDER, signature, every=1, keep=1, model=mcfg)
+    if imported_best is not None and int(imported_best.step) not in best.all_steps():
+      best.save(imported_best, int(imported_best.step), force=True)
+      best.wait()
     tracker = PlateauTracker(vdir, stop, best, validate, lambda s: learning_rate_at(optim, steps, s - 1),
                              primary=primary)
     tracker.resume(start)
@@ -229,6 +255,21 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
   step_fn = make_train_step(mcfg, weights, mesh)
   log_every = int(tr.get("log_every", 10))
+  exported_best = {"step": (exported or {}).get("best_step")}
+
+  def export_now(current: TrainState) -> None:
+    """Mirror ``current``, just checkpointed, into the export folder (primary process)."""
+    if export is None or not primary:
+      return
+    best_step = tracker.best_step if tracker is not None else None
+    best_state = None
+    if best_step is not None and best_step != exported_best["step"]:
+      best_state = current if best_step == int(current.step) else tracker.best_state(current)
+    export_state(export.folder(name), vdir, to_host(current), signature=signature,
+                 best=None if best_state is None else to_host(best_state),
+                 best_step=best_step, data_digest=export.data_digest)
+    exported_best["step"] = best_step
+
   t_start = time.perf_counter()
   with open(log_path, "a") as f, tqdm(total=steps, initial=start, desc=f"train {variant}",
                                       unit="step", dynamic_ncols=True, mininterval=2.0,
@@ -250,20 +291,33 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
         f.write(json.dumps(row) + "\n")
         f.flush()
         bar.set_postfix(loss=f"{m['loss']:.4f}")
+      pause = export is not None and export.past_deadline() and done < steps
       if validating:
         ckpt.save(state, done, force=True)
         ckpt.wait()                     # the curve may name only finished checkpoints
         score = tracker.record(mcfg, state, done, to_host)
+        export_now(state)
         bar.set_postfix(val_psnr=f"{score:.2f}")
         bar.update(1)
         if tracker.reason(done):
           break
-        continue
-      ckpt.save(state, done, force=(done == steps))
-      bar.update(1)
+      else:
+        if ckpt.save(state, done, force=(done == steps) or pause):
+          export_now(state)
+        bar.update(1)
+      if pause and not (tracker is not None and tracker.reason(done)):
+        ckpt.close()
+        if tracker is not None:
+          tracker.best.close()
+        loader.close()
+        log(f"[{variant}] paused at step {done} (deadline); state exported to {export.folder(name)}")
+        raise TrainingPaused(variant, done, export.folder(name))
   loader.close()
   if tracker is not None:
-    return mcfg, _finish_plateau(tracker, state, ckpt, vdir, variant, primary, log)
+    chosen = _finish_plateau(tracker, state, ckpt, vdir, variant, primary, log)
+    export_now(state)                   # with the final curve and selection.json
+    return mcfg, chosen
+  last = state
   selection = {"select": str(tr.get("select_checkpoint", "last")), "step": int(state.step),
                "val_psnr": {}}
   if selection["select"] not in ("last", "val"):
@@ -282,6 +336,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   ckpt.close()
   if primary:
     (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
+  export_now(last)                      # the last state, with selection.json
   return mcfg, state
 
 

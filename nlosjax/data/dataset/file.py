@@ -469,3 +469,30 @@ class DynamicDataset:
 def open_dataset(path, setup: Setup | None = None) -> DynamicDataset:
   """Open a dataset file for reading; see :class:`DynamicDataset`."""
   return DynamicDataset(path, setup)
+
+
+def dataset_digest(path, *, chunk_bytes: int = 1 << 24) -> str:
+  """SHA-256 (hex, 16 characters) of a dataset file's content: every array, by name, dtype, shape and value.
+
+  Attributes and HDF5 layout (chunking, compression, timestamps) play no part, so
+  two files written from the same spec on machines that compute the same values
+  have the same digest, and a regenerated file can be checked against a recorded
+  one (:mod:`nlosjax.train.run_state`). Reads the whole file once, ``chunk_bytes``
+  at a time along each array's first axis.
+  """
+  import hashlib
+  h = hashlib.sha256()
+  names = []
+  with h5py.File(pathlib.Path(path), "r") as f:
+    f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+    for name in sorted(names):
+      ds = f[name]
+      h.update(f"{name}|{ds.dtype.str}|{ds.shape}\n".encode())
+      if ds.shape == () or ds.size == 0:
+        h.update(np.asarray(ds[()]).tobytes())
+        continue
+      row = max(1, ds.size // ds.shape[0] * ds.dtype.itemsize)
+      step = max(1, chunk_bytes // row)
+      for i in range(0, ds.shape[0], step):
+        h.update(np.ascontiguousarray(ds[i:i + step]).tobytes())
+  return h.hexdigest()[:16]

@@ -1,0 +1,229 @@
+"""A training run's resumable state as a small folder that can be committed, and training that pauses.
+
+A model folder of a run (``workdir/<variant>``) holds orbax checkpoints that are
+tied to the machine's paths and too bulky to commit. :class:`StateExport` mirrors
+what a resume needs into a folder of its own, rewritten at every checkpoint:
+
+* ``state.npz``: the latest train state, every leaf of ``{"params", "opt_state",
+  "step"}`` under its tree path (``jax.tree_util.keystr``), exact float32 values;
+* ``best.npz``: under the plateau rule, the best state on validation so far;
+* ``validation_curve.json``, ``metrics.jsonl``, ``selection.json``: copies of the
+  model folder's files (the plateau rule's state is its curve);
+* ``run_state.json``: the step, the best step, the run signature
+  (:func:`~nlosjax.train.checkpoint.run_signature`), the training data's content
+  digest (:func:`nlosjax.data.dataset.dataset_digest`) and when it was written.
+
+The loader's position is the step (:meth:`~nlosjax.data.dataset.TripletLoader.batch`
+is a function of the step) and the step's PRNG key is folded in from the run's seed,
+so these files are the whole state: for a model with about 20k parameters (the ``cpu``
+and ``real`` presets) a folder is under 1 MB. :func:`nlosjax.train.train_model` with
+``export=StateExport(folder)`` resumes from the folder when it is ahead of the
+workdir (a fresh clone, a new machine), refuses it when its signature or data digest
+differ, and pauses cleanly at ``deadline`` (:class:`TrainingPaused`) after writing it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import pathlib
+import shutil
+import time
+
+import jax
+import numpy as np
+
+from nlosjax.train.checkpoint import signature_differences
+
+STATE_FILE = "state.npz"
+BEST_FILE = "best.npz"
+META_FILE = "run_state.json"
+#: The model folder's files mirrored into the export (those present).
+COPIED = ("validation_curve.json", "metrics.jsonl", "selection.json")
+
+
+class TrainingPaused(Exception):
+  """Training stopped at its deadline after saving and exporting step ``step`` (resume with the same command)."""
+
+  def __init__(self, variant: str, step: int, directory):
+    self.variant, self.step, self.directory = variant, int(step), directory
+    super().__init__(f"[{variant}] paused at step {step}; its state is in {directory}")
+
+
+@dataclasses.dataclass(frozen=True)
+class StateExport:
+  """Where and how a run's resumable state is mirrored (module docstring).
+
+  Attributes:
+    directory: the export root; each model folder of the run gets a sub-folder
+      of the same name (``directory/ours``, ``directory/ours_s-seed1``, ...).
+    data_digest: the training data's content digest, recorded and, on resume,
+      required to match (None: not checked).
+    deadline: ``time.time()`` after which training saves, exports and raises
+      :class:`TrainingPaused` at the end of the current step (None: never).
+    allow_data_change: resume even when the data digest differs (the run record says so).
+  """
+
+  directory: pathlib.Path
+  data_digest: str | None = None
+  deadline: float | None = None
+  allow_data_change: bool = False
+
+  def __post_init__(self):
+    object.__setattr__(self, "directory", pathlib.Path(self.directory))
+
+  def folder(self, name: str) -> pathlib.Path:
+    return self.directory / name
+
+  def past_deadline(self) -> bool:
+    return self.deadline is not None and time.time() >= self.deadline
+
+
+def tree_arrays(tree) -> dict[str, np.ndarray]:
+  """``{keystr(path): array}`` of every leaf of ``tree`` (host copies, dtypes kept)."""
+  leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+  return {jax.tree_util.keystr(path): np.array(leaf, copy=True) for path, leaf in leaves}
+
+
+def arrays_tree(arrays, template):
+  """``template``'s tree with each leaf replaced by ``arrays[keystr(path)]`` (same shape and dtype).
+
+  A leaf that is a ``jax.Array`` in ``template`` comes back on the same sharding.
+
+  Raises ValueError naming the first leaf that is missing, extra or of another shape or dtype.
+  """
+  leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
+  names = [jax.tree_util.keystr(path) for path, _ in leaves]
+  extra = sorted(set(arrays) - set(names))
+  if extra:
+    raise ValueError(f"exported state has leaves this model lacks: {extra[:5]}")
+  out = []
+  for name, (_, leaf) in zip(names, leaves):
+    if name not in arrays:
+      raise ValueError(f"exported state lacks the leaf {name}")
+    a = np.asarray(arrays[name])
+    if a.shape != tuple(np.shape(leaf)) or a.dtype != np.asarray(leaf).dtype:
+      raise ValueError(f"exported leaf {name}: {a.dtype}{list(a.shape)}, the model has "
+                       f"{np.asarray(leaf).dtype}{list(np.shape(leaf))}")
+    # On the template's devices and sharding, so a jitted step that donates its state takes it as it is.
+    out.append(jax.device_put(a, leaf.sharding) if isinstance(leaf, jax.Array) else a)
+  return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def _state_tree(state) -> dict:
+  return {"params": state.params, "opt_state": state.opt_state, "step": state.step}
+
+
+def _save_npz(path: pathlib.Path, state) -> None:
+  tmp = path.with_name(path.name + ".tmp.npz")
+  np.savez(tmp, **tree_arrays(_state_tree(state)))
+  os.replace(tmp, path)
+
+
+def _load_npz(path: pathlib.Path, template):
+  with np.load(path, allow_pickle=False) as f:
+    item = arrays_tree(dict(f), _state_tree(template))
+  return template.replace(step=item["step"], params=item["params"], opt_state=item["opt_state"])
+
+
+def _write_json(path: pathlib.Path, obj) -> None:
+  tmp = path.with_name(path.name + ".tmp")
+  tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
+  os.replace(tmp, path)
+
+
+def read_meta(folder) -> dict | None:
+  """An exported model folder's ``run_state.json``, or None when it has none."""
+  path = pathlib.Path(folder) / META_FILE
+  return json.loads(path.read_text()) if path.exists() else None
+
+
+def export_state(folder, model_dir, state, *, signature: str, best=None, best_step: int | None = None,
+                 data_digest: str | None = None) -> dict:
+  """Write ``state`` (and ``best``) with the model folder's logs to ``folder``; returns the metadata.
+
+  Args:
+    folder: the export folder of one model (created).
+    model_dir: the run's model folder whose :data:`COPIED` files are mirrored.
+    state: the train state just checkpointed.
+    signature: the run signature the state was trained under.
+    best: the best state on validation (plateau rule), written when its step is
+      not the one already exported; None keeps an existing ``best.npz`` (whose
+      step must then be ``best_step``).
+    best_step: the step of the best state (None: no validation yet).
+    data_digest: the training data's content digest.
+  The metadata file is written last, so a kill leaves the previous export readable
+  (its ``state.npz`` may then be newer than its metadata: the metadata's step is read
+  back from the arrays on import, and a mismatch is refused).
+  """
+  folder = pathlib.Path(folder)
+  model_dir = pathlib.Path(model_dir)
+  folder.mkdir(parents=True, exist_ok=True)
+  previous = read_meta(folder) or {}
+  _save_npz(folder / STATE_FILE, state)
+  if best_step is not None and (best is not None) and previous.get("best_step") != best_step:
+    _save_npz(folder / BEST_FILE, best)
+  elif best_step is not None and previous.get("best_step") != best_step:
+    raise ValueError(f"export_state: best step {best_step} is new but no best state was given")
+  for name in COPIED:
+    src = model_dir / name
+    if src.exists():
+      tmp = folder / (name + ".tmp")
+      shutil.copyfile(src, tmp)
+      os.replace(tmp, folder / name)
+  meta = {"step": int(state.step), "best_step": None if best_step is None else int(best_step),
+          "signature": json.loads(signature), "data_digest": data_digest,
+          "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+  _write_json(folder / META_FILE, meta)
+  return meta
+
+
+def import_state(folder, template, *, signature: str, model=None, data_digest: str | None = None,
+                 allow_data_change: bool = False):
+  """``(state, best or None, meta)`` from an export folder, checked against this run.
+
+  Args:
+    folder: an export folder written by :func:`export_state`.
+    template: a train state of this run (structure, shapes and dtypes).
+    signature: this run's signature; differences are refused as a checkpoint's are
+      (:func:`~nlosjax.train.checkpoint.signature_differences`, with ``model``).
+    data_digest: this run's data digest; a recorded digest that differs is
+      refused unless ``allow_data_change``.
+  Raises ValueError naming what differs.
+  """
+  folder = pathlib.Path(folder)
+  meta = read_meta(folder)
+  if meta is None:
+    raise ValueError(f"{folder} has no {META_FILE}: not an exported run state")
+  differ = signature_differences(json.dumps(meta["signature"], sort_keys=True), signature, model)
+  if differ:
+    raise ValueError(f"exported state {folder} was trained under another run signature:\n  "
+                     + "\n  ".join(differ) + "\nuse another export folder or the matching config")
+  recorded = meta.get("data_digest")
+  if recorded and data_digest and recorded != data_digest and not allow_data_change:
+    raise ValueError(f"exported state {folder} was trained on data with content digest {recorded}, "
+                     f"but this run's data have {data_digest} (regenerated differently?); pass "
+                     "--allow-data-change to resume on these data anyway")
+  state = _load_npz(folder / STATE_FILE, template)
+  if int(state.step) != int(meta["step"]):
+    raise ValueError(f"{folder}: {STATE_FILE} holds step {int(state.step)} but {META_FILE} says "
+                     f"{meta['step']} (a kill during an export); rerun from the workdir or an earlier commit")
+  best = None
+  if meta.get("best_step") is not None:
+    best = _load_npz(folder / BEST_FILE, template)
+    if int(best.step) != int(meta["best_step"]):
+      raise ValueError(f"{folder}: {BEST_FILE} holds step {int(best.step)}, {META_FILE} says "
+                       f"{meta['best_step']}")
+  return state, best, meta
+
+
+def copy_logs(folder, model_dir) -> None:
+  """Copy an export's :data:`COPIED` files into ``model_dir`` (replacing the workdir's older ones)."""
+  folder, model_dir = pathlib.Path(folder), pathlib.Path(model_dir)
+  model_dir.mkdir(parents=True, exist_ok=True)
+  for name in COPIED:
+    src = folder / name
+    if src.exists():
+      shutil.copyfile(src, model_dir / name)
