@@ -1,0 +1,24 @@
+"""The real preset's candidates trained to their validation plateau, a working stretch at a time.
+
+    python -m experiments.studies.real_preset --status             # done, left, hours left
+    python -m experiments.studies.real_preset --hours 1.5          # train for 1.5 h, then pause
+    python -m experiments.studies.real_preset --runs v4-ours_s --hours 1
+
+Each run (:data:`~experiments.studies.real_preset.study.RUNS`) is one candidate data
+config and one variant trained by :func:`nlosjax.train.train_model` under the plateau
+rule of the preset (validate every 50 steps, patience 4, 0.05 dB, at most 3000 steps),
+seed 0. Its dataset is made in the store (``<store>/data/``; :mod:`experiments.store`),
+its run folder is ``<store>/runs/real_preset/<run>``, and its resumable state is
+mirrored at every checkpoint into ``experiments/studies/real_preset/state/<run>/``:
+commit that folder before a working stretch ends, and the next one (on this machine
+or a fresh clone) continues from it. On a new machine the dataset is regenerated from
+its spec and its content digest checked against the state's before training resumes.
+
+``--hours H`` bounds this invocation: a run still training at the deadline saves,
+exports and pauses; data generation is not bounded (its ``.partial`` file resumes).
+``--status`` reads only the committed state: per run the steps done, the best
+validation PSNR so far, the measured time per step, and the hours left, as a range
+from the fewest steps the plateau rule could still stop at to ``max_steps``.
+When every run is done, the candidates are compared on validation by
+``python -m benchmarks.preset_choice`` (the workdirs named in ``--status``).
+"""

@@ -1,0 +1,180 @@
+"""The real preset study's runs, its runner and its status (package docstring)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import time
+from typing import Callable
+
+from experiments import store
+
+STUDY = "real_preset"
+#: Where the committed run states live: ``state/<run>/<model folder>/``.
+STATE_DIR = pathlib.Path(__file__).resolve().parent / "state"
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+  """One long run: a candidate's data config (a preset name or a ``.py`` file) and a variant."""
+
+  name: str
+  config: str
+  variant: str
+  seed: int = 0
+
+
+#: The runs, in the order they are trained. ``real_v4``: the physics-mix candidate
+#: (experiments/configs/real_v4.py), the most realistic candidate measured so far
+#: (benchmarks/results/realism_v4.md).
+RUNS = (
+    Run("v4-ours_s", "experiments/configs/real_v4.py", "ours_s"),
+    Run("v4-ours", "experiments/configs/real_v4.py", "ours"),
+)
+
+
+def run_config(run: Run) -> dict:
+  """The run's training config: its candidate's, with the dataset in the store and the run's seed."""
+  from experiments.cli import load_config
+  from nlosjax import train
+  config = load_config(run.config)
+  config["data"]["path"] = str(store.data_path(pathlib.Path(config["data"]["path"]).name))
+  config["train"] = {**config["train"], "seed": run.seed, "variants": (run.variant,)}
+  return train.with_defaults(config)
+
+
+def workdir(run: Run) -> pathlib.Path:
+  return store.run_path(STUDY, run.name)
+
+
+def state_folder(run: Run) -> pathlib.Path:
+  """The run's committed export root (its model folder inside: ``<this>/<variant>``)."""
+  return STATE_DIR / run.name
+
+
+def status(run: Run) -> dict:
+  """What the committed state says of ``run``: steps, best, rate, hours left (module docstring)."""
+  from nlosjax.train import StopRule
+  from nlosjax.train.run_state import read_meta
+  config = run_config(run)
+  rule = StopRule.from_config(config["train"]["stop"])
+  folder = state_folder(run) / run.variant
+  meta = read_meta(folder)
+  out = {"run": run.name, "config": run.config, "variant": run.variant, "step": 0, "done": False,
+         "best_step": None, "best_val_psnr": None, "s_per_step": None, "hours_left": None,
+         "workdir": str(workdir(run)), "state": str(folder)}
+  if meta is None:
+    out["steps_left"] = (rule.every * (rule.patience + 1), rule.max_steps)
+    return out
+  out["step"] = int(meta["step"])
+  curve_path = folder / "validation_curve.json"
+  curve = json.loads(curve_path.read_text()) if curve_path.exists() else None
+  if curve and curve["curve"]:
+    points = curve["curve"]
+    out["best_step"], out["best_val_psnr"] = curve["best_step"], curve["best_val_psnr"]
+    out["done"] = curve.get("stop_reason") is not None
+    out["s_per_step"] = points[-1]["time_s"] / max(points[-1]["step"], 1)
+    # With no further gain the rule stops once ``patience`` validations follow the best.
+    best_index = max(i for i, p in enumerate(points) if p["step"] == curve["best_step"])
+    fewest = 0 if out["done"] else rule.every * max(best_index + 1 + rule.patience - len(points), 0)
+    most = 0 if out["done"] else rule.max_steps - out["step"]
+    out["steps_left"] = (min(fewest, most), most)
+    out["hours_left"] = tuple(round(s * out["s_per_step"] / 3600, 2) for s in out["steps_left"])
+  else:
+    out["steps_left"] = (rule.every * (rule.patience + 1) - out["step"], rule.max_steps - out["step"])
+  return out
+
+
+def format_status(rows: list[dict]) -> str:
+  """The status table (Markdown)."""
+  lines = ["| run | variant | step | best val PSNR (step) | s / step | steps left | hours left | state |",
+           "|---|---|---|---|---|---|---|---|"]
+  total = [0.0, 0.0]
+  for r in rows:
+    best = "—" if r["best_val_psnr"] is None else f"{r['best_val_psnr']:.2f} dB ({r['best_step']})"
+    rate = "—" if r["s_per_step"] is None else f"{r['s_per_step']:.2f}"
+    left = "done" if r["done"] else f"{r['steps_left'][0]}–{r['steps_left'][1]}"
+    hours = "0" if r["done"] else ("not measured" if r["hours_left"] is None
+                                   else f"{r['hours_left'][0]:.1f}–{r['hours_left'][1]:.1f}")
+    if r["hours_left"] is not None:
+      total = [total[0] + r["hours_left"][0], total[1] + r["hours_left"][1]]
+    lines.append(f"| {r['run']} | {r['variant']} | {r['step']} | {best} | {rate} | {left} | {hours} | "
+                 f"`{pathlib.Path(r['state']).relative_to(STATE_DIR.parents[3])}` |")
+  lines.append("")
+  lines.append(f"Hours left over the measured runs: {total[0]:.1f}–{total[1]:.1f} (from the fewest steps "
+               "the plateau rule could stop at to max_steps, at each run's measured time per step; "
+               "runs not started are not counted).")
+  return "\n".join(lines)
+
+
+def train_run(run: Run, *, deadline: float | None, allow_data_change: bool = False,
+              log: Callable[[str], None] = print) -> bool:
+  """Train ``run`` from its committed state until it stops or ``deadline``; True when it is done."""
+  from nlosjax import train
+  from nlosjax.data.dataset import dataset_digest
+  from nlosjax.evaluation import protocol
+  config = run_config(run)
+  data_path = pathlib.Path(config["data"]["path"])
+  data_path.parent.mkdir(parents=True, exist_ok=True)
+  train.ensure_dataset(config, data_path, log=log)
+  digest = _cached_digest(data_path, dataset_digest)
+  log(f"[{run.name}] data {data_path} (content digest {digest})")
+  export = train.StateExport(state_folder(run), data_digest=digest, deadline=deadline,
+                             allow_data_change=allow_data_change)
+  validate = protocol.validation_psnr(config, data_path)
+  wd = workdir(run)
+  wd.mkdir(parents=True, exist_ok=True)
+  (wd / "config.json").write_text(json.dumps(config, indent=2, default=str) + "\n")
+  try:
+    train.train_model(config, data_path, wd, run.variant, validate=validate, log=log, export=export)
+  except train.TrainingPaused as e:
+    log(str(e))
+    return False
+  return True
+
+
+def _cached_digest(path: pathlib.Path, digest: Callable) -> str:
+  """The dataset's content digest, cached beside it by size and modification time."""
+  cache = path.with_name(path.name + ".digest.json")
+  key = {"size": path.stat().st_size, "mtime_ns": path.stat().st_mtime_ns}
+  if cache.exists():
+    saved = json.loads(cache.read_text())
+    if {k: saved.get(k) for k in key} == key:
+      return saved["digest"]
+  value = digest(path)
+  cache.write_text(json.dumps({**key, "digest": value}) + "\n")
+  return value
+
+
+def run_study(names=None, *, hours: float | None = None, allow_data_change: bool = False,
+              log: Callable[[str], None] = print) -> list[dict]:
+  """Train the named runs (default: all, in order) until each is done or ``hours`` have passed.
+
+  The first unfinished run is always started (a deadline already past pauses it after one
+  step), so every invocation makes progress; later runs start only before the deadline.
+  Returns :func:`status` of every run.
+  """
+  runs = select(names)
+  deadline = None if hours is None else time.time() + 3600 * hours
+  started = False
+  for run in runs:
+    if status(run)["done"]:
+      log(f"[{run.name}] done (committed state)")
+      continue
+    if started and deadline is not None and time.time() >= deadline:
+      break                             # the first unfinished run always makes progress
+    started = True
+    if not train_run(run, deadline=deadline, allow_data_change=allow_data_change, log=log):
+      break
+  return [status(r) for r in RUNS]
+
+
+def select(names) -> list[Run]:
+  by_name = {r.name: r for r in RUNS}
+  if not names:
+    return list(RUNS)
+  unknown = [n for n in names if n not in by_name]
+  if unknown:
+    raise ValueError(f"unknown run(s) {unknown}; the study's runs: {sorted(by_name)}")
+  return [by_name[n] for n in names]

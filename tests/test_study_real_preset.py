@@ -1,0 +1,77 @@
+"""The real-preset study runs a working stretch at a time: pause at the deadline, status, resume to the end."""
+
+import pathlib
+
+import pytest
+
+from experiments import store
+from experiments.studies.real_preset import study
+from tests.tiny_run import tiny_config
+
+TINY = study.Run("tiny-ours_s", "cpu", "ours_s")
+
+
+@pytest.fixture
+def tiny_study(tmp_path, monkeypatch):
+  monkeypatch.setenv(store.ENV, str(tmp_path / "home"))
+  monkeypatch.setattr(study, "STATE_DIR", tmp_path / "repo" / "experiments" / "studies" / "x" / "state")
+  monkeypatch.setattr(study, "RUNS", (TINY,))
+
+  def config(run):
+    path = store.data_path("tiny.h5")
+    cfg = tiny_config(path, checkpoint_every=2,
+                      stop={"rule": "plateau", "every": 2, "patience": 1, "min_delta_db": 100.0,
+                            "max_steps": 8})
+    return cfg
+  monkeypatch.setattr(study, "run_config", config)
+  return tmp_path
+
+
+def test_a_study_pauses_reports_hours_left_and_resumes_to_the_plateau(tiny_study, capsys):
+  assert study.status(TINY)["step"] == 0
+  # A stretch that ends at once: data made in the store, one step, paused and exported.
+  rows = study.run_study(hours=1e-9, log=lambda s: None)
+  assert store.data_path("tiny.h5").exists()
+  assert rows[0]["step"] == 1 and not rows[0]["done"]
+  assert (study.STATE_DIR / TINY.name / "ours_s" / "state.npz").exists()
+  # The next stretch, as on a fresh machine: the store is gone, the committed state kept.
+  import shutil
+  shutil.rmtree(store.home())
+  rows = study.run_study(log=lambda s: None)
+  row = rows[0]
+  # min_delta 100 dB: the second validation (step 4) cannot beat the first by that, so patience 1 stops.
+  assert row["done"] and row["step"] == 4 and row["best_step"] in (2, 4)
+  assert row["steps_left"] == (0, 0) and row["hours_left"] == (0.0, 0.0)
+  assert row["s_per_step"] > 0
+  text = study.format_status(rows)
+  assert "| tiny-ours_s | ours_s | 4 |" in text and "| done |" in text
+
+
+def test_status_counts_the_fewest_and_most_steps_the_plateau_rule_leaves(tiny_study):
+  import json
+  folder = study.STATE_DIR / TINY.name / "ours_s"
+  folder.mkdir(parents=True)
+  # Validations at 2, 4, 6; best at 4; patience 4 (the preset's), every 2, max 3000: with no gain
+  # from now, the rule stops after 4 validations past step 4, i.e. at step 12: 6 steps left.
+  points = [{"step": s, "val_psnr": v, "time_s": 1.5 * s} for s, v in ((2, 10.0), (4, 12.0), (6, 11.0))]
+  (folder / "validation_curve.json").write_text(json.dumps(
+      {"curve": points, "best_step": 4, "best_val_psnr": 12.0, "stop_reason": None}))
+  (folder / "run_state.json").write_text(json.dumps({"step": 6, "best_step": 4}))
+  study.run_config = lambda run: tiny_config(pathlib.Path("x.h5"), stop={
+      "rule": "plateau", "every": 2, "patience": 4, "min_delta_db": 0.05, "max_steps": 3000})
+  row = study.status(TINY)
+  assert row["steps_left"] == (6, 2994)
+  assert row["s_per_step"] == pytest.approx(1.5)
+  assert row["hours_left"] == (round(6 * 1.5 / 3600, 2), round(2994 * 1.5 / 3600, 2))
+
+
+def test_store_paths_refuse_folders_and_follow_the_environment(monkeypatch, tmp_path):
+  monkeypatch.setenv(store.ENV, str(tmp_path))
+  assert store.data_path("a.h5") == tmp_path / "data" / "a.h5"
+  assert store.run_path("s", "r") == tmp_path / "runs" / "s" / "r"
+  for bad in ("", "../a.h5", "x/a.h5"):
+    with pytest.raises(ValueError, match="file name alone"):
+      store.data_path(bad)
+  monkeypatch.delenv(store.ENV)
+  monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+  assert store.home() == tmp_path / "cache" / "nlosjax"
