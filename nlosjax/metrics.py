@@ -28,7 +28,8 @@ import numpy as np
 
 __all__ = ["PSNR_CAP_DB", "SURFACE_MIN_DEPTH", "OBJECT_METRICS", "TEMPORAL_METRICS", "psnr", "ssim",
            "rmse", "mad", "surface", "surface_scores", "rmse_object", "mad_object", "recall", "precision",
-           "f1", "temporal_rmse", "temporal_psnr", "temporal_rmse_object"]
+           "f1", "intensity_mae_object", "psnr_zero", "temporal_rmse", "temporal_psnr",
+           "temporal_rmse_object"]
 
 PSNR_CAP_DB = 100.0
 """PSNR (dB) returned for identical images: MSE is floored at
@@ -487,6 +488,43 @@ def rmse_object(pred_depth, target_depth):
   ``pred_depth``, ``target_depth``: ``[..., H, W]`` metres (0 = background in the target).
   """
   return surface_scores(pred_depth, target_depth)["rmse_object"]
+
+
+@jax.jit
+def _intensity_mae_object(pred, target, depth):
+  truth = _true_surface(depth)
+  n = jnp.sum(truth, axis=(-2, -1))
+  total = jnp.sum(jnp.where(truth, jnp.abs(pred - target), 0), axis=(-2, -1))
+  has_nan = jnp.any(jnp.isnan(pred) | jnp.isnan(target), axis=(-2, -1))
+  return jnp.where((n > 0) & ~has_nan, total / jnp.maximum(n, 1), jnp.array(jnp.nan, pred.dtype))
+
+
+def intensity_mae_object(pred_intensity, target_intensity, target_depth):
+  """Intensity mean absolute error over each image's true object pixels; ``[...]``, NaN if it has none.
+
+  The object pixels are the ground truth's surface (``target_depth > 0``, docs/evaluation.md,
+  "Surfaces"), so a reconstruction that is dark everywhere scores the objects' mean true
+  intensity, however clean its background: the score intensity PSNR cannot give.
+
+  Args:
+    pred_intensity, target_intensity: ``[..., H, W]`` in [0, 1].
+    target_depth: ``[..., H, W]`` true depth, metres, 0 at background.
+  Raises:
+    ValueError: shapes differ, rank < 2, NaN in a concrete input.
+  """
+  _check_images("intensity_mae_object", pred_intensity, target_intensity, None)
+  _check_images("intensity_mae_object", target_intensity, target_depth, None)
+  pred, target, _, dtype = _prepare(pred_intensity, target_intensity, None)
+  return _intensity_mae_object(pred, target, jnp.asarray(target_depth, dtype))
+
+
+def psnr_zero(target_intensity):
+  """The all-zero image's intensity PSNR (dB) against each target: the floor a dark reconstruction reaches.
+
+  ``target_intensity``: ``[..., H, W]`` in [0, 1]; returns ``[...]``
+  (:func:`psnr` of zeros, so an all-dark target gives the cap :data:`PSNR_CAP_DB`).
+  """
+  return psnr(jnp.zeros_like(jnp.asarray(target_intensity)), target_intensity)
 
 
 def mad_object(pred_depth, target_depth):

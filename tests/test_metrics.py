@@ -653,3 +653,33 @@ def test_temporal_scores_reject_bad_input():
       fn(np.zeros((2, 4, 4)), np.zeros((2, 4, 4)), pooled="yes")
   with pytest.raises(ValueError, match="data_range"):
     metrics.temporal_psnr(np.zeros((2, 4, 4)), np.zeros((2, 4, 4)), data_range=0.0)
+
+
+def test_object_intensity_error_is_the_mean_absolute_error_over_true_object_pixels_by_loop():
+  rng = np.random.default_rng(7)
+  pred = rng.uniform(0, 1, (3, 9, 7)).astype(np.float32)
+  gt = rng.uniform(0, 1, (3, 9, 7)).astype(np.float32)
+  depth = np.where(rng.uniform(size=(3, 9, 7)) < 0.3, rng.uniform(0.5, 2.0, (3, 9, 7)), 0.0).astype(np.float32)
+  depth[2] = 0.0                                              # a frame without an object
+  got = np.asarray(metrics.intensity_mae_object(pred, gt, depth))
+  for i in range(2):
+    errs = [abs(float(pred[i, y, x]) - float(gt[i, y, x])) for y in range(9) for x in range(7)
+            if depth[i, y, x] > 0]
+    assert got[i] == pytest.approx(sum(errs) / len(errs), rel=1e-6)
+  assert np.isnan(got[2])
+  # A dark image scores the objects' mean true intensity, whatever the background.
+  dark = np.asarray(metrics.intensity_mae_object(np.zeros_like(gt), gt, depth))
+  assert dark[0] == pytest.approx(float(gt[0][depth[0] > 0].mean()), rel=1e-6)
+  with pytest.raises(ValueError, match="intensity_mae_object"):
+    metrics.intensity_mae_object(pred, gt, depth[:, :8])
+
+
+def test_the_all_zero_floor_is_skimages_psnr_of_a_black_image():
+  from skimage.metrics import peak_signal_noise_ratio
+  rng = np.random.default_rng(8)
+  gt = (rng.uniform(size=(2, 16, 16)) * (rng.uniform(size=(2, 16, 16)) < 0.2)).astype(np.float32)
+  got = np.asarray(metrics.psnr_zero(gt))
+  for i in range(2):
+    assert got[i] == pytest.approx(peak_signal_noise_ratio(gt[i], np.zeros_like(gt[i]), data_range=1.0),
+                                   abs=1e-4)
+  assert float(metrics.psnr_zero(np.zeros((4, 4), np.float32))) == metrics.PSNR_CAP_DB

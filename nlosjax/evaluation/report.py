@@ -25,7 +25,9 @@ METHOD_LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "r
                  "ours_s": "Ours-S", "ours": "Ours", "usm": "USM"}
 #: Row order of every table.
 TABLE_METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "usm", "ours_s", "ours")
-METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2), "ssim": ("intensity SSIM", "", 3),
+METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2),
+                 "psnr_zero": ("all-zero image's PSNR", "dB", 2),
+                 "intensity_mae_object": ("object intensity error", "", 3), "ssim": ("intensity SSIM", "", 3),
                  "rmse": ("depth RMSE", "m", 3), "mad": ("depth MAD", "m", 3),
                  "rmse_object": ("object depth RMSE", "m", 3),
                  "mad_object": ("object depth MAD", "m", 3),
@@ -34,10 +36,10 @@ METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2), "ssim": ("intensity SSIM",
                  "temporal_rmse": ("temporal intensity error", "", 3),
                  "temporal_psnr": ("temporal intensity PSNR", "dB", 2),
                  "temporal_rmse_object": ("temporal depth error (objects)", "m", 3)}
-PAPER_METRICS = ("psnr", "ssim", "rmse", "mad")
-OBJECT_METRICS = ("rmse_object", "mad_object", "recall", "precision", "f1")
+PAPER_METRICS = ("psnr", "psnr_zero", "ssim", "rmse", "mad")
+OBJECT_METRICS = ("intensity_mae_object", "rmse_object", "mad_object", "recall", "precision", "f1")
 #: Columns of the paired-differences table (and the temporal intensity error where compared).
-COMPARISON_METRICS = ("psnr", "ssim", "rmse_object", "recall", "f1")
+COMPARISON_METRICS = ("psnr", "ssim", "intensity_mae_object", "rmse_object", "recall", "f1")
 
 
 def label(method: str) -> str:
@@ -64,10 +66,11 @@ def _grid(table: dict, metrics: tuple[str, ...], counts: str = "sequences / fram
            "|---|" + "---|" * len(metrics) + "---|"]
   for m in _rows(table):
     r = table[m]
-    first = r[metrics[0]]
+    first = next(r[k] for k in metrics if k in r)
     counts = f"{first['n_sequences']} / {first['n_frames']} / {first.get('n_seeds', 1)}"
-    lines.append(f"| {label(m)} | " + " | ".join(_cell(r[k], METRIC_LABELS[k][2]) for k in metrics)
-                 + f" | {counts} |")
+    # A table written before a metric existed shows n/a in its column.
+    lines.append(f"| {label(m)} | " + " | ".join(_cell(r[k], METRIC_LABELS[k][2]) if k in r else "n/a"
+                                                 for k in metrics) + f" | {counts} |")
   return lines
 
 
@@ -81,9 +84,12 @@ def format_tables(table: dict, caption: str = "") -> str:
   lines = ([caption, ""] if caption else [])
   lines += ["Mean [95 % bootstrap interval over sequences, and over training seeds where there "
             "are several]; a frame's scores count once per seed.", "",
-            "**The paper's metrics** (whole-image depth counts every background pixel):", ""]
+            "**The paper's metrics** (whole-image depth counts every background pixel; the all-zero "
+            "image's PSNR is the floor an empty reconstruction reaches on the same frames):", ""]
   lines += _grid(table, PAPER_METRICS)
-  lines += ["", "**On the objects** (depth error over the true surface pixels; recall: share of "
+  lines += ["", "**On the objects** (object intensity error: mean absolute intensity error over the "
+            "true object pixels, which a dark background cannot lower; "
+            "depth error over the true surface pixels; recall: share of "
             "them reconstructed as surface; precision: share of the reconstructed surface that is "
             "true surface; surface = depth >= 0.1 m for every method):", ""]
   lines += _grid(table, OBJECT_METRICS)
@@ -121,7 +127,7 @@ def format_comparisons(comparisons: list[dict], metrics=None) -> str:
   """
   if not comparisons:
     return ""
-  called = ("psnr", "rmse_object", "recall")
+  called = ("psnr", "intensity_mae_object", "rmse_object", "recall")
   if metrics is None:
     metrics = COMPARISON_METRICS
     if any("temporal_rmse" in c["diff"] for c in comparisons):

@@ -1,8 +1,11 @@
 """Per-frame scores of a method, grouped by sequence, summarised with bootstrap intervals.
 
 The metrics of every table (:data:`TABLE_METRICS`). Per frame
-(:data:`METRICS`): intensity ``psnr`` (dB) and
-``ssim`` against the ground-truth intensity (data range 1), whole-image depth
+(:data:`METRICS`): intensity ``psnr`` (dB) beside ``psnr_zero``, the all-zero
+image's PSNR on the same frame (a floor: a dark background alone reaches it), and
+``ssim`` against the ground-truth intensity (data range 1); ``intensity_mae_object``,
+the intensity's mean absolute error over the true object pixels (an image dark on
+the objects scores their mean intensity); whole-image depth
 ``rmse`` and ``mad`` (metres, every pixel: kept for comparison with the
 paper, but they reward outputting background), and the object-aware scores
 of :func:`nlosjax.metrics.surface_scores`: ``rmse_object``, ``mad_object``
@@ -39,14 +42,16 @@ from nlosjax import metrics, stats
 __all__ = ["METRICS", "TEMPORAL_METRICS", "TABLE_METRICS", "HIGHER_IS_BETTER", "frame_scores",
            "consecutive_pairs", "temporal_scores", "by_sequence", "summarize_scores", "compare_scores"]
 
-#: The metrics scored on each frame alone.
-METRICS = ("psnr", "ssim", "rmse", "mad") + tuple(metrics.OBJECT_METRICS)
+#: The metrics scored on each frame alone. ``psnr_zero`` is not a method's score but its test
+#: frames': the all-zero image's PSNR, the floor beside each PSNR.
+METRICS = ("psnr", "psnr_zero", "ssim", "rmse", "mad", "intensity_mae_object") + tuple(metrics.OBJECT_METRICS)
 #: The metrics scored on each pair of consecutive evaluated frames (stored at the later frame).
 TEMPORAL_METRICS = tuple(metrics.TEMPORAL_METRICS)
 #: Every metric of an evaluation's table.
 TABLE_METRICS = METRICS + TEMPORAL_METRICS
 #: Whether a larger value of the metric is better.
-HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "rmse": False, "mad": False,
+HIGHER_IS_BETTER = {"psnr": True, "psnr_zero": True, "intensity_mae_object": False, "ssim": True,
+                    "rmse": False, "mad": False,
                     "rmse_object": False, "mad_object": False, "recall": True,
                     "precision": True, "f1": True, "temporal_rmse": False,
                     "temporal_psnr": True, "temporal_rmse_object": False}
@@ -69,6 +74,8 @@ def frame_scores(intensity, depth, gt_intensity, gt_depth, *, sequence=None,
     first evaluated frame).
   """
   out = {"psnr": metrics.psnr(intensity, gt_intensity),
+         "psnr_zero": metrics.psnr_zero(gt_intensity),
+         "intensity_mae_object": metrics.intensity_mae_object(intensity, gt_intensity, gt_depth),
          "ssim": metrics.ssim(intensity, gt_intensity),
          "rmse": metrics.rmse(depth, gt_depth),
          "mad": metrics.mad(depth, gt_depth),
