@@ -1,0 +1,213 @@
+"""Results carried forward: does a code change move any number the results files are made of?
+
+    python -m benchmarks.equivalence --base COMMIT [--out benchmarks/results/equivalence.md]
+
+Runs the fixed probes of :mod:`benchmarks.equivalence_probe` (tiny datasets of every
+renderer family, three train steps of Ours-S, Ours and USM, the evaluation protocol,
+every shipped network on a fixed input, every classic reconstruction) twice, side by
+side: on ``COMMIT``'s tree (a temporary ``git worktree``) and on today's, and compares
+every array: the largest difference relative to the largest magnitude of the earlier
+value, against :data:`TOLERANCE` (float32 rounding over a few operations, far below any
+difference a results file reports). Writes ``equivalence.md`` and ``equivalence.json``.
+
+How ``python -m benchmarks.index`` uses it (:func:`carried_forward`): a results file
+that is stale today is **carried forward** when this file is current, every probe
+passed, the results file was current at ``COMMIT`` (its code digest recomputed on that
+commit's files), and every module of the file whose code changed since ``COMMIT`` lies
+in this command's own import closure (the code the probes ran). The numbers stay the
+ones measured, with their commit; the index names this check beside them. A change that
+moves a probe beyond the tolerance carries nothing: those files are regenerated, or a
+study's seed is retrained at the new code and shown to land inside its interval.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from experiments import provenance
+
+HERE = pathlib.Path(__file__).resolve().parent
+PROBE = HERE / "equivalence_probe.py"
+#: Largest ``max|new - old| / max|old|`` of one probe array that counts as rounding.
+TOLERANCE = 1e-5
+NAME = "equivalence"
+
+
+def run_probe(tree: pathlib.Path, out: pathlib.Path, *, log=print) -> dict:
+  """Run today's probe script on ``tree``'s packages; returns its arrays (and its JSON under ``"_meta"``)."""
+  env = {**os.environ, "PYTHONPATH": str(tree)}
+  script = out.with_name(f"{out.stem}_probe.py")          # run from a folder of its own: no
+  script.write_text(PROBE.read_text())                      # benchmarks/ module shadows anything
+  t0 = time.perf_counter()
+  got = subprocess.run([sys.executable, str(script), str(out)], cwd=tree, env=env, capture_output=True,
+                       text=True)
+  if got.returncode:
+    raise RuntimeError(f"the probe failed on {tree}:\n{got.stderr[-3000:]}")
+  log(f"probe on {tree}: {time.perf_counter() - t0:.0f} s")
+  meta = json.loads(out.with_suffix(".json").read_text())
+  if pathlib.Path(meta["nlosjax"]).resolve() != (tree / "nlosjax").resolve():
+    raise RuntimeError(f"the probe on {tree} imported nlosjax from {meta['nlosjax']}")
+  with np.load(out) as f:
+    arrays = {k: f[k] for k in f.files}
+  return {**arrays, "_meta": meta}
+
+
+def compare(old: dict, new: dict, tolerance: float = TOLERANCE) -> list[dict]:
+  """One row per probe group (``data/lct``, ``train/ours``, ...): arrays, identical, worst relative change.
+
+  An array only ``new`` holds (a metric added since) is listed as added and fails nothing: the
+  numbers measured before are unchanged. An array only ``old`` holds fails its probe.
+  """
+  keys = sorted((set(old) | set(new)) - {"_meta"})
+  groups: dict[str, dict] = {}
+  for k in keys:
+    g = "/".join(k.split("/")[:2])
+    row = groups.setdefault(g, {"probe": g, "arrays": 0, "identical": 0, "worst": 0.0, "missing": [],
+                                "added": []})
+    if k not in old:
+      row["added"].append(k)
+      continue
+    row["arrays"] += 1
+    if k not in new:
+      row["missing"].append(k)
+      continue
+    a, b = np.asarray(old[k]), np.asarray(new[k])
+    if a.shape != b.shape:
+      row["missing"].append(f"{k} (shape {a.shape} -> {b.shape})")
+      continue
+    if a.dtype == b.dtype and a.tobytes() == b.tobytes():
+      row["identical"] += 1
+      continue
+    a64, b64 = a.astype(np.float64), b.astype(np.float64)
+    same_nan = np.array_equal(np.isnan(a64), np.isnan(b64))
+    scale = np.nanmax(np.abs(a64)) if np.isfinite(a64).any() else 1.0
+    diff = np.nanmax(np.abs(a64 - b64)) / max(scale, 1e-30) if same_nan else np.inf
+    row["worst"] = max(row["worst"], float(diff))
+  for row in groups.values():
+    row["passed"] = not row["missing"] and row["worst"] <= tolerance
+  return list(groups.values())
+
+
+def changed_modules(base: str) -> list[str]:
+  """Project modules whose code (not comments or docstrings) differs between ``base`` and the working tree."""
+  from benchmarks.index import _GitFiles, _same_code
+  files = provenance.project_files()
+  listed = subprocess.run(["git", "ls-tree", "-r", "--name-only", base], cwd=provenance.ROOT,
+                          capture_output=True, text=True, check=True).stdout.split()
+  old = {p for p in listed if p.endswith(".py") and p.split("/")[0] in provenance.PACKAGES}
+  show = _GitFiles()
+  try:
+    return sorted(p for p in files | old
+                  if not _same_code(show(base, p) if p in old else None,
+                                    (provenance.ROOT / p).read_text() if p in files else None, p))
+  finally:
+    show.close()
+
+
+def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], seconds: dict,
+          command: str) -> dict:
+  modules = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe"])
+  passed = all(r["passed"] for r in rows)
+  record = {"base": base, "head": provenance.git_commit(), "tolerance": TOLERANCE, "passed": passed,
+            "changed": changed, "closure": modules, "probes": rows, "seconds": seconds}
+  lines = [f"# Results carried forward: the code at {base[:12]} and today's, side by side", "",
+           *provenance.provenance(command), "",
+           f"Every probe of `benchmarks/equivalence_probe.py` run on commit `{base[:12]}`'s tree and on "
+           f"this one (probe times: base {seconds['base']:.0f} s, today {seconds['today']:.0f} s). "
+           f"A probe passes when every array is within {TOLERANCE:g} of the base value, relative to "
+           "the base array's largest magnitude (float32 rounding); `identical` counts arrays equal "
+           "bit for bit.", "",
+           "| probe | arrays | identical | largest relative change | passed | added since |",
+           "|---|---|---|---|---|---|"]
+  for r in rows:
+    worst = "0" if r["worst"] == 0 else f"{r['worst']:.2e}"
+    mark = "yes" if r["passed"] else ("no (" + "; ".join(r["missing"][:2]) + ")" if r["missing"] else "no")
+    added = ", ".join(f"`{a.split('/', 2)[-1]}`" for a in r["added"][:4]) + \
+        (f" and {len(r['added']) - 4} more" if len(r["added"]) > 4 else "")
+    lines.append(f"| {r['probe']} | {r['arrays']} | {r['identical']} | {worst} | {mark} | {added} |")
+  lines += ["", f"**Verdict: {'every probe passed' if passed else 'a probe moved beyond rounding'}.** "
+            + ("A results file current at the base commit, whose changed modules all lie in this "
+               "command's import closure, is carried forward by `python -m benchmarks.index`."
+               if passed else "Nothing is carried forward."), "",
+            f"Modules whose code changed since `{base[:12]}` ({len(changed)}):", ""]
+  inside = set(modules)
+  lines += [f"- `{m}`" + ("" if m in inside else " (outside this check's closure)") for m in changed]
+  out.write_text("\n".join(lines) + "\n")
+  out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
+  return record
+
+
+def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
+  """``"carried forward from <base> by equivalence.md"`` where the rule above holds for ``entry``, else None.
+
+  ``entry``: a :class:`benchmarks.index.Entry` that is stale today.
+  """
+  from benchmarks.index import _GitFiles, _same_code, read_entry
+  path = results / f"{NAME}.json"
+  if entry.name == NAME or not path.exists() or not (results / f"{NAME}.md").exists() or not entry.digest:
+    return None
+  record = json.loads(path.read_text())
+  own = read_entry(results / f"{NAME}.md")
+  files = provenance.project_files() if files is None else files
+  if not record.get("passed") or any(m not in files for m in own.modules) \
+     or provenance.code_digest(own.modules) != own.digest:
+    return None
+  base = record["base"]
+  show = _GitFiles()
+  try:
+    if any(show(base, m) is None for m in entry.modules):
+      return None
+    if provenance.code_digest(entry.modules, lambda p: show(base, p)) != entry.digest:
+      return None                          # not current at the base: nothing to carry
+    closure = set(own.modules)
+    moved = [m for m in entry.modules
+             if not _same_code(show(base, m), (provenance.ROOT / m).read_text() if m in files else None, m)]
+  finally:
+    show.close()
+  if any(m not in closure for m in moved):
+    return None
+  return f"carried forward from {base[:7]} by {NAME}.md"
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--base", required=True, help="the commit the results files were current at")
+  p.add_argument("--out", default=str(HERE / "results" / f"{NAME}.md"))
+  args = p.parse_args(argv)
+  base = subprocess.run(["git", "rev-parse", args.base], cwd=provenance.ROOT, capture_output=True,
+                        text=True, check=True).stdout.strip()
+  command = f"python -m benchmarks.equivalence --base {args.base}"
+  with tempfile.TemporaryDirectory() as d:
+    tree = pathlib.Path(d) / "base"
+    subprocess.run(["git", "worktree", "add", "--detach", str(tree), base], cwd=provenance.ROOT,
+                   check=True, capture_output=True)
+    try:
+      t0 = time.perf_counter()
+      old = run_probe(tree, pathlib.Path(d) / "base.npz")
+      t1 = time.perf_counter()
+      new = run_probe(provenance.ROOT, pathlib.Path(d) / "today.npz")
+      t2 = time.perf_counter()
+    finally:
+      subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=provenance.ROOT,
+                     capture_output=True)
+  rows = compare(old, new)
+  record = write(pathlib.Path(args.out), base, rows, changed_modules(base),
+                 {"base": t1 - t0, "today": t2 - t1}, command)
+  for r in rows:
+    print(f"  {r['probe']}: {r['identical']}/{r['arrays']} identical, worst {r['worst']:.2e}"
+          f"{'' if r['passed'] else '  FAILED'}")
+  print(f"wrote {args.out}: {'passed' if record['passed'] else 'FAILED'}")
+  return 0 if record["passed"] else 1
+
+
+if __name__ == "__main__":
+  sys.exit(main())

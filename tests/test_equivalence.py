@@ -1,0 +1,74 @@
+"""Results carried forward: the probe comparison, and the rule by which the index carries a stale file."""
+
+import json
+
+import numpy as np
+import pytest
+
+from benchmarks import equivalence, index
+from experiments import provenance
+
+#: A landed commit (the last before the carry-forward rule existed); every clone of main has it.
+BASE = "f4a2ccf"
+
+
+def test_compare_tells_identical_rounding_moved_added_and_missing_arrays():
+  a = np.linspace(-2, 2, 50, dtype=np.float32)
+  old = {"train/ours/w": a, "train/ours/b": a, "data/lct/x": np.arange(5), "evaluate/fbp/psnr": a,
+         "physics/lct": a.copy(), "pretrained/x/y": np.array([1.0, np.nan])}
+  new = {"train/ours/w": a.copy(), "train/ours/b": a * (1 + 1e-7), "data/lct/x": np.arange(5),
+         "evaluate/fbp/psnr": a, "evaluate/fbp/psnr_zero": a, "physics/lct": a + 1e-3,
+         "pretrained/x/y": np.array([np.nan, 1.0])}
+  rows = {r["probe"]: r for r in equivalence.compare(old, new)}
+  assert rows["train/ours"]["identical"] == 1 and rows["train/ours"]["arrays"] == 2
+  assert 0 < rows["train/ours"]["worst"] <= 2e-7 and rows["train/ours"]["passed"]
+  assert rows["data/lct"]["passed"] and rows["data/lct"]["identical"] == 1
+  assert rows["evaluate/fbp"]["passed"] and rows["evaluate/fbp"]["added"] == ["evaluate/fbp/psnr_zero"]
+  assert not rows["physics/lct"]["passed"] and rows["physics/lct"]["worst"] == pytest.approx(5e-4, rel=1e-3)
+  assert not rows["pretrained/x"]["passed"]                     # NaN moved
+  gone = {r["probe"]: r for r in equivalence.compare(old, {k: v for k, v in new.items() if k != "data/lct/x"})}
+  assert not gone["data/lct"]["passed"] and gone["data/lct"]["missing"] == ["data/lct/x"]
+
+
+def _record(tmp_path, *, passed=True):
+  closure = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe"])
+  (tmp_path / "equivalence.md").write_text(
+      "# Results carried forward\n\nProduced by `python -m benchmarks.equivalence --base x`.\n\n"
+      "- Date: 2026-12-01T00:00:00+00:00\n- Machine: M\n- Commit: abc\n" + provenance.code_line(closure) + "\n")
+  (tmp_path / "equivalence.json").write_text(json.dumps({"base": BASE, "passed": passed}))
+
+
+def _entry(modules, digest):
+  return index.Entry("thing", "T", "python -m x", "2026", "M", BASE, digest, tuple(sorted(modules)))
+
+
+def _digest_at(commit, modules):
+  files = index._GitFiles()
+  try:
+    return provenance.code_digest(modules, lambda p: files(commit, p))
+  finally:
+    files.close()
+
+
+def test_a_file_current_at_the_base_whose_changes_the_check_ran_is_carried_forward(tmp_path):
+  if index._git("cat-file", "-e", f"{BASE}^{{commit}}") is None:
+    pytest.skip(f"this clone lacks commit {BASE} (a shallow clone)")
+  _record(tmp_path)
+  inside = ["nlosjax/train/loop.py", "nlosjax/metrics.py"]           # changed since BASE, both probed
+  carried = _entry(inside, _digest_at(BASE, inside))
+  assert equivalence.carried_forward(carried, results=tmp_path) == f"carried forward from {BASE} by equivalence.md"
+  # Not current at the base: nothing to carry.
+  assert equivalence.carried_forward(_entry(inside, "0" * 12), results=tmp_path) is None
+  # A module outside the probes' closure changed: not carried.
+  outside = inside + ["experiments/train.py"]
+  assert "experiments/train.py" not in provenance.code_modules(["benchmarks.equivalence",
+                                                                "benchmarks.equivalence_probe"])
+  assert equivalence.carried_forward(_entry(outside, _digest_at(BASE, outside)), results=tmp_path) is None
+  # A check that failed carries nothing.
+  _record(tmp_path, passed=False)
+  assert equivalence.carried_forward(carried, results=tmp_path) is None
+  # Nor does a check whose own code changed since it ran.
+  _record(tmp_path)
+  md = tmp_path / "equivalence.md"
+  md.write_text(md.read_text().replace("- Code: `", "- Code: `f"))
+  assert equivalence.carried_forward(carried, results=tmp_path) is None
