@@ -75,3 +75,13 @@ def test_store_paths_refuse_folders_and_follow_the_environment(monkeypatch, tmp_
   monkeypatch.delenv(store.ENV)
   monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
   assert store.home() == tmp_path / "cache" / "nlosjax"
+
+
+def test_data_of_an_edited_candidate_config_are_refused_not_used(tiny_study):
+  cfg = study.run_config(TINY)
+  path = store.data_path("tiny.h5")
+  path.parent.mkdir(parents=True)
+  study.ensure_data(cfg, path, log=lambda s: None)
+  edited = {**cfg, "data": {**cfg["data"], "photons": (10.0, 20.0)}}
+  with pytest.raises(ValueError, match="another data configuration"):
+    study.ensure_data(edited, path, log=lambda s: None)

@@ -117,7 +117,7 @@ def train_run(run: Run, *, deadline: float | None, allow_data_change: bool = Fal
   config = run_config(run)
   data_path = pathlib.Path(config["data"]["path"])
   data_path.parent.mkdir(parents=True, exist_ok=True)
-  train.ensure_dataset(config, data_path, log=log)
+  ensure_data(config, data_path, log=log)
   digest = _cached_digest(data_path, dataset_digest)
   log(f"[{run.name}] data {data_path} (content digest {digest})")
   export = train.StateExport(state_folder(run), data_digest=digest, deadline=deadline,
@@ -132,6 +132,24 @@ def train_run(run: Run, *, deadline: float | None, allow_data_change: bool = Fal
     log(str(e))
     return False
   return True
+
+
+def ensure_data(config: dict, path: pathlib.Path, *, log: Callable[[str], None] = print) -> None:
+  """Make (or finish, or extend) the run's dataset in the store; a file of another config is refused.
+
+  Stricter than :func:`nlosjax.train.ensure_dataset`, which uses such a file as it is: a
+  study's runs resume across machines and days, so a candidate config edited since its data
+  were made must not train on them unnoticed.
+  """
+  from nlosjax.data.dataset import DatasetSpec, extend_dataset, write_dataset
+  spec = DatasetSpec.from_config(config["data"])
+  workers = int(config["train"].get("data_workers", 1))
+  if path.exists():
+    result = extend_dataset(path, spec, workers=workers)     # ValueError: another configuration
+  else:
+    log(f"dataset: generating {path} ...")
+    result = write_dataset(path, spec, workers=workers)
+  log(f"dataset: {path} ({result.generated} sequences generated now)")
 
 
 def _cached_digest(path: pathlib.Path, digest: Callable) -> str:
