@@ -49,6 +49,11 @@ import pytest
 
 DEFAULT_WORKERS = 2
 INSTALL = 'pip install -e ".[test]"'
+#: Test tiers (``--tier``): ``default`` (the README's command) runs every test not marked
+#: ``@pytest.mark.full``; ``full`` runs only those (the end-to-end claims: shipped weights
+#: reproduced, the main job, distributed training, the studies); ``all`` runs both.
+#: ``bash .ci/run`` runs the default tier, then the full one.
+TIERS = ("default", "full", "all")
 
 
 def missing_test_requirements() -> list[str]:
@@ -73,6 +78,25 @@ def missing_test_requirements() -> list[str]:
     except importlib.metadata.PackageNotFoundError:
       missing.append(dist)
   return missing
+
+
+def pytest_addoption(parser) -> None:
+  parser.addoption("--tier", choices=TIERS, default=os.environ.get("NLOSJAX_TEST_TIER", "default"),
+                   help="default: the unit tier (tests not marked full); full: the end-to-end tier "
+                        "(marked full); all: both (env NLOSJAX_TEST_TIER)")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list) -> None:
+  """Keep the tests of ``--tier`` (:data:`TIERS`); the others are reported as deselected."""
+  tier = config.getoption("tier")
+  if tier == "all":
+    return
+  keep, drop = [], []
+  for item in items:
+    (keep if (item.get_closest_marker("full") is not None) == (tier == "full") else drop).append(item)
+  if drop:
+    config.hook.pytest_deselected(items=drop)
+    items[:] = keep
 
 
 @pytest.hookimpl(wrapper=True)
@@ -146,6 +170,8 @@ def counts_folder(environ) -> str:
 
 
 def pytest_configure(config: pytest.Config) -> None:
+  config.addinivalue_line("markers", "full: an end-to-end claim, run in the full tier (--tier full; "
+                                     "bash .ci/run runs it after the default tier)")
   if hasattr(config, "workerinput"):
     from experiments import xla_cache
     if os.environ.get(xla_cache.COUNTS_ENV):        # the controller set the cache up

@@ -63,12 +63,13 @@ def test_a_hung_failed_or_tableless_main_job_fails_ci(tmp_path, fake, message):
 
 # Stand-ins for what `.ci/run` calls: `python3 -m venv` makes an empty environment (other `python3`
 # calls, such as the CPU line's, go to the real interpreter), `pip` does nothing, `ruff` exits
-# $FAKE_LINT, `python -m pytest -q` sleeps 1 s and exits $FAKE_SUITE, and the main job sleeps 1 s.
+# $FAKE_LINT, `python -m pytest -q` sleeps 1 s and exits $FAKE_SUITE ($FAKE_FULL with `--tier full`), and
+# the main job sleeps 1 s.
 FAKES = {
     "python3": '#!/usr/bin/env bash\nif [[ "$1 $2" == "-m venv" ]]; then mkdir -p "${@: -1}/bin"; '
                'touch "${@: -1}/bin/activate"; exit 0; fi\nexec "$REAL_PYTHON" "$@"\n',
     "python": '#!/usr/bin/env bash\nif [[ "$1" == --version ]]; then echo "Python 3.x"; exit 0; fi\n'
-              'sleep 1; exit "${FAKE_SUITE:-0}"\n',
+              'sleep 1; if [[ "$*" == *"--tier full"* ]]; then exit "${FAKE_FULL:-0}"; fi; exit "${FAKE_SUITE:-0}"\n',
     "pip": "#!/usr/bin/env bash\nexit 0\n",
     "ruff": '#!/usr/bin/env bash\nexit "${FAKE_LINT:-0}"\n',
 }
@@ -103,15 +104,18 @@ def test_ci_ends_with_each_phases_seconds_and_the_cpus_model_clock_and_cache(tmp
   proc = run_ci(tmp_path)
   assert proc.returncode == 0, proc.stdout + proc.stderr
   phases = _phases(proc.stdout)
-  assert list(phases) == ["venv + install", "lint", "suite", "main-job install", "main job", "total"]
-  assert phases["suite"] >= 1 and phases["main job"] >= 1 and phases["total"] >= 2
+  assert list(phases) == ["venv + install", "lint", "suite", "suite (full tier)", "main-job install", "main job",
+                          "total"]
+  assert phases["suite"] >= 1 and phases["suite (full tier)"] >= 1 and phases["main job"] >= 1
+  assert phases["total"] >= 3
   # The last line: "== CPU: AMD EPYC, 2596 MHz, cache 1024 KB; 2 cores" (the clock as read: it may move).
   last, facts = proc.stdout.rstrip().splitlines()[-1], cpu_facts()
   assert last.startswith(f"== CPU: {facts['model']}") and last.endswith(f"; {len(os.sched_getaffinity(0))} cores")
   assert (" MHz" in last) == bool(facts["mhz"]) and (f"cache {facts['cache']}" in last) == bool(facts["cache"])
 
 
-@pytest.mark.parametrize("fake, failed, after", [({"lint": 1}, "lint", "suite"), ({"suite": 3}, "suite", "main job")])
+@pytest.mark.parametrize("fake, failed, after", [({"lint": 1}, "lint", "suite"), ({"suite": 3}, "suite", "main job"),
+                                                 ({"full": 4}, "suite (full tier)", "main job")])
 def test_a_failing_phase_still_fails_ci_after_the_table(tmp_path, fake, failed, after):
   proc = run_ci(tmp_path, **fake)
   assert proc.returncode == list(fake.values())[0]

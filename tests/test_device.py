@@ -3,6 +3,7 @@
 import json
 
 import jax
+import pytest
 
 from benchmarks import device
 from nlosjax import plan
@@ -10,6 +11,7 @@ from nlosjax import plan
 PART_NAMES = [name for name, *_ in device.PARTS]
 
 
+@pytest.mark.full
 def test_tiny_run_writes_every_part_passes_every_check_and_collects(tmp_path):
   out = tmp_path / "device"
   assert device.main(["--tiny", "--out", str(out)]) == 0
@@ -41,6 +43,7 @@ def test_tiny_run_writes_every_part_passes_every_check_and_collects(tmp_path):
     assert goal in text, goal
 
 
+@pytest.mark.full
 def test_a_budget_too_small_skips_parts_with_a_note_and_still_collects(tmp_path):
   out = tmp_path / "device"
   assert device.main(["--tiny", "--out", str(out), "--budget-s", "6"]) == 0

@@ -22,6 +22,9 @@ import pytest
 
 from tests.tiny_run import make_tiny_dataset
 
+#: End-to-end claims: the full tier (conftest.py, TIERS).
+pytestmark = pytest.mark.full
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 

@@ -28,6 +28,9 @@ from nlosjax.evaluation import baselines, protocol
 from nlosjax.models.network import STMambaNet
 from tests.tiny_run import tiny_config
 
+#: End-to-end claims: the full tier (conftest.py, TIERS).
+pytestmark = pytest.mark.full
+
 STEPS = 300
 
 

@@ -175,6 +175,7 @@ def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch
   assert calls[4:] == [("tenth", "bidirectional", 0), ("tenth", "no_pf", 0)]
 
 
+@pytest.mark.full
 def test_tiny_study_end_to_end_resumes_and_probes(tmp_path, monkeypatch, capsys):
   results = tmp_path / "results"
   args = ["--tiny", "--workdir", str(tmp_path / "runs"), "--results", str(results)]

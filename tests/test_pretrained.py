@@ -118,10 +118,12 @@ def _check_reproduced(mcfg, params, prov, config, path):
   assert abs(float(np.mean(psnr)) - recorded) <= TOL_DB, (float(np.mean(psnr)), recorded)
 
 
+@pytest.mark.full
 def test_shipped_weights_reproduce_their_recorded_validation_score(regenerated):
   _check_reproduced(*regenerated)
 
 
+@pytest.mark.full
 def test_shipped_real_weights_reproduce_their_recorded_validation_scores(tmp_path):
   """Every shipped ``real`` variant, on one regenerated transport-rendered val sequence (about a minute)."""
   variants = [v for n, v in inference.pretrained_names() if n == "real"]
@@ -134,6 +136,7 @@ def test_shipped_real_weights_reproduce_their_recorded_validation_scores(tmp_pat
     _check_reproduced(mcfg, params, prov, config, path)
 
 
+@pytest.mark.full
 def test_load_pretrained_equals_the_model_restored_from_its_run(regenerated):
   if not (RUN / "run.json").is_file():
     pytest.skip(f"{RUN} is absent (runs/ is not in a clone)")
@@ -264,6 +267,7 @@ def test_real_undersampling_loads_every_shipped_variant_of_a_name():
   assert {m.setup.bin_width for m, _ in trained.values()} == {64e-12}
 
 
+@pytest.mark.full
 def test_export_weights_from_a_main_job_workdir(regenerated, tmp_path):
   """The exporter on a main-job layout (config.json, ours/checkpoints, ours/selection.json).
 

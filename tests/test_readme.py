@@ -33,9 +33,11 @@ def test_ci_runs_the_readme_test_command_in_a_fresh_environment():
   assert ci.index("bash .ci/main_job") > ci.index(install_job) > ci.index(test)
   # Each in a phase of its own, timed in the table CI ends with (tests/test_ci.py runs it).
   phases = {l.split('"')[1]: i for i, l in enumerate(ci) if l.startswith('phase "')}
-  assert list(phases) == ["venv + install", "lint", "suite", "main-job install", "main job"]
+  assert list(phases) == ["venv + install", "lint", "suite", "suite (full tier)", "main-job install",
+                          "main job"]
   assert phases["venv + install"] < ci.index(install) < phases["lint"] < ci.index("ruff check .")
-  assert phases["lint"] < phases["suite"] < ci.index(test)
+  assert phases["lint"] < phases["suite"] < ci.index(test) < phases["suite (full tier)"]
+  assert phases["suite (full tier)"] < ci.index(f"{test} --tier full") < phases["main-job install"]
   assert phases["main-job install"] < ci.index(install_job) < phases["main job"] < ci.index("bash .ci/main_job")
   assert any(l.startswith("timeout ") and l.endswith(job)
              for l in (ROOT / ".ci" / "main_job").read_text().splitlines())

@@ -264,6 +264,7 @@ def test_model_cli_feeds_the_network_a_hand_built_input(trained_run, tmp_path, m
     assert f["volume"].shape == (3, 32, 16, 16)
 
 
+@pytest.mark.full
 def test_model_cli_end_to_end(trained_run, tmp_path):
   workdir, mcfg, params, _ = trained_run
   rng = np.random.default_rng(5)
@@ -300,6 +301,7 @@ def test_model_cli_adapt_records_what_it_did_and_refuses_classic_methods(trained
   assert "--adapt fits a network" in capsys.readouterr().err
 
 
+@pytest.mark.full
 def test_usm_cli_end_to_end(trained_run, tmp_path):
   """``--method usm`` restores the run's USM (not Ours) and reconstructs every frame."""
   workdir, _, _, (ucfg, uparams) = trained_run

@@ -27,6 +27,7 @@ def tiny_study(tmp_path, monkeypatch):
   return tmp_path
 
 
+@pytest.mark.full
 def test_a_study_pauses_reports_hours_left_and_resumes_to_the_plateau(tiny_study, capsys):
   assert study.status(TINY)["step"] == 0
   # A stretch that ends at once: data made in the store, one step, paused and exported.

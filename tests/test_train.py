@@ -28,6 +28,7 @@ def data_path(tmp_path_factory):
   return make_tiny_dataset(tmp_path_factory)
 
 
+@pytest.mark.full
 def test_main_job_writes_table_and_figures(data_path, tmp_path, monkeypatch):
   from nlosjax.evaluation import baselines, protocol, report, scores
   from nlosjax.main_job import train_and_evaluate
