@@ -55,6 +55,7 @@ GOALS = {
                   "every classic method",
     "realism": "a classifier tells measured from simulated inputs in <= 60 % of held-out cases",
     "realism_v4": "a classifier tells measured from simulated inputs in <= 60 % of held-out cases",
+    "realism_v5": "a classifier tells measured from simulated inputs in <= 60 % of held-out cases",
     "reconstruct_time": "`experiments.reconstruct` with the shipped model on a 64 x 64 x 512 capture in "
                         "under 10 s on 2 cores, compile included",
     "scan": "associative <= 4x / <= 10x the exp floor (forward / fwd+bwd), best <= 2x / <= 6x, "

@@ -214,6 +214,68 @@ def test_mixed_rate_against_a_per_scan_point_loop():
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-6)
 
 
+# ------------------------------------------------------------------- the scanner sweep
+def sweep_by_path_samples(x, length, serpentine, samples=4000):
+  """Mean over ``samples`` positions (midpoint rule) along the last ``length`` steps of the path
+  arriving at each scan point, each position's histogram interpolated from its two neighbours."""
+  H, W = x.shape[-2:]
+  out = np.zeros_like(x, np.float64)
+  s = (np.arange(samples) + 0.5) / samples * length
+  for i in range(H):
+    direction = -1 if serpentine and i % 2 else 1
+    for j in range(W):
+      pos = np.clip(j - direction * s, 0, W - 1)                   # off the grid: the edge point
+      lo = np.floor(pos).astype(int)
+      hi = np.minimum(lo + 1, W - 1)
+      a = pos - lo
+      hist = (1 - a) * x[..., i, lo] + a * x[..., i, hi]          # [..., samples]
+      out[..., i, j] = hist.mean(-1)
+  return out
+
+
+@pytest.mark.parametrize("length,serpentine", [(0.3, False), (1.0, True), (2.6, True), (4.0, False)])
+def test_sweep_smear_is_the_mean_along_the_raster_path(length, serpentine):
+  x = np.random.default_rng(4).uniform(0, 5, (3, 6, 7))
+  got = P.sweep_smear(x, length, serpentine)
+  np.testing.assert_allclose(got, sweep_by_path_samples(x, length, serpentine), rtol=1e-5, atol=1e-6)
+  np.testing.assert_array_equal(P.sweep_smear(x, 0.0), x)
+  w = P.sweep_weights(1.0)                                         # closed form: 1 - L/2, L/2
+  np.testing.assert_allclose(w, [0.5, 0.5])
+  np.testing.assert_allclose(P.sweep_weights(0.5), [0.75, 0.25])
+
+
+def test_sweep_is_validated_and_drawn_last():
+  for bad in (dict(sweep=1.5), dict(sweep_length=(0.0, 5.0)), dict(sweep_length=(1.0, 0.5)),
+              dict(sweep_serpentine=-0.1)):
+    with pytest.raises(ValueError, match="PhysicsMix.sweep"):
+      P.PhysicsMix(**bad)
+  with pytest.raises(ValueError, match="sweep length"):
+    P.sweep_weights(-1.0)
+  with pytest.raises(ValueError, match=r"\[\.\.\., H, W\]"):
+    P.sweep_smear(np.ones(3), 1.0)
+  setup = Setup(wall_size=2.0, grid=(8, 8), bin_width=132e-12, num_bins=64)
+  plain, swept = P.PhysicsMix(), P.PhysicsMix(sweep=1.0, sweep_length=(0.5, 1.5))
+  assert "sweep" not in plain.to_dict() and P.PhysicsMix.from_dict(swept.to_dict()) == swept
+  for seed in range(20):                 # every earlier draw unchanged: a mix without it draws as before
+    a, b = plain.draw(seed, setup), swept.draw(seed, setup)
+    assert a.sweep_length == 0.0 and 0.5 <= b.sweep_length <= 1.5
+    assert {**a.__dict__, "sweep_length": 0, "sweep_serpentine": 0} == {
+        **b.__dict__, "sweep_length": 0, "sweep_serpentine": 0}
+
+
+def test_mixed_rate_sweeps_the_signal_only():
+  setup, fm = _draw(jitter_fwhm=80e-12, jitter_stretch=None, gain_sigma=0.2, gain_seed=3)
+  swept = P.ForwardModel(**{**fm.__dict__, "sweep_length": 1.7, "sweep_serpentine": True})
+  clean = np.zeros((1, setup.num_bins) + setup.grid, np.float32)
+  clean[:, 20:40] = np.random.default_rng(1).uniform(0, 5, (1, 20) + setup.grid)
+  plain = mixed_rate(clean, setup, fm, efficiency=0.3, ambient_total=40.0, dark_counts=6.4)
+  got = mixed_rate(clean, setup, swept, efficiency=0.3, ambient_total=40.0, dark_counts=6.4)
+  gain = P.gain_map(setup, fm)
+  signal = (plain - 6.4 / setup.num_bins) / (0.3 * gain) - 40.0 / setup.num_bins
+  want = 0.3 * gain * (sweep_by_path_samples(signal, 1.7, True) + 40.0 / setup.num_bins) + 6.4 / setup.num_bins
+  np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+
+
 # ------------------------------------------------------------------- datasets
 def mix_spec(**physics):
   return tiny_spec(renderer="mix", retroreflective=0.0, physics={"time_shift": 1, **physics},

@@ -34,7 +34,15 @@ Per sequence:
 * **early gate**: with probability ``gate``, every count before a time drawn
   uniformly in ``gate_time`` is removed, as published preparations of measured
   scans zero the direct reflection off the wall (O'Toole et al. 2018: the
-  first 2.4 ns).
+  first 2.4 ns);
+* **scanner sweep**: with probability ``sweep``, the galvo mirrors are still
+  moving while the detector counts (TransiT, ICCV 2025: ~0.4 ms to settle), so
+  each histogram is the mean of the ideal histograms along the last ``L``
+  full-resolution scan steps of the raster path that arrives at its scan point,
+  ``L`` uniform in ``sweep_length`` (:func:`sweep_smear`); the raster runs
+  along the columns (``W``, the fast axis), row after row, and with
+  probability ``sweep_serpentine`` it reverses direction every row. Like the
+  time-zero offset it changes the measurement, not ``clean``.
 
 Times in seconds, lengths in metres.
 """
@@ -51,12 +59,15 @@ import numpy as np
 from nlosjax.physics.setup import Setup
 
 __all__ = ["FAMILIES", "ForwardModel", "PhysicsMix", "background_profile", "gain_map",
-           "impulse_kernel"]
+           "impulse_kernel", "sweep_smear", "sweep_weights"]
 
 #: Renderer families a :class:`PhysicsMix` draws from.
 FAMILIES = ("lct", "transport", "points")
 #: Per-object falloff exponents drawn per sequence (objects beyond this share the last).
 _MAX_OBJECTS = 8
+#: Longest scanner sweep, full-resolution scan steps (:func:`sweep_weights`).
+_MAX_SWEEP = 4.0
+_SWEEP_FIELDS = ("sweep", "sweep_length", "sweep_serpentine")
 #: Spawn key of the physics stream under a sequence's seed (scenes use 3-5, simulation 1-2).
 SPAWN_KEY = 6
 
@@ -107,6 +118,9 @@ class PhysicsMix:
     time_shift: largest time-zero offset, bins.
     gate: probability that the early bins are zeroed.
     gate_time: ``(low, high)`` of the time before which they are, seconds.
+    sweep: probability that the scanner sweeps while counting (module docstring).
+    sweep_length: ``(low, high)`` of the swept path, full-resolution scan steps, in ``[0, 4]``.
+    sweep_serpentine: probability that the raster reverses direction every row.
   """
 
   families: tuple[str, ...] = FAMILIES
@@ -128,18 +142,24 @@ class PhysicsMix:
   time_shift: int = 2
   gate: float = 0.5
   gate_time: tuple[float, float] = (0.5e-9, 2.4e-9)
+  # Fields added later go last and are drawn last: mixes without them draw what they drew before.
+  sweep: float = 0.0
+  sweep_length: tuple[float, float] = (0.0, 1.0)
+  sweep_serpentine: float = 0.5
 
   def __post_init__(self):
     fams = (self.families,) if isinstance(self.families, str) else tuple(self.families)
     if not fams or any(f not in FAMILIES for f in fams) or len(set(fams)) != len(fams):
       raise ValueError(f"PhysicsMix.families must be distinct names from {FAMILIES}, got {self.families!r}")
     object.__setattr__(self, "families", fams)
-    for name in ("retroreflective", "gaussian_jitter", "tail", "decay", "gate"):
+    for name in ("retroreflective", "gaussian_jitter", "tail", "decay", "gate", "sweep",
+                 "sweep_serpentine"):
       object.__setattr__(self, name, _probability(getattr(self, name), name))
     bounds = {"falloff_power": (2.0, 4.0), "cosine_power": (0.0, 8.0), "jitter_stretch": (0.05, 20.0),
               "jitter_fwhm": (0.0, 1e-8), "tail_weight": (0.0, 1.0), "tail_decay": (1e-13, 1e-8),
               "decay_fraction": (0.0, 1.0), "decay_time": (1e-12, 1e-6), "dark_counts": (0.0, None),
-              "gain_sigma": (0.0, 2.0), "vignetting": (0.0, 0.95), "gate_time": (0.0, 1e-7)}
+              "gain_sigma": (0.0, 2.0), "vignetting": (0.0, 0.95), "gate_time": (0.0, 1e-7),
+              "sweep_length": (0.0, _MAX_SWEEP)}
     for name, (lo, hi) in bounds.items():
       object.__setattr__(self, name, _pair(getattr(self, name), name, low=lo, high=hi))
     dc = self.dark_counts
@@ -162,9 +182,17 @@ class PhysicsMix:
     return cls(**d)
 
   def to_dict(self) -> dict:
-    """JSON-ready dict, the inverse of :meth:`from_dict`."""
-    return {f.name: list(v) if isinstance(v, tuple) else v
-            for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
+    """JSON-ready dict, the inverse of :meth:`from_dict`.
+
+    The sweep fields appear only when ``sweep > 0``, so files written before
+    they existed keep their spec.
+    """
+    d = {f.name: list(v) if isinstance(v, tuple) else v
+         for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
+    if self.sweep == 0:
+      for name in _SWEEP_FIELDS:
+        d.pop(name)
+    return d
 
   def restricted(self, families) -> "PhysicsMix":
     """The same mix over ``families`` only (e.g. all but a held-out one)."""
@@ -198,6 +226,9 @@ class PhysicsMix:
     gain_seed = int(rng.integers(2 ** 31))
     gate = rng.uniform() < self.gate
     gate_time = float(rng.uniform(*self.gate_time))
+    sweep = rng.uniform() < self.sweep                  # drawn last (PhysicsMix fields)
+    sweep_length = float(rng.uniform(*self.sweep_length))
+    serpentine = bool(rng.uniform() < self.sweep_serpentine)
     return ForwardModel(
         family=family, cosine_power=0.0 if family != "transport" else kappa,
         scene_falloff=powers[0], falloff_power=powers[1:],
@@ -206,7 +237,8 @@ class PhysicsMix:
         decay_fraction=decay_fraction if decay else 0.0, decay_time=decay_time,
         dark_counts=None if self.dark_counts[1] == 0 else dark,
         gain_sigma=sigma, vignetting=vignetting, vignetting_centre=centre, gain_seed=gain_seed,
-        time_shift=shift, gate_time=gate_time if gate else 0.0)
+        time_shift=shift, gate_time=gate_time if gate else 0.0,
+        sweep_length=sweep_length if sweep else 0.0, sweep_serpentine=serpentine if sweep else False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -226,6 +258,8 @@ class ForwardModel:
     gain_sigma, vignetting, vignetting_centre, gain_seed: the gain map (:func:`gain_map`).
     time_shift: time-zero offset of the measurement, bins (positive: later).
     gate_time: counts before this time (s) are removed (0: none).
+    sweep_length: the scanner's swept path per histogram, scan steps (0: none; :func:`sweep_smear`).
+    sweep_serpentine: whether the raster reverses direction every row.
   """
 
   family: str
@@ -245,6 +279,8 @@ class ForwardModel:
   gain_seed: int
   time_shift: int
   gate_time: float = 0.0
+  sweep_length: float = 0.0
+  sweep_serpentine: bool = False
 
   def object_powers(self, num_objects: int) -> np.ndarray:
     """``[num_objects]`` falloff exponents, one per object."""
@@ -308,3 +344,59 @@ def gain_map(setup: Setup, fm: ForwardModel) -> np.ndarray:
   d2 = (scan[..., 0] - cx) ** 2 + (scan[..., 1] - cy) ** 2
   g = np.exp(fm.gain_sigma * z) * (1.0 - fm.vignetting * d2 / max(float(d2.max()), 1e-12))
   return g / g.mean()
+
+
+def _hat_integral(u):
+  """``int_{-inf}^u max(0, 1 - |s|) ds``, elementwise."""
+  u = np.clip(np.asarray(u, np.float64), -1.0, 1.0)
+  return np.where(u < 0, (u + 1) ** 2 / 2, 1 - (1 - u) ** 2 / 2)
+
+
+def sweep_weights(length: float) -> np.ndarray:
+  """``[ceil(length) + 1]`` float64 weights, sum 1: the mean over ``s`` in ``[0, length]`` of
+  the linear interpolation at ``s`` scan steps behind a scan point, as weights on the point
+  (entry 0) and the ``k``-th point behind it (entry ``k``).
+
+  ``w_k = (1 / L) int_0^L max(0, 1 - |s - k|) ds``; ``length = 0`` gives ``[1]``.
+  """
+  L = float(length)
+  if not (math.isfinite(L) and 0 <= L <= _MAX_SWEEP):
+    raise ValueError(f"sweep length must be a number of scan steps in [0, {_MAX_SWEEP}], got {length!r}")
+  if L == 0:
+    return np.ones(1)
+  k = np.arange(int(math.ceil(L)) + 1)
+  w = (_hat_integral(L - k) - _hat_integral(-k)) / L
+  return w / w.sum()
+
+
+def sweep_smear(x, length: float, serpentine: bool = False) -> np.ndarray:
+  """The histograms of a scanner that sweeps while counting (module docstring): ``[..., H, W]`` float64.
+
+  Each scan point's value becomes the mean of the values along the last
+  ``length`` scan steps of the raster path that arrives at it, the path
+  linearly interpolated between neighbouring scan points. The raster runs
+  along ``W`` (``+x``: each point is reached from the one at ``j - 1``); with
+  ``serpentine``, odd rows run the other way (``-x``: reached from ``j + 1``).
+  The first point of a row is reached from outside the grid: the path there
+  holds the edge value (edge-replicating padding).
+
+  Args:
+    x: ``[..., H, W]`` any values linear in the scan point (e.g. a transient ``[F, T, H, W]``).
+    length: swept path, full-resolution scan steps, in ``[0, 4]``.
+    serpentine: reverse the direction on odd rows.
+  """
+  x = np.asarray(x, np.float64)
+  if x.ndim < 2:
+    raise ValueError(f"sweep_smear needs x of shape [..., H, W], got shape {x.shape}")
+  w = sweep_weights(length)
+  if w.size == 1:
+    return x.copy()
+  n = w.size - 1
+  W = x.shape[-1]
+  fwd = np.concatenate([np.repeat(x[..., :1], n, axis=-1), x], axis=-1)     # point j at j + n
+  out = sum(w[k] * fwd[..., n - k:n - k + W] for k in range(n + 1))
+  if serpentine:
+    bwd = np.concatenate([x, np.repeat(x[..., -1:], n, axis=-1)], axis=-1)
+    rev = sum(w[k] * bwd[..., k:k + W] for k in range(n + 1))
+    out[..., 1::2, :] = rev[..., 1::2, :]
+  return out

@@ -105,16 +105,19 @@ def mixed_rate(clean, setup: Setup, fm, *, efficiency: float, ambient_total: flo
                dark_counts: float) -> np.ndarray:
   """Expected counts ``[F, T, H, W]`` under a drawn forward model (``renderer="mix"``).
 
-  ``eta * gain * (shift(clean (*) g) + b) + dark / T`` per bin, with ``g`` the
-  draw's impulse response, ``b [T]`` its ambient profile summing to
-  ``ambient_total`` (photons per histogram), ``gain [H, W]`` its gain map and
-  ``shift`` its time-zero offset (zero-filled); 0 in the bins that start before
-  its gate time. ``clean`` ``[F, T, H, W]`` in incident photons per bin;
+  ``eta * gain * (shift(sweep(clean) (*) g) + b) + dark / T`` per bin, with ``g``
+  the draw's impulse response, ``b [T]`` its ambient profile summing to
+  ``ambient_total`` (photons per histogram), ``gain [H, W]`` its gain map,
+  ``sweep`` its scanner sweep (:func:`~nlosjax.data.dataset.physics.sweep_smear`,
+  the identity at ``sweep_length = 0``) and ``shift`` its time-zero offset
+  (zero-filled); 0 in the bins that start before its gate time. ``clean`` ``[F, T, H, W]`` in incident photons per bin;
   ``dark_counts`` per histogram.
   """
   from nlosjax.data.dataset import physics
   signal = measurement_rate(clean, setup, efficiency=1.0, ambient=0.0, dark_counts=0.0,
                             jitter=physics.impulse_kernel(setup, fm)).astype(np.float64)
+  if fm.sweep_length > 0:   # linear in the scan point: commutes with the per-point convolution
+    signal = physics.sweep_smear(signal, fm.sweep_length, fm.sweep_serpentine)
   d = fm.time_shift
   if d:
     shifted = np.zeros_like(signal)
