@@ -17,7 +17,9 @@ an older tree. Probes, each on fixed seeds:
 * ``evaluate``: the main job's evaluation of those models and the classic methods
   (settings tuned on validation) on the test split: every per-frame score;
 * ``pretrained/<name>``: every shipped network's output on a fixed input of its shape;
-* ``physics/<method>``: each classic reconstruction of a fixed rendered scene.
+* ``physics/<method>``: each classic reconstruction of a fixed rendered scene;
+* ``main_job``: ``python -m experiments.train`` itself (its ``main``) on the light-cone data
+  with a config file of these sizes: every cell of the table it writes.
 """
 
 from __future__ import annotations
@@ -129,6 +131,22 @@ def probe_physics(path, out: dict) -> None:
     out[f"physics/{method}"] = np.asarray(physics.reconstruct(measurement, setup, method))
 
 
+def probe_main_job(cfg: dict, tmp: pathlib.Path, out: dict) -> None:
+  """The main job's command on ``cfg`` (written as a config file), read back from its table."""
+  import contextlib
+  import io
+
+  from experiments import train as main_job
+  config_file = tmp / "probe_config.py"
+  config_file.write_text(f"import json\n\ndef get_config():\n  return json.loads({json.dumps(json.dumps(cfg))})\n")
+  with contextlib.redirect_stdout(io.StringIO()):
+    main_job.main(["--config", str(config_file), "--workdir", str(tmp / "job")])
+  table = json.loads((tmp / "job" / "results" / "table.json").read_text())
+  for method, metrics in table.items():
+    for metric, summary in metrics.items():
+      out[f"main_job/{method}/{metric}"] = np.array([summary["mean"], *summary["ci95"]], np.float64)
+
+
 def main(argv=None) -> int:
   argv = sys.argv[1:] if argv is None else argv
   target = pathlib.Path(argv[0])
@@ -147,6 +165,10 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     probe_physics(path, out)
     times["physics"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    main_cfg = {**cfg, "data": {**cfg["data"], "path": str(tmp / "main_job.h5")}}
+    probe_main_job(json.loads(json.dumps(main_cfg)), tmp, out)
+    times["main_job"] = time.perf_counter() - t0
   t0 = time.perf_counter()
   probe_pretrained(out)
   times["pretrained"] = time.perf_counter() - t0

@@ -225,7 +225,8 @@ def run_record(command: str) -> dict:
 PACKAGES = ("nlosjax", "experiments", "benchmarks")
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # Commands that run other project entry points in a subprocess (their imports are not ours).
-SUBPROCESS_ROOTS = {"benchmarks.main_job": ("experiments.train",)}
+SUBPROCESS_ROOTS = {"benchmarks.main_job": ("experiments.train",),
+                    "benchmarks.equivalence": ("benchmarks.equivalence_probe",)}
 # Modules every writer imports that write a header, not a number: a change to them leaves
 # every results file's numbers as they were, so they are not part of any digest.
 NOT_CODE = frozenset({"experiments/provenance.py"})
