@@ -11,6 +11,7 @@ import pytest
 from experiments.configs import cpu as cpu_preset
 from nlosjax.models import ModelConfig, blocks, conv
 from nlosjax.physics import Setup
+from tests.conv_reference import loop_conv3d, same_conv3d
 from tests.xla_options import xla_optimizations
 
 
@@ -36,11 +37,35 @@ def test_direct_conv_equals_xla_3d_conv_with_gradients(kernel, dilation, cin, fe
   params = jax.tree.map(lambda p: p + 0.1, params)                 # a nonzero bias too
   ref = conv.Conv3D(feats, kernel, 1, dilation, impl="xla", padding=padding)
   np.testing.assert_allclose(direct.apply(params, x), ref.apply(params, x), rtol=1e-5, atol=1e-5)
+  if padding == "zero":   # and XLA's "SAME" (not the module's padding amounts)
+    p = params["params"]
+    np.testing.assert_allclose(direct.apply(params, x), same_conv3d(x, p["kernel"], p["bias"], 1, dilation),
+                               rtol=1e-5, atol=1e-5)
   (v, (gp, gx)), (v_ref, (gp_ref, gx_ref)) = _grads(direct, params, x), _grads(ref, params, x)
   np.testing.assert_allclose(v, v_ref, rtol=1e-5)
   np.testing.assert_allclose(gx, gx_ref, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(gx_ref))))
   for a, b in zip(jax.tree.leaves(gp), jax.tree.leaves(gp_ref)):
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(b))))
+
+
+@pytest.mark.parametrize("shape, kernel, stride, dilation", [
+    ((7, 3, 5), (3, 3, 3), 2, 1), ((8, 4, 3), (2, 1, 3), 3, 2), ((6, 5, 4), (3, 3, 1), 1, 2),
+    ((5, 3, 3), (4, 3, 3), 1, 1)])
+def test_every_impl_is_the_brute_force_same_convolution(shape, kernel, stride, dilation):
+  """Every impl (and "auto") against the NumPy loop over output voxels and taps, at odd and even
+  lengths, strides 1-3 and even time kernels (padding split unevenly)."""
+  x = jax.random.normal(jax.random.key(6), (1,) + shape + (2,))
+  impls = ("fold", "xla", "auto") + (("direct",) if stride == 1 else ())
+  params = conv.Conv3D(3, kernel, stride, dilation).init(jax.random.key(7), x)
+  params = jax.tree.map(lambda p: p + 0.1, params)
+  p = params["params"]
+  want = loop_conv3d(x, p["kernel"], p["bias"], stride, dilation)
+  assert want.shape == (1, -(-shape[0] // stride)) + shape[1:] + (3,)
+  np.testing.assert_allclose(same_conv3d(x, p["kernel"], p["bias"], stride, dilation), want,
+                             rtol=1e-5, atol=1e-5)
+  for impl in impls:
+    got = conv.Conv3D(3, kernel, stride, dilation, impl=impl).apply(params, x)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5, err_msg=impl)
 
 
 def test_auto_picks_direct_for_few_channels_only():
@@ -110,6 +135,9 @@ def test_time_folded_conv_gradients_equal_xla_3d_conv(kernel, stride, dilation, 
   fold = conv.Conv3D(feats, kernel, stride, dilation, impl="fold")
   params = jax.tree.map(lambda p: p + 0.1, fold.init(jax.random.key(3), x))
   ref = conv.Conv3D(feats, kernel, stride, dilation, impl="xla")
+  p = params["params"]
+  np.testing.assert_allclose(fold.apply(params, x), same_conv3d(x, p["kernel"], p["bias"], stride, dilation),
+                             rtol=1e-5, atol=1e-5)
   (v, (gp, gx)), (v_ref, (gp_ref, gx_ref)) = _grads(fold, params, x), _grads(ref, params, x)
   np.testing.assert_allclose(v, v_ref, rtol=1e-5)
   np.testing.assert_allclose(gx, gx_ref, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(gx_ref))))

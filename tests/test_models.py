@@ -35,6 +35,7 @@ from nlosjax.models import (
   underscan,
 )
 from nlosjax.physics import Setup
+from tests.conv_reference import same_conv3d
 from tests.xla_options import xla_optimizations
 
 # 8 x 8 scan of a 0.5 m wall, 64 ps bins, 32 bins (depths up to 0.31 m); stride 2 -> 4 x 4 input.
@@ -237,6 +238,10 @@ def test_time_folded_conv_equals_xla_3d_conv(kernel, stride, dilation):
   out = fold.apply(params, x)
   assert out.shape == (2, -(-11 // stride), 5, 6, 4)
   np.testing.assert_allclose(out, ref, atol=1e-5, rtol=1e-5)
+  # XLA's "SAME" convolution, not given the module's padding amounts.
+  p = params["params"]
+  np.testing.assert_allclose(out, same_conv3d(x, p["kernel"], p["bias"], stride, dilation),
+                             atol=1e-5, rtol=1e-5)
 
 
 def test_spreading_interpolates_the_measured_points():

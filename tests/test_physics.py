@@ -326,6 +326,20 @@ def test_aperture_window_is_the_closed_form_and_shrinks_with_the_range():
     for rho in (0.3, 1.0):
       s = wide.with_depth_range(z0, z1).with_aperture(rho)
       k0, k1 = s.depth_bins
+      t0, t1 = s.time_bins
+      # Rendered (brute force, ungated): a point at the window's edge, the last depth bin at the
+      # aperture's lateral reach from a scan point, returns there just inside the window (its
+      # last two bins); one 2 bins later (beyond the aperture) just outside; a point straight
+      # ahead at the first depth bin returns at the window's start.
+      corner = wide.scan_points[0, 0]
+      z_last = (k1 - 1) * dz
+      beyond = np.sqrt(((np.hypot(z_last, rho) // dz + 2.5) * dz) ** 2 - z_last ** 2)
+      for lateral, inside in ((rho, True), (beyond, False)):
+        hist = render_points([corner + [lateral, 0.0, z_last]], 1.0, wide)[:, 0, 0]
+        (b,) = np.flatnonzero(hist)
+        assert (t1 - 2 <= b < t1) if inside else (b >= t1), (z0, z1, rho, lateral, b, t1)
+      (b,) = np.flatnonzero(render_points([corner + [0.0, 0.0, k0 * dz + 1e-9]], 1.0, wide)[:, 0, 0])
+      assert b == t0, (b, t0)
       assert s.time_bins == (k0, min(512, int(np.hypot((k1 - 1) * dz, rho) // dz) + 2))
   # R -> R/2 halves the window only with an aperture (the wall diagonal is 2.83 m)
   full = [wide.with_depth_range(*r).time_bins for r in [(0.5, 1.5), (0.75, 1.25)]]

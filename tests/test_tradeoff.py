@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from benchmarks import tradeoff
-from nlosjax.physics import Setup
+from nlosjax.physics import Setup, jitter_kernel
+from tests.poisson_checks import assert_poisson, stated_rate
 
 
 def brute_force_front(t, s):
@@ -121,6 +122,11 @@ def test_renoised_counts_follow_the_scaled_rate():
       assert c.shape == lam.shape and np.all(c >= 0) and np.all(c == np.round(c))
       # Poisson: the total is within 5 standard deviations of the total rate.
       assert abs(c.sum() - lam.sum()) < 5 * np.sqrt(lam.sum())
+      # Per bin, against the rate written out in tests/poisson_checks.py (mean and variance).
+      rate = stated_rate(split.clean[s] * e, jitter_kernel(split.setup, "measured"),
+                         efficiency=a["efficiency"], ambient=a["ambient"] * e,
+                         dark_counts=a["dark_counts"] * e)
+      assert_poisson(c, rate, label=(e, s))
   np.testing.assert_array_equal(split.renoised(0.3, seed=3)[0], split.renoised(0.3, seed=3)[0])
   assert not np.array_equal(split.renoised(0.3, seed=3)[0], split.renoised(0.3, seed=4)[0])
 
