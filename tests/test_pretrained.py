@@ -28,8 +28,6 @@ from tests.xla_options import xla_optimizations
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHIPPED = (("cpu", "ours"), ("cpu", "ours_s"), ("real", "ours"), ("real", "ours_s"))
-#: The study run the shipped ``cpu`` Ours was exported from (not in a fresh clone).
-RUN = ROOT / "runs" / "mechanisms" / "full" / "full-seed0"
 #: Tolerance of the reproduced per-sequence validation PSNR (dB). On the machine that
 #: exported the weights the regenerated sequence is bit-identical to the stored one and
 #: the PSNR equal to the last digit. What another CPU may change is float32 rounding in
@@ -134,31 +132,6 @@ def test_shipped_real_weights_reproduce_their_recorded_validation_scores(tmp_pat
     # One file serves every variant only if they were validated on the same data.
     assert prov["data_spec"] == first["data_spec"], variant
     _check_reproduced(mcfg, params, prov, config, path)
-
-
-@pytest.mark.full
-def test_load_pretrained_equals_the_model_restored_from_its_run(regenerated):
-  if not (RUN / "run.json").is_file():
-    pytest.skip(f"{RUN} is absent (runs/ is not in a clone)")
-  from nlosjax import train
-  mcfg, params, prov, config, path = regenerated
-  run = json.loads((RUN / "run.json").read_text())["config"]
-  run_cfg = train.model_config_for(run, inference.training_setup(run), "ours")
-  assert run_cfg == mcfg
-  restored, info = inference.restore_params(RUN / "model" / "best_checkpoint", run_cfg,
-                                            step=prov["best_step"])
-  jax.tree.map(np.testing.assert_array_equal, params, restored)
-  # As host arrays: orbax's committed device arrays would make jit compile the forward again.
-  restored = jax.tree.map(lambda x: jax.numpy.asarray(np.asarray(x)), restored)
-  # The forward the reproduction test compiled (same config and batch shape): no second compile.
-  data = protocol.load_split(config, path, "val", batch_size=int(config["train"]["eval_batch_size"]))
-  try:
-    a = protocol.model_images(mcfg, params, data["loader"])
-    b = protocol.model_images(run_cfg, restored, data["loader"])
-  finally:
-    data["loader"].close()
-  for key in ("intensity", "depth"):
-    np.testing.assert_array_equal(a[key], b[key])
 
 
 # ------------------------------------------------------------ damaged or edited files
