@@ -219,6 +219,22 @@ def test_reconstruct_uses_the_shipped_weights(tmp_path, capsys):
   with h5py.File(tmp_path / "out" / "volume.h5", "r") as f:
     info = json.loads(f.attrs["model"])
   assert info["pretrained"] == "cpu" and info["variant"] == "ours"
+  # The CLI's volume is the shipped network's, applied by hand to the same input: bins summed
+  # 4 by 4, the scan points stride // 2 + stride * i kept, the one frame repeated as its own
+  # neighbours, the model moved to the capture's 132 ps Setup with the wavelet the CLI recorded.
+  import dataclasses
+
+  from nlosjax.models.network import STMambaNet
+  model_setup = Setup(wall_size=1.0, grid=(16, 16), bin_width=132e-12, num_bins=128)
+  mcfg, params, _ = inference.load_pretrained("cpu", "ours", setup=model_setup)
+  mcfg = dataclasses.replace(mcfg, wavelet_sampling=float(info["wavelet_sampling"]))
+  binned = counts.reshape(128, 4, 16, 16).sum(axis=1)
+  s = mcfg.stride
+  x = np.stack([binned[:, s // 2::s, s // 2::s]] * 3)[None]               # [1, 3, T, h, w]
+  out = STMambaNet(mcfg).apply({"params": params}, x)
+  np.testing.assert_allclose(res["volume"][0], np.asarray(out["volume"][0]), rtol=1e-5,
+                             atol=1e-5 * float(np.abs(out["volume"]).max()))
+  np.testing.assert_allclose(res["intensity"][0], np.clip(np.asarray(out["intensity"][0]), 0, 1), atol=1e-5)
   # Weights that are not shipped: the error lists what is.
   with pytest.raises(SystemExit):
     reconstruct.main([str(path), "--method", "ours", "--pretrained", "nope", "--no-cache", "--quiet",
