@@ -30,8 +30,9 @@ def test_compare_tells_identical_rounding_moved_added_and_missing_arrays():
   assert not gone["data/lct"]["passed"] and gone["data/lct"]["missing"] == ["data/lct/x"]
 
 
-def _record(tmp_path, *, passed=True):
-  closure = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe"])
+def _record(tmp_path, *, passed=True, leave_out=()):
+  closure = [m for m in provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe"])
+             if m not in leave_out]
   (tmp_path / "equivalence.md").write_text(
       "# Results carried forward\n\nProduced by `python -m benchmarks.equivalence --base x`.\n\n"
       "- Date: 2026-12-01T00:00:00+00:00\n- Machine: M\n- Commit: abc\n" + provenance.code_line(closure) + "\n")
@@ -59,11 +60,13 @@ def test_a_file_current_at_the_base_whose_changes_the_check_ran_is_carried_forwa
   assert equivalence.carried_forward(carried, results=tmp_path) == f"carried forward from {BASE} by equivalence.md"
   # Not current at the base: nothing to carry.
   assert equivalence.carried_forward(_entry(inside, "0" * 12), results=tmp_path) is None
-  # A module outside the probes' closure changed: not carried.
+  # A module that changed since the base but lies outside what the check ran: not carried (a
+  # record whose closure leaves out experiments/train.py, changed since BASE).
   outside = inside + ["experiments/train.py"]
-  assert "experiments/train.py" not in provenance.code_modules(["benchmarks.equivalence",
-                                                                "benchmarks.equivalence_probe"])
+  assert equivalence.carried_forward(_entry(outside, _digest_at(BASE, outside)), results=tmp_path) is not None
+  _record(tmp_path, leave_out=("experiments/train.py",))
   assert equivalence.carried_forward(_entry(outside, _digest_at(BASE, outside)), results=tmp_path) is None
+  assert equivalence.carried_forward(carried, results=tmp_path) is not None
   # A check that failed carries nothing.
   _record(tmp_path, passed=False)
   assert equivalence.carried_forward(carried, results=tmp_path) is None
