@@ -44,6 +44,9 @@ def test_a_study_pauses_reports_hours_left_and_resumes_to_the_plateau(tiny_study
   assert row["done"] and row["step"] == 4 and row["best_step"] in (2, 4)
   assert row["steps_left"] == (0, 0) and row["hours_left"] == (0.0, 0.0)
   assert row["s_per_step"] > 0
+  # Each stretch says where its steps came from: commit, machine, data digest.
+  lines = (study.STATE_DIR / TINY.name / "invocations.jsonl").read_text().splitlines()
+  assert len(lines) == 2 and all("data_digest" in line and "commit" in line for line in lines)
   text = study.format_status(rows)
   assert "| tiny-ours_s | ours_s | 4 |" in text and "| done |" in text
 

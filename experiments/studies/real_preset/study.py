@@ -122,6 +122,7 @@ def train_run(run: Run, *, deadline: float | None, allow_data_change: bool = Fal
   log(f"[{run.name}] data {data_path} (content digest {digest})")
   export = train.StateExport(state_folder(run), data_digest=digest, deadline=deadline,
                              allow_data_change=allow_data_change)
+  _record_invocation(run, digest)
   validate = protocol.validation_psnr(config, data_path)
   wd = workdir(run)
   wd.mkdir(parents=True, exist_ok=True)
@@ -132,6 +133,18 @@ def train_run(run: Run, *, deadline: float | None, allow_data_change: bool = Fal
     log(str(e))
     return False
   return True
+
+
+def _record_invocation(run: Run, digest: str) -> None:
+  """Append this stretch's commit, machine and data digest to the run's committed ``invocations.jsonl``."""
+  import sys
+
+  from experiments.provenance import run_record
+  folder = state_folder(run)
+  folder.mkdir(parents=True, exist_ok=True)
+  record = run_record("python -m experiments.studies.real_preset " + " ".join(sys.argv[1:]))
+  with open(folder / "invocations.jsonl", "a") as f:
+    f.write(json.dumps({**record, "run": run.name, "data_digest": digest}) + "\n")
 
 
 def ensure_data(config: dict, path: pathlib.Path, *, log: Callable[[str], None] = print) -> None:
