@@ -25,11 +25,17 @@ pytestmark = pytest.mark.usefixtures("fast_compiles")
 
 
 METRICS = ("psnr", "ssim", "rmse", "mad", "rmse_object", "mad_object", "recall", "precision", "f1")
+#: The metrics of other signatures, as functions of the (pred, target) pair: the object intensity
+#: error with the target as the depth map too (its object pixels are target > 0), and the
+#: all-zero floor, a function of the target alone (so a NaN in pred does not reach it).
+OTHER = {"intensity_mae_object": lambda pred, target: metrics.intensity_mae_object(pred, target, target),
+         "psnr_zero": lambda pred, target: metrics.psnr_zero(target)}
 
 
 def _all_metrics(pred, target) -> dict:
   """Every public metric of ``nlosjax.metrics`` (``surface_scores`` as ``surface.<name>``)."""
   out = {name: getattr(metrics, name)(pred, target) for name in METRICS}
+  out.update({name: f(pred, target) for name, f in OTHER.items()})
   out.update({f"surface.{k}": v for k, v in metrics.surface_scores(pred, target).items()})
   return out
 
@@ -48,7 +54,10 @@ def _reference_metrics(pred: np.ndarray, target: np.ndarray) -> dict:
                     if np.all(np.isfinite(pred) & np.isfinite(target)) else np.nan),
            "rmse_object": np.sqrt(np.sum(err ** 2) / (tp + fn)),
            "mad_object": np.sum(np.abs(err)) / (tp + fn), "recall": tp / (tp + fn),
-           "precision": tp / (tp + fp), "f1": 2 * tp / (2 * tp + fp + fn)}
+           "precision": tp / (tp + fp), "f1": 2 * tp / (2 * tp + fp + fn),
+           "intensity_mae_object": (np.sum(np.where(truth, np.abs(pred - target), 0.0)) / np.sum(truth)
+                                    if not np.isnan(pred).any() | np.isnan(target).any() else np.nan),
+           "psnr_zero": 10 * np.log10(1.0 / max(np.mean(target ** 2), 1e-10))}
   ref.update({f"surface.{k}": ref[k] for k in metrics.OBJECT_METRICS})
   return ref
 
@@ -59,7 +68,8 @@ def test_every_metric_propagates_nan_and_scores_inf_and_negative_values_under_ch
   # Every public function of nlosjax.metrics is here but ``surface`` (a boolean mask, not a score)
   # and the temporal scores of sequences (the next test).
   public = {n for n in metrics.__all__ if callable(getattr(metrics, n))}
-  assert public == set(METRICS) | {"surface_scores", "surface"} | set(metrics.TEMPORAL_METRICS), public
+  assert public == (set(METRICS) | set(OTHER) | {"surface_scores", "surface"}
+                    | set(metrics.TEMPORAL_METRICS)), public
   rng = np.random.default_rng(36)
   target = np.zeros((12, 12))
   target[3:9, 2:8] = rng.uniform(0.8, 1.5, (6, 6))
@@ -72,23 +82,26 @@ def test_every_metric_propagates_nan_and_scores_inf_and_negative_values_under_ch
     pairs[i, arg, 5, 4] = value
   got = checks.checked(_all_metrics)(pairs[:, 0], pairs[:, 1])
   plain = jax.jit(_all_metrics)(pairs[:, 0], pairs[:, 1])
-  assert set(got) == set(METRICS) | {f"surface.{k}" for k in metrics.OBJECT_METRICS}
+  assert set(got) == set(METRICS) | set(OTHER) | {f"surface.{k}" for k in metrics.OBJECT_METRICS}
   for i, (kind, arg, _) in enumerate(rows):
     ref = _reference_metrics(pairs[i, 0].astype(np.float64), pairs[i, 1].astype(np.float64))
     for name, value in got.items():
       v, what = float(value[i]), (name, kind, "-" if arg is None else ("pred", "target")[arg])
       assert v == float(plain[name][i]) or (np.isnan(v) and np.isnan(plain[name][i])), what
-      if kind == "NaN":
+      if kind == "NaN" and not (name == "psnr_zero" and arg == 0):
         assert np.isnan(v), what                    # never a finite number made up for it
       else:
         np.testing.assert_allclose(v, ref[name], rtol=1e-5, atol=1e-6, err_msg=str(what))
       if kind == "+inf" and name in ("psnr", "ssim", "rmse", "mad", "rmse_object", "mad_object"):
         assert not np.isfinite(v), what             # the inf enters each of these errors
   # Eagerly, NaN is refused before anything compiles; inf and negative values score as under jit.
-  for name in METRICS + ("surface_scores",):
+  calls = {**{name: getattr(metrics, name) for name in METRICS + ("surface_scores",)}, **OTHER}
+  for name, call in calls.items():
     for i in (i for i, (kind, _, _) in enumerate(rows) if kind == "NaN"):
+      if name == "psnr_zero" and rows[i][1] == 0:
+        continue                                    # pred is not its argument
       with pytest.raises(ValueError, match=f"{('pred', 'target')[rows[i][1]]} contains NaN"):
-        getattr(metrics, name)(pairs[i, 0], pairs[i, 1])
+        call(pairs[i, 0], pairs[i, 1])
   eager_rows = [i for i, (kind, _, _) in enumerate(rows) if kind != "NaN"]
   eager = _all_metrics(pairs[eager_rows, 0], pairs[eager_rows, 1])
   for name, value in eager.items():
