@@ -771,7 +771,7 @@ def slow_list(c: dict, s: dict) -> list[str]:
         f"({', '.join(f'{n} x {t} trips' + (f' (started {k} times)' if k > 1 else '') for (t, k), n in common)}), "
         f"{sum(r['runs'] * (r['trips'] or 1) for r in loops):,} trips per step in all, one after the other; "
         f"{len(scans)} of them are the selective scan's (`nlosjax/ssm/scan.py`), the rest "
-        f"{_top(collections.Counter(r['source'].split(';')[0] for r in loops if r not in scans), 2) or 'none'}. "
+        f"{_top(collections.Counter(r['part'] for r in loops if r not in scans), 2) or 'none'}. "
         f"Each trip is at least one kernel launch after fusion (bodies of {min(r['body_ops'] for r in loops)}-"
         f"{max(r['body_ops'] for r in loops)} ops before fusion, writing {fmt_bytes(min(per_trip))}-"
         f"{fmt_bytes(max(per_trip))} per trip). Expected: trips that small in bytes are launch-bound, "
@@ -809,8 +809,9 @@ def slow_list(c: dict, s: dict) -> list[str]:
   if odd:
     out.append(f"**Convolution layouts.** {sum(odd.values())} of {s['convs']} convolutions put the batch "
                f"elsewhere than first (`{'`, `'.join(k for k, _ in odd.most_common(4))}`, all weight gradients); "
-               f"XLA:GPU's layout assignment is expected to add transposes of the [N, 130, 130, C]-sized "
-               f"operands around the ones cuDNN cannot take as they are.")
+               f"XLA:GPU's layout assignment is expected to add transposes of their operands (up to "
+               f"{fmt_bytes(max(r['bytes'] for r in c['convolutions'] if r['dim_labels'] in odd))} per convolution) "
+               f"around the ones cuDNN cannot take as they are.")
   if c["ffts"]:
     in_loop = [r for r in c["ffts"] if r["in_loop"]]
     lengths = sorted({int(x) for r in c["ffts"] for x in r["length"].split(",") if x.strip().isdigit()})
@@ -839,7 +840,7 @@ def slow_list(c: dict, s: dict) -> list[str]:
   if one:
     out.append(f"**One-window scatters.** {len(one)} of {s['gather'] + s['scatter']} gather/scatter ops read a "
                f"single index vector ({_top(collections.Counter(r['source'].split('/')[-1] for r in one), 2)}; "
-               f"`x.at[i].add(...)`): expected to cost like a dynamic-update-slice, not like a scatter.")
+               f"a single-window update): expected to cost like a dynamic-update-slice, not like a scatter.")
   scat = [r for r in c["gather_scatter"] if r["index_rows"] > 1]
   if scat:
     kinds = collections.Counter((r["opcode"], r["shape"], r["indices"], r["source"].split("/")[-1]) for r in scat)
