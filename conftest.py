@@ -51,7 +51,9 @@ DEFAULT_WORKERS = 2
 INSTALL = 'pip install -e ".[test]"'
 #: Test tiers (``--tier``): ``default`` (the README's command) runs every test not marked
 #: ``@pytest.mark.full``; ``full`` runs only those (the end-to-end claims: shipped weights
-#: reproduced, the main job, distributed training, the studies); ``all`` runs both.
+#: reproduced, the main job, distributed training, the studies and their reports, training runs
+#: killed and resumed, the CLIs run end to end, the docs' examples, the whole network under
+#: extreme inputs and under checks); ``all`` runs both.
 #: ``bash .ci/run`` runs the default tier, then the full one.
 TIERS = ("default", "full", "all")
 

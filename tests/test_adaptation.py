@@ -75,6 +75,7 @@ def _paths(tree):
   return {"/".join(str(k.key) for k in p): np.asarray(v) for p, v in jax.tree_util.tree_flatten_with_path(tree)[0]}
 
 
+@pytest.mark.full
 def test_adapt_moves_only_the_trainable_leaves_and_returns_the_best_held_out_step(tiny):
   cfg, params, frames = tiny
   r = adaptation.adapt(cfg, params, frames, steps=6, patience=6, learning_rate=1e-2)

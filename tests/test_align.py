@@ -31,6 +31,7 @@ def tiny(tmp_path_factory):
   return cfg, path, mcfg, model, params, batch, measured
 
 
+@pytest.mark.full
 def test_the_loss_is_the_papers_plus_lam_times_the_feature_mmd(tiny):
   cfg, _, mcfg, model, params, batch, measured = tiny
   _, weights = T.training_recipe(cfg, "ours")
@@ -54,6 +55,7 @@ def test_the_loss_is_the_papers_plus_lam_times_the_feature_mmd(tiny):
     jax.eval_shape(lambda p: A.layer_features(model, p, batch["measurement"], "nowhere"), params)
 
 
+@pytest.mark.full
 def test_align_trains_writes_its_record_and_refuses_bad_measured_inputs(tiny, tmp_path):
   cfg, path, mcfg, _, params, _, measured = tiny
   got, record = A.align(cfg, path, mcfg, jax.tree_util.tree_map(np.asarray, params), measured, tmp_path,

@@ -53,6 +53,7 @@ def test_spad_noise_raises_on_bad_counts_when_checked():
     safe(nan)
 
 
+@pytest.mark.full
 def test_network_raises_on_bad_frames_when_checked():
   with xla_optimizations(False):        # tiny shapes: compiling dominates
     _network_case()

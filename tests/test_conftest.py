@@ -109,6 +109,7 @@ def test_compiles_one_program():
 """
 
 
+@pytest.mark.full
 def test_the_suite_prints_the_hit_rate_over_its_workers(tmp_path):
   """This conftest (as a plugin) on a one-test module, twice, on 2 workers: the second run reads it back.
 

@@ -552,6 +552,7 @@ def test_presets_keep_the_paper_ratios():
   assert configs.get_config("paper")["data"]["input_stride"] == 8
 
 
+@pytest.mark.full
 def test_cli_writes_the_preset_split_and_the_loader_reads_it_by_config(tmp_path):
   out = tmp_path / "cli.h5"
   assert make_dataset.main(["--out", str(out), "--sequences", "3", "--frames", "3", "--quiet"]) == 0

@@ -43,6 +43,7 @@ def small_capture():
   return setup, full[..., 1::3, 1::3], gt_i, gt_d
 
 
+@pytest.mark.full
 def test_tune_picks_the_best_option_then_the_best_threshold(small_capture):
   """The choice equals a brute-force search over the same grid with classic_images."""
   from nlosjax import metrics
@@ -217,6 +218,7 @@ def test_tabulated_temporal_score_equals_a_direct_computation_and_never_crosses_
   assert "temporal" not in report.format_comparisons(old_c)
 
 
+@pytest.mark.full
 def test_evaluate_pairs_the_consecutive_middle_frames_of_each_test_sequence(tmp_path):
   """The protocol end to end on a tiny file of 2 test sequences of 4 frames (one classic method): the
   middle frames 1 and 2 of each sequence come in file order with their frame index, and each

@@ -43,6 +43,7 @@ def test_the_tenth_budget_is_derived_from_the_preset():
   assert base["data"]["photons"] == (5e1, 2e3)                       # the preset is left as it was
 
 
+@pytest.mark.full
 def test_the_report_refuses_records_of_other_data_or_another_recipe(tmp_path):
   seq, frames = [0, 0, 1, 1], [1, 2, 1, 2]
   for seed in (0, 1):
@@ -150,6 +151,7 @@ def test_a_run_with_no_object_pixel_is_flagged_and_compared_without_it(tmp_path)
   assert row.startswith("| full - ours_s | 1 | +1.00")
 
 
+@pytest.mark.full
 def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch):
   seq, frames = [0, 0, 1, 1], [1, 2, 1, 2]
   calls = []

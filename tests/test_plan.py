@@ -53,6 +53,7 @@ def tiny(tmp_path_factory):
   return tiny_config(path, batch_size=2, steps=10, variants=("ours_s",))
 
 
+@pytest.mark.full
 def test_dry_run_plans_from_shapes_and_measures_without_data(tiny):
   result = plan.dry_run(tiny, log=lambda s: None)
   assert not __import__("pathlib").Path(tiny["data"]["path"]).exists()      # no data generated

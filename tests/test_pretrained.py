@@ -200,6 +200,7 @@ def test_load_pretrained_moves_to_another_setup():
 
 
 # ------------------------------------------------------------ the commands
+@pytest.mark.full
 def test_reconstruct_uses_the_shipped_weights(tmp_path, capsys):
   from experiments import reconstruct
   from nlosjax.data import io
@@ -243,6 +244,7 @@ def test_reconstruct_uses_the_shipped_weights(tmp_path, capsys):
   assert "'nope'" in err and "cpu (ours)" in err and "real (ours)" in err and "--checkpoint" in err
 
 
+@pytest.mark.full
 def test_real_undersampling_loads_every_shipped_variant_of_a_name():
   from experiments import real_undersampling as R
   with pytest.raises(ValueError, match=r"cpu \(ours\)"):

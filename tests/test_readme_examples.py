@@ -43,6 +43,7 @@ def test_the_readme_has_the_composition_examples():
 
 
 @pytest.mark.parametrize("name, index, block", BLOCKS, ids=[f"{n}:{i}" for n, i, _ in BLOCKS])
+@pytest.mark.full
 def test_python_block_runs(name, index, block, tmp_path):
   env = {**user_environment(), "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
   res = subprocess.run([sys.executable, "-c", block], cwd=tmp_path, env=env,

@@ -191,6 +191,7 @@ def test_classic_baselines_resolve_the_phasor_wavelet_on_coarse_synthetic_bins()
     assert intensity.max() == pytest.approx(1.0, abs=1e-6)
 
 
+@pytest.mark.full
 def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(scan):
   """``real_undersampling.binned_classic``: at the capture's own bins it repeats the protocol's
   score; at a network trained on 2 x 16 ps it scores phasor on the scan summed in pairs by hand."""

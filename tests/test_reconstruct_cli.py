@@ -51,6 +51,7 @@ def run_cli(args, capsys=None):
   return out
 
 
+@pytest.mark.full
 def test_classic_writes_every_output_and_matches_the_library(capture, tmp_path):
   path, counts, setup = capture
   out = tmp_path / "lct"
@@ -177,6 +178,7 @@ def trained_run(tmp_path_factory):
   return (workdir,) + out["ours"] + (out["usm"],)
 
 
+@pytest.mark.full
 def test_load_trained_restores_the_parameters(trained_run):
   workdir, mcfg, params, _ = trained_run
   for where in (workdir, workdir / "ours" / "checkpoints"):
@@ -187,6 +189,7 @@ def test_load_trained_restores_the_parameters(trained_run):
     cio.load_trained(workdir, "ours_s")
 
 
+@pytest.mark.full
 def test_load_trained_defaults_to_the_step_chosen_on_validation(trained_run, tmp_path):
   """selection.json's step, not the latest, and from best_checkpoint when checkpoints/ pruned it."""
   from nlosjax import train
@@ -281,6 +284,7 @@ def test_model_cli_end_to_end(trained_run, tmp_path):
     assert (tmp_path / "m" / name).read_bytes()[:8] == PNG_MAGIC
 
 
+@pytest.mark.full
 def test_model_cli_adapt_records_what_it_did_and_refuses_classic_methods(trained_run, capture, tmp_path, capsys):
   workdir, *_ = trained_run
   rng = np.random.default_rng(7)

@@ -44,6 +44,7 @@ class _Killed(Exception):
   pass
 
 
+@pytest.mark.full
 def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for_bit(data_path, tmp_path):
   cfg = _plateau_config(data_path)
   quiet = lambda s: None
@@ -90,6 +91,7 @@ def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for
   assert size < 1 << 20
 
 
+@pytest.mark.full
 def test_a_run_past_its_deadline_pauses_exported_and_continues_to_the_same_parameters(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=5, checkpoint_every=4)
   quiet = lambda s: None
@@ -106,6 +108,7 @@ def test_a_run_past_its_deadline_pauses_exported_and_continues_to_the_same_param
   _assert_same_tree(straight.opt_state, resumed.opt_state)
 
 
+@pytest.mark.full
 def test_an_export_of_another_run_or_other_data_is_refused_and_kept(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=2)
   quiet = lambda s: None

@@ -184,6 +184,7 @@ def _same_reconstruction(out: dict, a: int, b: int, tol: float) -> None:
     assert rel_dev(out[k][a], out[k][b]) < tol, (k, rel_dev(out[k][a], out[k][b]))
 
 
+@pytest.mark.full
 def test_network_zero_photon_and_saturated_frames(net, net_out):
   cfg, _, _ = net
   x, out = net_out
@@ -241,6 +242,7 @@ def _count(params: dict, test) -> int:
   return sum(bool(test(path[-1].key)) for path, _ in leaves)
 
 
+@pytest.mark.full
 def test_ssm_dt_and_A_extremes_inside_the_network(net, net_out):
   cfg, params, apply = net
   x, _ = net_out
@@ -277,6 +279,7 @@ def _batch(frames: np.ndarray, setup: Setup) -> dict:  # frames [2, F, T, h, w]
           "depth": np.stack([np.where(inten > 0.1, z, 0.0).astype(np.float32)] * 2)}
 
 
+@pytest.mark.full
 def test_train_step_on_normal_saturated_empty_and_extreme_ssm_batches(net, net_out):
   """On Ours-S: its training step compiles in half the time of Ours' (10 s against 20 s)."""
   cfg, params, _ = net
@@ -338,6 +341,7 @@ def _loader(path, ends: str) -> D.TripletLoader:
                          drop_remainder=False, ends=ends, in_memory=True, setup=NET)
 
 
+@pytest.mark.full
 def test_videos_of_64_frames_and_of_one_frame(net, tmp_path):
   """A video is reconstructed frame by frame through the sliding triplet window
   (``ends="replicate"``: every frame is a middle frame, its missing neighbours repeated).

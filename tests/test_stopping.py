@@ -92,6 +92,7 @@ def test_the_learning_rate_spans_max_steps_under_the_plateau_rule():
 
 
 # ------------------------------------------------------------------ inside train_model
+@pytest.mark.full
 def test_a_plateau_run_stops_where_its_validations_say_and_keeps_the_best(data_path, tmp_path):
   scores = iter([5.0, 6.5, 6.0])               # steps 2, 4, 6: 6.0 does not beat 6.5 + 0.05
   calls = []
@@ -129,6 +130,7 @@ def test_a_plateau_run_stops_where_its_validations_say_and_keeps_the_best(data_p
   assert [r["loss"] for r in a] == [r["loss"] for r in b]
 
 
+@pytest.mark.full
 def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path, tmp_path, monkeypatch):
   from nlosjax.evaluation import protocol
   cfg = tiny_config(data_path, stop=plateau(patience=2, min_delta_db=0.0), optim=OPTIM)
@@ -190,6 +192,7 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
   assert_same_tree(T.to_host(straight.params), T.to_host(again.params))
 
 
+@pytest.mark.full
 def test_the_default_rule_is_unchanged(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=MAX_STEPS, optim=OPTIM)
   assert cfg["train"]["stop"] == {"rule": "steps"}

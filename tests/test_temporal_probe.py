@@ -26,6 +26,7 @@ def _perturb(params, prefixes, scale=0.5):
   return jax.tree_util.tree_map_with_path(shift, params)
 
 
+@pytest.mark.full
 def test_zeroed_features_make_stage_one_irrelevant():
   setup = Setup(wall_size=1.0, grid=(8, 8), bin_width=264e-12, num_bins=32)
   cfg = ModelConfig(setup=setup, stride=4, frames=3, width=4, d_state=2, extract_time_stride=2,

@@ -187,6 +187,7 @@ def test_lct_stages_compose_to_lct():
                              atol=1e-5 * float(np.max(ref)))
 
 
+@pytest.mark.full
 def test_end_to_end_classic_configuration(tmp_path):
   """One classic configuration through evaluate -> timing -> scores -> Markdown and plot."""
   from nlosjax.evaluation.baselines import classic_images

@@ -22,6 +22,7 @@ def data_path(tmp_path_factory):
   return make_tiny_dataset(tmp_path_factory)
 
 
+@pytest.mark.full
 def test_resume_after_a_kill_matches_an_uninterrupted_run(data_path, tmp_path):
   cfg = tiny_config(data_path)
   _, straight = T.train_model(cfg, data_path, tmp_path / "a", "ours_s", log=lambda s: None)
@@ -40,6 +41,7 @@ def test_resume_after_a_kill_matches_an_uninterrupted_run(data_path, tmp_path):
   assert lb[-1]["loss"] == pytest.approx(la[-1]["loss"], abs=1e-6)
 
 
+@pytest.mark.full
 def test_checkpoint_of_another_config_or_corrupt_raises_and_is_kept(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=2)
   T.train_model(cfg, data_path, tmp_path, "ours_s", log=lambda s: None)
@@ -58,6 +60,7 @@ def test_checkpoint_of_another_config_or_corrupt_raises_and_is_kept(data_path, t
   assert (ckpt / "2").exists()
 
 
+@pytest.mark.full
 def test_two_hundred_steps_stay_finite_at_the_lowest_efficiency_and_exposure(tmp_path):
   # The CPU preset's lowest efficiency (1 %) and photon budget (1e3 per point), nothing higher.
   path = tmp_path / "dim.h5"

@@ -243,6 +243,7 @@ def test_gradients_reach_every_parameter():
     assert float(jnp.abs(g).max()) > 0, f"no gradient reaches {jax.tree_util.keystr(path)}"
 
 
+@pytest.mark.full
 def test_jit_matches_eager():
   shape, params, apply = _tiny_usm_compiled()
   x = counts(jax.random.key(10), shape)
