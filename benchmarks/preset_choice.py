@@ -1,7 +1,7 @@
 """Which data should a preset train on? Candidate models compared on every candidate's validation split.
 
     python -m benchmarks.preset_choice --model LABEL=SOURCE --model LABEL=SOURCE [...]
-        [--variants ours ours_s] [--out benchmarks/results/preset_choice.md]
+        [--variants ours ours_s] [--methods lct rsd ...] [--out benchmarks/results/preset_choice.md]
 
 ``SOURCE`` is ``pretrained:NAME`` (the weights shipped as ``NAME-<variant>``)
 or a main-job workdir (``python -m experiments.train --workdir DIR``). Each
@@ -12,6 +12,12 @@ training or test sequence (``<stem>-val.h5``, the same sequences as the
 training file's validation split). The table gives each model's mean with a
 95 % bootstrap interval over sequences and each later candidate minus the
 first, paired by frame. Nothing here reads a test split or a measured scan.
+
+A second table puts each model beside the all-zero image's PSNR (the floor a dark
+background reaches) and the object intensity error (mean absolute error on the true
+object pixels), and, with ``--methods``, beside those classic methods on the same
+validation frames: so a candidate's lead can be read as objects drawn, not a dark
+background, and against what the field's methods give on that data.
 """
 
 from __future__ import annotations
@@ -61,22 +67,31 @@ def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--model", action="append", required=True, metavar="LABEL=SOURCE")
   parser.add_argument("--variants", nargs="+", default=["ours", "ours_s"])
+  parser.add_argument("--methods", nargs="*", default=[],
+                      help="classic methods scored beside the models on each validation split")
   parser.add_argument("--out", default="benchmarks/results/preset_choice.md")
   args = parser.parse_args(argv)
   argv = sys.argv[1:] if argv is None else list(argv)
   sources = dict(item.partition("=")[::2] for item in args.model)
   if len(sources) < 2 or not all(sources.values()):
     raise SystemExit("give at least two --model LABEL=SOURCE")
-  results, splits = {}, {}
+  results, splits, context = {}, {}, {}
   for variant in args.variants:
     models = {label: load_candidate(src, variant) for label, src in sources.items()}
     for label, (_, _, cfg) in models.items():
       splits.setdefault(label, validation_file(cfg))
     for data_label, (path, cfg) in splits.items():
+      if args.methods and data_label not in {k[0] for k in context}:
+        ev = protocol.evaluate(cfg, path, {}, split="val", methods=tuple(args.methods))
+        for method in args.methods:
+          context[(data_label, method)] = (ev["scores"][method], np.asarray(ev["sequence"]))
       for label, (mcfg, params, _) in models.items():
         ev = protocol.evaluate(cfg, path, {variant: [(mcfg, params)]}, split="val", methods=())
         results[(variant, data_label, label)] = (np.asarray(ev["scores"][variant]["psnr"]).reshape(-1),
                                                  np.asarray(ev["sequence"]))
+        context[(data_label, f"{label} {variant}")] = (
+            {k: np.asarray(v).reshape(-1) for k, v in ev["scores"][variant].items()},
+            np.asarray(ev["sequence"]))
   labels = list(sources)
   first = labels[0]
 
@@ -100,6 +115,17 @@ def main(argv=None) -> int:
                                            "differences": dict(zip(labels[1:], diffs))}
       lines.append(f"| {variant} | {data_label} | " + " | ".join(cell(m) for m in means) + " | "
                    + " | ".join(cell(d, signed=True) for d in diffs) + " |")
+  lines += ["", "Each method on each validation split: intensity PSNR, the all-zero image's PSNR on the "
+            "same frames (a floor), and the object intensity error (lower is better); means with 95 % "
+            "bootstrap intervals over sequences.", "",
+            "| validation data | method | PSNR (dB) | all-zero PSNR (dB) | object intensity error |",
+            "|---|---|---|---|---|"]
+  for (data_label, method), (sc, seq) in context.items():
+    row = [stats.summarize(scores.by_sequence(np.asarray(sc[k]).reshape(-1), seq))
+           for k in ("psnr", "psnr_zero", "intensity_mae_object")]
+    record.setdefault("context", {})[f"{data_label}/{method}"] = dict(
+        zip(("psnr", "psnr_zero", "intensity_mae_object"), row))
+    lines.append(f"| {data_label} | {method} | {cell(row[0])} | {cell(row[1])} | {cell(row[2], digits=3)} |")
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
   out.write_text("\n".join(lines) + "\n")
