@@ -52,7 +52,10 @@ def test_the_suite_uses_the_clones_persistent_locked_cache_unless_switched_off(t
   path = conftest.shared_compilation_cache(environ)
   assert path == str(xla_cache.CLONE_DIR) == str(conftest_root() / ".cache" / "xla")
   assert environ["JAX_COMPILATION_CACHE_DIR"] == environ["NLOSJAX_CACHE_DIR"] == path
-  assert environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
+  assert environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == conftest.SUITE_MIN_COMPILE_S
+  kept = {"JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}         # the user's setting is kept
+  conftest.shared_compilation_cache(kept)
+  assert kept["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
   assert int(environ["JAX_COMPILATION_CACHE_MAX_SIZE"]) > 0        # JAX locks the folder
   # git ignores it, so it is kept across runs and never committed.
   if (conftest_root() / ".git").exists() and shutil.which("git"):
@@ -119,7 +122,8 @@ def test_the_suite_prints_the_hit_rate_over_its_workers(tmp_path):
   env = {k: v for k, v in os.environ.items()
          if not k.startswith(("NLOSJAX_", "JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE", "PYTEST_"))}
   env.update(NLOSJAX_CACHE_DIR=str(tmp_path / "cache"), JAX_PLATFORMS="cpu", PYTHONPATH=str(conftest_root()),
-             TMPDIR=str(tmp_path / "tmp"))
+             TMPDIR=str(tmp_path / "tmp"),
+             JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")   # the tiny test's program is written too
   (tmp_path / "tmp").mkdir()
   cmd = [sys.executable, "-m", "pytest", "-q", "-p", "conftest", "-p", "no:cacheprovider", "-n", "2",
          "test_tiny.py"]
