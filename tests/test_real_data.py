@@ -107,6 +107,7 @@ CLI_RTOL = {"lct": 1e-6, "fk": 1e-2, "phasor": 2e-5}
 
 
 @pytest.mark.parametrize("method", ["lct", "fk", "phasor"])
+@pytest.mark.full
 def test_reconstruct_cli_images_match_public_reference(scan, method, tmp_path):
   """What users see: ``experiments.reconstruct``'s intensity image with default options
   vs the twin's front view as the public code draws it (last 11 bins clipped; f-k's

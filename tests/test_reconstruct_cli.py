@@ -91,6 +91,7 @@ def test_fk_images_use_the_square_root(capture, tmp_path):
   np.testing.assert_allclose(res["intensity"][0], ref_i, atol=1e-5)
 
 
+@pytest.mark.full
 def test_scan_stride_and_depth_range(capture, tmp_path):
   path, counts, setup = capture
   res = run_cli([path, "--method", "phasor", "--scan-stride", "4", "--depth-range", "0.2", "0.5",
@@ -230,6 +231,7 @@ def test_load_trained_refuses_another_config(trained_run, tmp_path):
     cio.load_trained(other)
 
 
+@pytest.mark.full
 def test_model_cli_feeds_the_network_a_hand_built_input(trained_run, tmp_path, monkeypatch):
   workdir, mcfg, params, _ = trained_run
   rng = np.random.default_rng(4)

@@ -193,6 +193,7 @@ def test_a_grid_whose_light_cone_misses_every_bin_raises(method):
       reconstruct(np.ones((8, 2, 2), np.float32), coarse, method)
 
 
+@pytest.mark.full
 def test_paper_grid_lct_finds_a_point():
   """128 x 128 scan points, 512 bins of 33 ps (the paper's synthetic capture); ~6 s."""
   setup = Setup(2.0, (128, 128), 33e-12, 512)
