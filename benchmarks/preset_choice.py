@@ -42,7 +42,7 @@ def load_candidate(source: str, variant: str):
   config, trained = inference.load_run(source)
   if variant not in trained:
     raise SystemExit(f"{source}: no trained {variant} (it has {sorted(trained)})")
-  mcfg, params = trained[variant][0]
+  mcfg, params = trained[variant]                   # load_run without seeds: (model_config, params)
   return mcfg, params, train.with_defaults(config)
 
 

@@ -51,3 +51,16 @@ def test_tables_are_the_hand_means_of_the_per_frame_scores(tmp_path, monkeypatch
   assert np.isclose(ctx["A/B ours"]["intensity_mae_object"]["mean"], 0.16)
   text = out.read_text()
   assert "| A | lct | 9.00" in text and "all-zero PSNR" in text
+
+
+def test_a_workdir_candidate_is_its_runs_model_config_and_parameters(monkeypatch):
+  """``load_candidate`` on a workdir: :func:`nlosjax.inference.load_run` (no seeds) gives
+  ``variant -> (model_config, params)``; a variant it lacks is refused by name."""
+  import pytest
+
+  from nlosjax import inference, train
+  monkeypatch.setattr(inference, "load_run", lambda source: ({"c": 1}, {"ours": ("mcfg", "params")}))
+  monkeypatch.setattr(train, "with_defaults", lambda cfg: {**cfg, "defaults": True})
+  assert preset_choice.load_candidate("runs/x", "ours") == ("mcfg", "params", {"c": 1, "defaults": True})
+  with pytest.raises(SystemExit, match="no trained ours_s"):
+    preset_choice.load_candidate("runs/x", "ours_s")

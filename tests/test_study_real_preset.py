@@ -89,3 +89,24 @@ def test_data_of_an_edited_candidate_config_are_refused_not_used(tiny_study):
   edited = {**cfg, "data": {**cfg["data"], "photons": (10.0, 20.0)}}
   with pytest.raises(ValueError, match="another data configuration"):
     study.ensure_data(edited, path, log=lambda s: None)
+
+
+def test_a_candidates_workdir_links_its_runs_and_names_both_variants(monkeypatch, tmp_path):
+  import json
+  monkeypatch.setenv(store.ENV, str(tmp_path))
+  runs = (study.Run("c-ours_s", "experiments/configs/cand.py", "ours_s"),
+          study.Run("c-ours", "experiments/configs/cand.py", "ours"))
+  monkeypatch.setattr(study, "RUNS", runs)
+  with pytest.raises(FileNotFoundError, match="train c-ours_s first"):
+    study.candidate_workdir("experiments/configs/cand.py")
+  for r in runs:
+    (study.workdir(r) / r.variant / "checkpoints").mkdir(parents=True)
+    (study.workdir(r) / "config.json").write_text(json.dumps({"train": {"variants": [r.variant]}, "x": 1}))
+  out = study.candidate_workdir("experiments/configs/cand.py")
+  assert out == store.run_path(study.STUDY, "cand")
+  assert json.loads((out / "config.json").read_text()) == {"train": {"variants": ["ours_s", "ours"]}, "x": 1}
+  for r in runs:
+    assert (out / r.variant).resolve() == (study.workdir(r) / r.variant).resolve()
+  assert study.candidate_workdir("experiments/configs/cand.py") == out           # again: links replaced
+  with pytest.raises(ValueError, match="no run of"):
+    study.candidate_workdir("experiments/configs/other.py")

@@ -201,6 +201,35 @@ def run_study(names=None, *, hours: float | None = None, allow_data_change: bool
   return [status(r) for r in RUNS]
 
 
+def candidate_workdir(config: str) -> pathlib.Path:
+  """One workdir holding every finished variant of the candidate ``config`` (for ``preset_choice``).
+
+  ``<store>/runs/real_preset/<config stem>``: the first run's ``config.json`` with its
+  ``train.variants`` the union of the candidate's runs, and a link per variant to that run's
+  folder in the store, so :func:`nlosjax.inference.load_run` sees one run of both variants.
+  Raises:
+    FileNotFoundError: a run of the candidate has no folder in this store (train it first).
+  """
+  import json
+  runs = [r for r in RUNS if r.config == config]
+  if not runs:
+    raise ValueError(f"no run of {config!r}; the runs: {[r.name for r in RUNS]}")
+  for r in runs:
+    if not (workdir(r) / r.variant).is_dir():
+      raise FileNotFoundError(f"{workdir(r) / r.variant}: not in this store; train {r.name} first")
+  out = store.run_path(STUDY, pathlib.Path(config).stem)
+  out.mkdir(parents=True, exist_ok=True)
+  cfg = json.loads((workdir(runs[0]) / "config.json").read_text())
+  cfg["train"]["variants"] = [r.variant for r in runs]
+  (out / "config.json").write_text(json.dumps(cfg, indent=1) + "\n")
+  for r in runs:
+    link = out / r.variant
+    if link.is_symlink() or link.exists():
+      link.unlink()
+    link.symlink_to(workdir(r) / r.variant, target_is_directory=True)
+  return out
+
+
 def select(names) -> list[Run]:
   by_name = {r.name: r for r in RUNS}
   if not names:
