@@ -19,10 +19,11 @@ exports and pauses; data generation is not bounded (its ``.partial`` file resume
 ``--status`` reads only the committed state: per run the steps done, the best
 validation PSNR so far, the measured time per step, and the hours left, as a range
 from the fewest steps the plateau rule could still stop at to ``max_steps``.
-When every run is done, ``--choice OUT`` compares the shipped ``real`` weights with each
-candidate on every candidate's validation split, beside the classic methods
-(``python -m benchmarks.preset_choice``, on one workdir per candidate that links its runs'
-folders in the store: :func:`~experiments.studies.real_preset.study.candidate_workdir`)::
+When every run is done, ``--candidates`` makes one workdir per candidate in the store,
+linking its runs' folders (:func:`~experiments.studies.real_preset.study.candidate_workdir`),
+and prints the ``python -m benchmarks.preset_choice`` command that compares the shipped
+``real`` weights with each candidate on every candidate's validation split, beside the
+classic methods (a study does not import the benchmarks; run the printed command)::
 
-    python -m experiments.studies.real_preset --choice benchmarks/results/preset_choice_real.md
+    python -m experiments.studies.real_preset --candidates
 """

@@ -17,18 +17,17 @@ def main(argv=None) -> int:
   parser.add_argument("--hours", type=float, default=None, help="pause after this many hours")
   parser.add_argument("--allow-data-change", action="store_true",
                       help="resume even when the regenerated data's content digest differs from the state's")
-  parser.add_argument("--choice", metavar="OUT", default=None,
-                      help="when the runs are done: python -m benchmarks.preset_choice of the shipped "
-                           "real weights against each candidate, beside the classic methods, into OUT")
+  parser.add_argument("--candidates", action="store_true",
+                      help="when the runs are done: make one workdir per candidate in the store and print "
+                           "the benchmarks.preset_choice command that compares them with the shipped weights")
   args = parser.parse_args(argv)
-  if args.choice:
-    from benchmarks import preset_choice
-    from experiments import xla_cache
-    xla_cache.enable(tidy=True)
-    models = ["--model", "shipped=pretrained:real"]
+  if args.candidates:
+    models = ["--model shipped=pretrained:real"]
     for config in dict.fromkeys(r.config for r in study.RUNS):
-      models += ["--model", f"{pathlib.Path(config).stem}={study.candidate_workdir(config)}"]
-    return preset_choice.main(models + ["--methods", "fbp", "lct", "fk", "phasor", "rsd", "--out", args.choice])
+      models.append(f"--model {pathlib.Path(config).stem}={study.candidate_workdir(config)}")
+    print("python -m benchmarks.preset_choice " + " ".join(models)
+          + " --methods fbp lct fk phasor rsd --out benchmarks/results/preset_choice_real.md")
+    return 0
   if args.hours is not None and not args.hours > 0:
     parser.error(f"--hours must be > 0, got {args.hours}")
   try:
