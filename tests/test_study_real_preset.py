@@ -96,7 +96,8 @@ def test_a_candidates_workdir_links_its_runs_and_names_both_variants(monkeypatch
   monkeypatch.setenv(store.ENV, str(tmp_path))
   runs = (study.Run("c-ours_s", "experiments/configs/cand.py", "ours_s"),
           study.Run("c-ours", "experiments/configs/cand.py", "ours"))
-  monkeypatch.setattr(study, "RUNS", runs)
+  monkeypatch.setattr(study, "RUNS", runs + (study.Run("c-ours_s-seed1", "experiments/configs/cand.py",
+                                                       "ours_s", seed=1),))     # not linked: seed 0 only
   with pytest.raises(FileNotFoundError, match="train c-ours_s first"):
     study.candidate_workdir("experiments/configs/cand.py")
   for r in runs:

@@ -31,6 +31,9 @@ class Run:
 RUNS = (
     Run("v5-ours_s", "experiments/configs/real_v5.py", "ours_s"),
     Run("v5-ours", "experiments/configs/real_v5.py", "ours"),
+    # A second seed of the candidate preset_choice_real.md preferred for Ours-S, so its lead
+    # over the shipped weights can carry an interval over seeds too.
+    Run("v5-ours_s-seed1", "experiments/configs/real_v5.py", "ours_s", seed=1),
 )
 
 
@@ -202,7 +205,7 @@ def run_study(names=None, *, hours: float | None = None, allow_data_change: bool
 
 
 def candidate_workdir(config: str) -> pathlib.Path:
-  """One workdir holding every finished variant of the candidate ``config`` (for ``preset_choice``).
+  """One workdir holding every finished variant of the candidate ``config`` (for ``preset_choice``; seed 0).
 
   ``<store>/runs/real_preset/<config stem>``: the first run's ``config.json`` with its
   ``train.variants`` the union of the candidate's runs, and a link per variant to that run's
@@ -211,7 +214,7 @@ def candidate_workdir(config: str) -> pathlib.Path:
     FileNotFoundError: a run of the candidate has no folder in this store (train it first).
   """
   import json
-  runs = [r for r in RUNS if r.config == config]
+  runs = [r for r in RUNS if r.config == config and r.seed == 0]      # seed 0: one model a variant
   if not runs:
     raise ValueError(f"no run of {config!r}; the runs: {[r.name for r in RUNS]}")
   for r in runs:
