@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     for label, (_, _, cfg) in models.items():
       splits.setdefault(label, validation_file(cfg))
     for data_label, (path, cfg) in splits.items():
-      if args.methods and data_label not in {k[0] for k in context}:
+      if args.methods and (data_label, args.methods[0]) not in context:     # once a split
         ev = protocol.evaluate(cfg, path, {}, split="val", methods=tuple(args.methods))
         for method in args.methods:
           context[(data_label, method)] = (ev["scores"][method], np.asarray(ev["sequence"]))
@@ -89,9 +89,7 @@ def main(argv=None) -> int:
         ev = protocol.evaluate(cfg, path, {variant: [(mcfg, params)]}, split="val", methods=())
         results[(variant, data_label, label)] = (np.asarray(ev["scores"][variant]["psnr"]).reshape(-1),
                                                  np.asarray(ev["sequence"]))
-        context[(data_label, f"{label} {variant}")] = (
-            {k: np.asarray(v).reshape(-1) for k, v in ev["scores"][variant].items()},
-            np.asarray(ev["sequence"]))
+        context[(data_label, f"{label} {variant}")] = (ev["scores"][variant], np.asarray(ev["sequence"]))
   labels = list(sources)
   first = labels[0]
 

@@ -22,11 +22,12 @@ def main(argv=None) -> int:
                            "the benchmarks.preset_choice command that compares them with the shipped weights")
   args = parser.parse_args(argv)
   if args.candidates:
+    from nlosjax.evaluation.baselines import CLASSIC_METHODS
     models = ["--model shipped=pretrained:real"]
     for config in dict.fromkeys(r.config for r in study.RUNS):
       models.append(f"--model {pathlib.Path(config).stem}={study.candidate_workdir(config)}")
     print("python -m benchmarks.preset_choice " + " ".join(models)
-          + " --methods fbp lct fk phasor rsd --out benchmarks/results/preset_choice_real.md")
+          + f" --methods {' '.join(CLASSIC_METHODS)} --out benchmarks/results/preset_choice_real.md")
     return 0
   if args.hours is not None and not args.hours > 0:
     parser.error(f"--hours must be > 0, got {args.hours}")
