@@ -1,10 +1,12 @@
 """The second training stage on unlabelled measured scans, leave one scan out.
 
     python -m experiments.align --checkpoint runs/real [--variants ours ours_s] [--data-dir DIR]
-        [--steps 100] [--lam 1.0] [--learning-rate 1e-4] [--workdir runs/align]
+        [--steps 100] [--lam 1.0] [--learning-rate 1e-4] [--workdir runs/align] [--data FILE]
 
 For each measured scan (``--data-dir``, the scans of ``experiments.real_undersampling``)
-and each variant of the trained run ``--checkpoint``: the run's network trained on
+and each variant of the trained run ``--checkpoint`` (a workdir of
+``python -m experiments.train``, or ``pretrained:NAME`` for the weights shipped as
+``NAME-<variant>``): the run's network trained on
 :func:`nlosjax.train.align.align` with the run's synthetic data and the measured
 inputs of every *other* scan (each under-scanned at all ``stride^2`` offsets of
 the trained stride, time summed to the trained bins), into
@@ -12,7 +14,9 @@ the trained stride, time summed to the trained bins), into
 scan's score (``python -m experiments.real_undersampling --aligned WORKDIR``)
 comes from a network that never read that scan. Steps, ``lam`` and the
 learning rate are fixed before any score is seen. A folder that holds
-``params.npz`` is skipped (the command resumes).
+``params.npz`` is skipped (the command resumes). The synthetic data are the
+run config's ``data.path`` unless ``--data`` names the file; an absent file is
+generated from the run config's data spec first (``nlosjax.train.ensure_dataset``).
 """
 
 from __future__ import annotations
@@ -44,32 +48,52 @@ def fold_folder(workdir, variant: str, scene: str) -> pathlib.Path:
   return pathlib.Path(workdir) / f"{variant}-without-{scene}"
 
 
+def load_source(checkpoint: str, variants) -> tuple[dict, dict]:
+  """``(run config, variant -> (model_config, params))`` of a workdir or ``pretrained:NAME``."""
+  from nlosjax import inference
+  if checkpoint.startswith("pretrained:"):
+    name, trained, config = checkpoint[len("pretrained:"):], {}, None
+    for variant in variants:
+      try:
+        mcfg, params, provenance = inference.load_pretrained(name, variant)
+      except ValueError as e:
+        raise SystemExit(f"{checkpoint}: {e}") from None
+      trained[variant], config = (mcfg, params), provenance["config"]
+    return config, trained
+  config, trained = inference.load_run(checkpoint)
+  missing = [v for v in variants if v not in trained]
+  if missing:
+    raise SystemExit(f"{checkpoint}: no trained {' '.join(missing)} (it has {sorted(trained)})")
+  return config, trained
+
+
 def main(argv=None) -> int:
   from experiments.real_undersampling import default_files
-  from nlosjax import inference
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
   from nlosjax.train.align import align
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  parser.add_argument("--checkpoint", required=True, help="a run of python -m experiments.train (its workdir)")
+  parser.add_argument("--checkpoint", required=True,
+                      help="a run of python -m experiments.train (its workdir), or pretrained:NAME")
   parser.add_argument("--variants", nargs="+", default=["ours", "ours_s"])
   parser.add_argument("--data-dir", default=None, help="folder of measured .mat scans")
   parser.add_argument("--steps", type=int, default=100)
   parser.add_argument("--lam", type=float, default=1.0)
   parser.add_argument("--learning-rate", type=float, default=1e-4)
   parser.add_argument("--workdir", default="runs/align")
+  parser.add_argument("--data", default=None,
+                      help="the synthetic dataset file (default: the run config's data.path)")
   args = parser.parse_args(argv)
   files = default_files(args.data_dir)
   if len(files) < 2:
     raise SystemExit("leave-one-scan-out needs at least two measured scans")
-  config, trained = inference.load_run(args.checkpoint)
+  config, trained = load_source(args.checkpoint, args.variants)
   config = T.with_defaults(config)
-  data_path = pathlib.Path(config["data"]["path"])
+  data_path = pathlib.Path(args.data or config["data"]["path"])
+  T.ensure_dataset(config, data_path)
   validate = protocol.validation_psnr(config, data_path)
   for variant in args.variants:
-    if variant not in trained:
-      raise SystemExit(f"{args.checkpoint}: no trained {variant}")
-    mcfg, params = trained[variant][0]
+    mcfg, params = trained[variant]                # load_run without seeds: (model_config, params)
     inputs = measured_inputs(files, mcfg)
     for scene in inputs:
       folder = fold_folder(args.workdir, variant, scene)
