@@ -111,3 +111,53 @@ def test_a_candidates_workdir_links_its_runs_and_names_both_variants(monkeypatch
   assert study.candidate_workdir("experiments/configs/cand.py") == out           # again: links replaced
   with pytest.raises(ValueError, match="no run of"):
     study.candidate_workdir("experiments/configs/other.py")
+
+
+def test_alignment_folds_accumulate_across_stretches_and_machines(tmp_path, monkeypatch):
+  """One fold a stretch past the deadline; a fresh store gets the committed folds back and
+  only the missing ones run; the status counts folds from the committed state alone.
+
+  The stage itself is replaced by a recorder (tests/test_align_cli.py tests the CLI's folds,
+  tests/test_align.py the stage).
+  """
+  import json
+  import shutil
+
+  import numpy as np
+
+  from experiments import align as cli
+  from nlosjax.evaluation import protocol
+  from nlosjax.train import align as stage
+  monkeypatch.setenv(store.ENV, str(tmp_path / "home"))
+  monkeypatch.setattr(study, "STATE_DIR", tmp_path / "repo" / "state")
+  a = study.Alignment("align-x", "pretrained:real", "ours_s")
+  monkeypatch.setattr(study, "ALIGNMENTS", (a,))
+  monkeypatch.setattr(study, "ensure_data", lambda config, path, log: None)
+  monkeypatch.setattr(protocol, "validation_psnr", lambda config, path: None)
+  monkeypatch.setattr(cli, "load_source", lambda source, variants: (
+      tiny_config("unused.h5"), {"ours_s": ("mcfg", {"w": np.zeros(2)})}))
+  files = [tmp_path / f"data_{s}.mat" for s in ("p", "q", "r")]
+  monkeypatch.setattr(cli, "measured_inputs", lambda fs, mcfg: {
+      f.stem[len("data_"):]: np.full((1, 1), i, np.float32) for i, f in enumerate(fs)})
+  calls = []
+
+  def fake_align(config, data_path, mcfg, params, measured, folder, **kw):
+    calls.append((folder.name, sorted(np.unique(measured).tolist())))
+    folder.mkdir(parents=True)
+    np.savez(folder / "params.npz", w=params["w"] + 1)
+    (folder / "align.json").write_text(json.dumps({"seconds": 600.0}))
+    return params, {}
+  monkeypatch.setattr(stage, "align", fake_align)
+
+  rows = study.run_alignments(files, hours=1e-9, log=lambda s: None)        # deadline past: one fold
+  assert calls == [("ours_s-without-p", [1.0, 2.0])]                        # never its own scan (0)
+  assert rows[0]["done"] == ["p"] and rows[0]["left"] == 2 and rows[0]["hours_left"] == pytest.approx(0.33)
+  assert (study.STATE_DIR / "align-x" / "ours_s-without-p" / "params.npz").exists()
+  shutil.rmtree(store.home())                                               # a new machine
+  rows = study.run_alignments(files, log=lambda s: None)
+  assert [c[0] for c in calls] == ["ours_s-without-p", "ours_s-without-q", "ours_s-without-r"]
+  assert rows[0]["done"] == ["p", "q", "r"] and rows[0]["left"] == 0
+  assert (study.alignment_workdir(a) / "ours_s-without-p" / "params.npz").exists()   # restored
+  assert "| align-x | `pretrained:real` | ours_s | 3 | 0 | 600 | 0 |" in study.format_alignment_status(rows)
+  with pytest.raises(ValueError, match="unknown alignment"):
+    study.run_alignments(files, ["nope"])

@@ -20,6 +20,10 @@ def main(argv=None) -> int:
   parser.add_argument("--candidates", action="store_true",
                       help="when the runs are done: make one workdir per candidate in the store and print "
                            "the benchmarks.preset_choice command that compares them with the shipped weights")
+  parser.add_argument("--align", nargs="*", default=None, metavar="NAME",
+                      help="run the alignment stage instead of training (default all: "
+                           f"{' '.join(a.name for a in study.ALIGNMENTS)})")
+  parser.add_argument("--data-dir", default=None, help="folder of measured .mat scans (as experiments.align's)")
   args = parser.parse_args(argv)
   if args.candidates:
     from nlosjax.evaluation.baselines import CLASSIC_METHODS
@@ -35,11 +39,22 @@ def main(argv=None) -> int:
     runs = study.select(args.runs)
   except ValueError as e:
     parser.error(str(e))
+  from experiments.real_undersampling import default_files, scene_name
+  files = default_files(args.data_dir)
   if not args.status:
     from experiments import xla_cache
     xla_cache.enable(tidy=True)
-    study.run_study([r.name for r in runs], hours=args.hours, allow_data_change=args.allow_data_change)
+    if args.align is not None:
+      try:
+        study.run_alignments(files, args.align, hours=args.hours)
+      except ValueError as e:
+        parser.error(str(e))
+    else:
+      study.run_study([r.name for r in runs], hours=args.hours, allow_data_change=args.allow_data_change)
   print(study.format_status([study.status(r) for r in study.RUNS]))
+  scenes = [scene_name(pathlib.Path(f)) for f in files]
+  print()
+  print(study.format_alignment_status([study.alignment_status(a, scenes) for a in study.ALIGNMENTS]))
   return 0
 
 

@@ -233,6 +233,34 @@ def candidate_workdir(config: str) -> pathlib.Path:
   return out
 
 
+def run_alignments(files, names=None, *, hours: float | None = None,
+                   log: Callable[[str], None] = print) -> list[dict]:
+  """Align the named :data:`ALIGNMENTS` (default all, in order) until done or ``hours`` have passed.
+
+  ``files``: the measured scans (``experiments.real_undersampling.default_files``). As
+  :func:`run_study`, the first unfinished fold always starts. Returns each alignment's status.
+  """
+  from experiments.real_undersampling import scene_name
+  unknown = set(names or ()) - {a.name for a in ALIGNMENTS}
+  if unknown:
+    raise ValueError(f"unknown alignment(s) {sorted(unknown)}; the study's: {[a.name for a in ALIGNMENTS]}")
+  chosen = [a for a in ALIGNMENTS if not names or a.name in names]
+  scenes = [scene_name(pathlib.Path(f)) for f in files]
+  deadline = None if hours is None else time.time() + 3600 * hours
+  started = False
+  for a in chosen:
+    if not alignment_status(a, scenes)["left"]:
+      log(f"[{a.name}] done (committed state)")
+      continue
+    if started and deadline is not None and time.time() >= deadline:
+      break
+    done, began = run_alignment(a, files, deadline=deadline, start_one=not started, log=log)
+    started = started or began
+    if not done:
+      break
+  return [alignment_status(a, scenes) for a in ALIGNMENTS]
+
+
 def select(names) -> list[Run]:
   by_name = {r.name: r for r in RUNS}
   if not names:
@@ -241,3 +269,134 @@ def select(names) -> list[Run]:
   if unknown:
     raise ValueError(f"unknown run(s) {unknown}; the study's runs: {sorted(by_name)}")
   return [by_name[n] for n in names]
+
+
+@dataclasses.dataclass(frozen=True)
+class Alignment:
+  """The alignment stage (:mod:`experiments.align`, leave one scan out) of one trained network.
+
+  ``source``: ``candidate:<config>`` (the :func:`candidate_workdir` of a candidate's runs)
+  or ``pretrained:NAME`` (the weights shipped as ``NAME-<variant>``; their training data
+  are made in the store from the provenance's data config).
+  """
+
+  name: str
+  source: str
+  variant: str
+
+
+#: Item 5 of the measured-capture issue: alignment from the winner of each variant on
+#: validation (benchmarks/results/preset_choice_real.md): Ours-S from the v5 candidate,
+#: Ours from the shipped ``real`` weights. Steps, ``lam`` and the learning rate are the
+#: CLI's defaults, fixed before any score was seen.
+ALIGNMENTS = (
+    Alignment("align-v5-ours_s", "candidate:experiments/configs/real_v5.py", "ours_s"),
+    Alignment("align-shipped-ours", "pretrained:real", "ours"),
+)
+
+
+def alignment_workdir(a: Alignment) -> pathlib.Path:
+  """``<store>/runs/real_preset/<name>``: ``experiments.align``'s ``--workdir`` (one folder a fold)."""
+  return store.run_path(STUDY, a.name)
+
+
+def _fold_files(folder: pathlib.Path) -> list[pathlib.Path]:
+  """A finished fold's files (``params.npz`` and ``align.json``), or [] if it is not finished."""
+  files = [folder / "params.npz", folder / "align.json"]
+  return files if all(f.exists() for f in files) else []
+
+
+def sync_alignment(a: Alignment) -> list[str]:
+  """Copy finished folds both ways between the store and ``state/<name>/``; returns the finished folds.
+
+  The committed state holds each finished fold's ``params.npz`` (the aligned network, about
+  100 KB) and ``align.json``; a fold still training has nothing to keep (a fold is about 15
+  minutes of 2 cores: it restarts).
+  """
+  import shutil
+  work, state = alignment_workdir(a), STATE_DIR / a.name
+  done = set()
+  for src_root, dst_root in ((state, work), (work, state)):
+    if not src_root.is_dir():
+      continue
+    for folder in sorted(p for p in src_root.iterdir() if p.is_dir()):
+      if not folder.name.startswith(f"{a.variant}-without-") or not _fold_files(folder):
+        continue
+      done.add(folder.name)
+      target = dst_root / folder.name
+      target.mkdir(parents=True, exist_ok=True)
+      for f in _fold_files(folder):
+        if not (target / f.name).exists():
+          shutil.copy2(f, target / f.name)
+  return sorted(done)
+
+
+def alignment_checkpoint(a: Alignment) -> str:
+  """The ``--checkpoint`` of :mod:`experiments.align` for ``a``."""
+  if a.source.startswith("candidate:"):
+    return str(candidate_workdir(a.source[len("candidate:"):]))
+  return a.source
+
+
+def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: bool = True,
+                  log: Callable[[str], None] = print) -> tuple[bool, bool]:
+  """Align ``a`` fold by fold until every scan is done or ``deadline``: ``(done, started a fold)``.
+
+  As ``python -m experiments.align --checkpoint <source> --variants <variant>`` with the
+  store's workdir and data, and ``deadline`` checked before each fold starts (with
+  ``start_one``, not before the first).
+  """
+  import numpy as np
+
+  from experiments import align as cli
+  from nlosjax import train
+  from nlosjax.evaluation import protocol
+  from nlosjax.train.align import align
+  config, trained = cli.load_source(alignment_checkpoint(a), [a.variant])
+  config = train.with_defaults(config)
+  data_path = pathlib.Path(config["data"]["path"])
+  if a.source.startswith("pretrained:"):                 # its data: made in the store, checked strictly
+    data_path = store.data_path(data_path.name)
+    data_path.parent.mkdir(parents=True, exist_ok=True)
+    ensure_data(config, data_path, log=log)
+  validate = protocol.validation_psnr(config, data_path)
+  mcfg, params = trained[a.variant]
+  inputs = cli.measured_inputs(files, mcfg)
+  sync_alignment(a)
+  started = False
+  for scene in inputs:
+    folder = cli.fold_folder(alignment_workdir(a), a.variant, scene)
+    if _fold_files(folder):
+      continue
+    if deadline is not None and time.time() >= deadline and (started or not start_one):
+      return False, started
+    log(f"[{a.name}] {a.variant} without {scene}")
+    align(config, data_path, mcfg, params, np.concatenate([v for k, v in inputs.items() if k != scene]),
+          folder, validate=validate, log=log)
+    started = True
+    sync_alignment(a)
+  return True, started
+
+
+def alignment_status(a: Alignment, scenes) -> dict:
+  """What the committed state says of ``a``: folds done and left, seconds a fold, hours left."""
+  state = STATE_DIR / a.name
+  done = [s for s in scenes if _fold_files(state / f"{a.variant}-without-{s}")]
+  seconds = [json.loads((state / f"{a.variant}-without-{s}" / "align.json").read_text())["seconds"]
+             for s in done]
+  rate = sum(seconds) / len(seconds) if seconds else None
+  left = len(scenes) - len(done)
+  return {"name": a.name, "source": a.source, "variant": a.variant, "done": done, "left": left,
+          "s_per_fold": rate, "hours_left": None if rate is None else round(left * rate / 3600, 2)}
+
+
+def format_alignment_status(rows: list[dict]) -> str:
+  """The alignment table (Markdown)."""
+  lines = ["| alignment | source | variant | folds done | folds left | s / fold | hours left |",
+           "|---|---|---|---|---|---|---|"]
+  for r in rows:
+    rate = "—" if r["s_per_fold"] is None else f"{r['s_per_fold']:.0f}"
+    hours = "0" if not r["left"] else ("not measured" if r["hours_left"] is None else f"{r['hours_left']:.1f}")
+    lines.append(f"| {r['name']} | `{r['source']}` | {r['variant']} | {len(r['done'])} | {r['left']} | "
+                 f"{rate} | {hours} |")
+  return "\n".join(lines)
