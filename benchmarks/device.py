@@ -48,7 +48,10 @@ Parts, in this order (``benchmarks/device_parts.py``):
   step at the preset's batch (or the largest the plan fits): time, and the device's
   ``peak_bytes_in_use`` (less what was held before the step besides its arguments) against the
   dry run's plan for this device (``nlosjax.plan``: ``compile_train_step`` and its
-  ``memory_analysis()``); then inference at batch 1, 2, 4, ... until a failure, the budget or 1024.
+  ``memory_analysis()``); one more step under ``jax.profiler``: each HLO op's device time
+  and share by category (``benchmarks/op_profile.py``), and the step's achieved FLOP/s
+  against the device's float32 and TF32 peaks; then inference at batch 1, 2, 4, ... until a
+  failure, the budget or 1024.
 * **classic**: ms per frame of FBP, LCT, f-k, phasor and RSD at 128 x 128 x 512 against each
   method's FFT floor (``benchmarks.physics.fft_floor``), timed alternately.
 * then a log note where a future mechanism study's rows would go (not implemented).
@@ -75,6 +78,8 @@ import sys
 import threading
 import time
 import traceback
+
+from benchmarks import op_profile
 
 HERE = pathlib.Path(__file__).resolve().parent
 DEFAULT_RESULTS = HERE / "results" / "device.md"
@@ -435,6 +440,14 @@ def _paper_md(d) -> list[str]:
             f" (`peak_bytes_in_use` less memory held before the step by anything but its arguments; raw peak "
             f"{_gib(t.get('peak_after'))} GiB); plan's device memory {_gib(t.get('device_memory'))} GiB"
             f" ({t.get('device_memory_source')})" + (f"; error: {t['error']}" if t.get("error") else ""), ""]
+    prof = t.get("profile")
+    if prof and "error" in prof:
+      out += [f"Per-op profile of the train step: failed ({prof['error']}).", ""]
+    elif prof:
+      out += ["### Where the train step's time goes", "",
+              "One step under `jax.profiler` (`benchmarks/op_profile.py`): each HLO op's device time, "
+              "its category from the compiled HLO (a fusion by its heaviest op, a custom call by its target).",
+              ""] + op_profile.format_profile(prof, t.get("flops"), t.get("peak_flops"))
   out += ["| batch | ms per step | ms per frame | frames/s | compile s | planned peak GiB |",
           "|---|---|---|---|---|---|"]
   for r in d.get("inference", []):

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from benchmarks import op_profile
 from benchmarks import physics as physics_bench
 from benchmarks import scan as scan_bench
 from experiments import configs, provenance
@@ -541,6 +542,18 @@ def _train_step_measure(ctx, cfg: dict, variant: str) -> dict:
   row["step_s"] = statistics.median(times) if times else row["first_step_s"]
   row["steps_timed"] = len(times)
   ctx.save()
+  if ctx.fits(3.0 * row["step_s"] + 10.0, "the train step's per-op profile"):
+    held = {"state": state}
+
+    def one_step():                                  # the step donates its state: keep the new one
+      held["state"], metrics = step["compiled"](held["state"], data, key)
+      return metrics
+    try:
+      row["profile"] = op_profile.op_profile(one_step, step["compiled"].as_text(), steps=1, top=15)
+      row["peak_flops"] = op_profile.peak_flops(jax.devices()[0].device_kind)
+    except Exception as e:                           # noqa: BLE001 - recorded, the step's numbers stand
+      row["profile"] = {"error": _error(e)}
+    ctx.save()
   measured = row["measured_peak_bytes"]
   ctx.log(f"train step batch {row['batch']}: {row['step_s']:.3f} s; planned {p.peak_bytes / GIB:.2f} GiB, "
           f"measured {'n/a' if measured is None else f'{measured / GIB:.2f} GiB'}")

@@ -27,6 +27,10 @@ def test_tiny_run_writes_every_part_passes_every_check_and_collects(tmp_path):
   assert all("x_floor" in r for r in parts["classic"]["rows"])
   assert [r["batch"] for r in parts["paper_scale"]["inference"]] == [1, 2]
   assert parts["paper_scale"]["train"]["planned_peak_bytes"] > 0
+  prof = parts["paper_scale"]["train"]["profile"]                 # the step's per-op profile
+  assert "error" not in prof and prof["ops"] and prof["busy_ms"] <= prof["wall_ms"]
+  assert sum(c["share"] for c in prof["categories"].values()) == pytest.approx(1.0)
+  assert "convolution" in prof["categories"]                       # the network's convolutions are there
   assert parts["scan_kernels"]["shapes"] and all("rows" in s for s in parts["scan_kernels"]["shapes"])
   assert "future mechanism study" in (out / device.LOG).read_text()
 
@@ -36,6 +40,7 @@ def test_tiny_run_writes_every_part_passes_every_check_and_collects(tmp_path):
   assert "Produced by `python -m benchmarks.device --tiny --out" in text and "- Machine: cpu" in text
   assert "- Code: `" in text and "(tiny CPU rehearsal)" in text
   assert "every correctness check passes: met (15 of 15 passed)" in text
+  assert "### Where the train step's time goes" in text and "| category | ms a step | share of busy |" in text
   for goal in ("- paper-scale inference >= 30 frames/s on one H100 (batch 1): ",
                "- dry-run memory within +-20% of the measured peak (train step): not measured (cpu: ",
                "- scan fwd+bwd <= 6x the exp floor (best method, every shape): ",
