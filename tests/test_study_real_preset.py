@@ -152,7 +152,7 @@ def test_alignment_folds_accumulate_across_stretches_and_machines(tmp_path, monk
   rows = study.run_alignments(files, hours=1e-9, log=lambda s: None)        # deadline past: one fold
   assert calls == [("ours_s-without-p", [1.0, 2.0])]                        # never its own scan (0)
   assert rows[0]["done"] == ["p"] and rows[0]["left"] == 2 and rows[0]["hours_left"] == pytest.approx(0.33)
-  assert (study.STATE_DIR / "align-x" / "ours_s-without-p" / "params.npz").exists()
+  assert (study.STATE_DIR / "align" / "ours_s-without-p" / "params.npz").exists()
   shutil.rmtree(store.home())                                               # a new machine
   rows = study.run_alignments(files, log=lambda s: None)
   assert [c[0] for c in calls] == ["ours_s-without-p", "ours_s-without-q", "ours_s-without-r"]

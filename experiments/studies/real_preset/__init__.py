@@ -30,13 +30,13 @@ classic methods (a study does not import the benchmarks; run the printed command
 ``--align [NAME ...]`` runs the alignment stage (:mod:`experiments.align`, leave one
 scan out) from each variant's winner on validation
 (:data:`~experiments.studies.real_preset.study.ALIGNMENTS`), fold by fold, into
-``<store>/runs/real_preset/<name>/``; each finished fold's ``params.npz`` and
-``align.json`` are copied into ``state/<name>/`` (commit it) and back into the store on
+``<store>/runs/real_preset/align/<variant>-without-<scan>/``; each finished fold's ``params.npz`` and
+``align.json`` are copied into ``state/align/`` (commit it) and back into the store on
 another machine, so folds accumulate across stretches; ``--hours`` is checked before each
 fold starts (a fold is about 15 minutes of 2 cores). ``--status`` shows the folds done and
 the hours left::
 
     python -m experiments.studies.real_preset --align --hours 1.5
-    python -m experiments.real_undersampling --checkpoint <the candidate workdir> \
-        --aligned <store>/runs/real_preset/align-v5-ours_s
+    python -m experiments.real_undersampling --adapt --no-timing --out benchmarks/results/real_adapt.md \
+        --aligned <store>/runs/real_preset/align
 """

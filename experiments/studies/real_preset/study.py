@@ -273,11 +273,10 @@ def select(names) -> list[Run]:
 
 @dataclasses.dataclass(frozen=True)
 class Alignment:
-  """The alignment stage (:mod:`experiments.align`, leave one scan out) of one trained network.
+  """The alignment stage (:mod:`experiments.align`, leave one scan out) of one shipped network.
 
-  ``source``: ``candidate:<config>`` (the :func:`candidate_workdir` of a candidate's runs)
-  or ``pretrained:NAME`` (the weights shipped as ``NAME-<variant>``; their training data
-  are made in the store from the provenance's data config).
+  ``source``: ``pretrained:NAME``, the weights shipped as ``NAME-<variant>`` (so a fresh
+  clone has them); their training data are made in the store from the provenance's config.
   """
 
   name: str
@@ -285,19 +284,28 @@ class Alignment:
   variant: str
 
 
-#: Item 5 of the measured-capture issue: alignment from the winner of each variant on
-#: validation (benchmarks/results/preset_choice_real.md): Ours-S from the v5 candidate,
-#: Ours from the shipped ``real`` weights. Steps, ``lam`` and the learning rate are the
-#: CLI's defaults, fixed before any score was seen.
+#: Alignment from the winner of each variant on validation
+#: (benchmarks/results/preset_choice_real.md), both shipped as ``real``: Ours-S trained on the
+#: v5 candidate's data (``v5-ours_s``), Ours on the preset's own. Steps, ``lam`` and the
+#: learning rate are the CLI's defaults, fixed before any score was seen.
 ALIGNMENTS = (
-    Alignment("align-v5-ours_s", "candidate:experiments/configs/real_v5.py", "ours_s"),
-    Alignment("align-shipped-ours", "pretrained:real", "ours"),
+    Alignment("align-ours_s", "pretrained:real", "ours_s"),
+    Alignment("align-ours", "pretrained:real", "ours"),
 )
 
 
 def alignment_workdir(a: Alignment) -> pathlib.Path:
-  """``<store>/runs/real_preset/<name>``: ``experiments.align``'s ``--workdir`` (one folder a fold)."""
-  return store.run_path(STUDY, a.name)
+  """``<store>/runs/real_preset/align``: ``experiments.align``'s ``--workdir``, one folder a fold.
+
+  One folder for every alignment (the folds are named by variant and scan), so one
+  ``python -m experiments.real_undersampling --aligned`` scores them all.
+  """
+  return store.run_path(STUDY, "align")
+
+
+def alignment_state(a: Alignment) -> pathlib.Path:
+  """``state/align/``: the committed finished folds of every alignment."""
+  return STATE_DIR / "align"
 
 
 def _fold_files(folder: pathlib.Path) -> list[pathlib.Path]:
@@ -307,14 +315,15 @@ def _fold_files(folder: pathlib.Path) -> list[pathlib.Path]:
 
 
 def sync_alignment(a: Alignment) -> list[str]:
-  """Copy finished folds both ways between the store and ``state/<name>/``; returns the finished folds.
+  """Copy finished folds both ways between the store and ``state/align/``; returns the finished folds.
 
-  The committed state holds each finished fold's ``params.npz`` (the aligned network, about
-  100 KB) and ``align.json``; a fold still training has nothing to keep (a fold is about 15
-  minutes of 2 cores: it restarts).
+  Only ``a``'s folds (``<variant>-without-<scan>``) are copied. The committed state holds
+  each finished fold's ``params.npz`` (the aligned network, about 100 KB) and
+  ``align.json``; a fold still training has nothing to keep (a fold is about 15 minutes of
+  2 cores: it restarts).
   """
   import shutil
-  work, state = alignment_workdir(a), STATE_DIR / a.name
+  work, state = alignment_workdir(a), alignment_state(a)
   done = set()
   for src_root, dst_root in ((state, work), (work, state)):
     if not src_root.is_dir():
@@ -331,13 +340,6 @@ def sync_alignment(a: Alignment) -> list[str]:
   return sorted(done)
 
 
-def alignment_checkpoint(a: Alignment) -> str:
-  """The ``--checkpoint`` of :mod:`experiments.align` for ``a``."""
-  if a.source.startswith("candidate:"):
-    return str(candidate_workdir(a.source[len("candidate:"):]))
-  return a.source
-
-
 def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: bool = True,
                   log: Callable[[str], None] = print) -> tuple[bool, bool]:
   """Align ``a`` fold by fold until every scan is done or ``deadline``: ``(done, started a fold)``.
@@ -352,13 +354,11 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
   from nlosjax import train
   from nlosjax.evaluation import protocol
   from nlosjax.train.align import align
-  config, trained = cli.load_source(alignment_checkpoint(a), [a.variant])
+  config, trained = cli.load_source(a.source, [a.variant])
   config = train.with_defaults(config)
-  data_path = pathlib.Path(config["data"]["path"])
-  if a.source.startswith("pretrained:"):                 # its data: made in the store, checked strictly
-    data_path = store.data_path(data_path.name)
-    data_path.parent.mkdir(parents=True, exist_ok=True)
-    ensure_data(config, data_path, log=log)
+  data_path = store.data_path(pathlib.Path(config["data"]["path"]).name)   # made in the store, checked strictly
+  data_path.parent.mkdir(parents=True, exist_ok=True)
+  ensure_data(config, data_path, log=log)
   validate = protocol.validation_psnr(config, data_path)
   mcfg, params = trained[a.variant]
   inputs = cli.measured_inputs(files, mcfg)
@@ -380,7 +380,7 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
 
 def alignment_status(a: Alignment, scenes) -> dict:
   """What the committed state says of ``a``: folds done and left, seconds a fold, hours left."""
-  state = STATE_DIR / a.name
+  state = alignment_state(a)
   done = [s for s in scenes if _fold_files(state / f"{a.variant}-without-{s}")]
   seconds = [json.loads((state / f"{a.variant}-without-{s}" / "align.json").read_text())["seconds"]
              for s in done]
