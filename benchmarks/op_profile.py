@@ -5,11 +5,14 @@
     prof = op_profile(lambda: compiled(*args), compiled.as_text(), steps=2)
     prof["ops"][:5], prof["categories"]
 
-The trace's Perfetto JSON (``jax.profiler.trace(..., create_perfetto_trace=True)``) holds
-one complete event (``"ph": "X"``) per executed op, with the HLO instruction's name in
-``args.hlo_op``: on a GPU one per kernel launch on the device's stream, on XLA:CPU one per
-thunk. Summed by ``hlo_op`` and divided by the steps traced, that is each op's device time
-per step. Each op is put in a category from the compiled HLO text (:func:`hlo_ops`): the
+The trace (read by :func:`benchmarks.step_profile.read_trace`) holds one complete event
+(``"ph": "X"``) per executed op, with the HLO instruction's name in ``args.hlo_op``: on a
+GPU one per kernel launch on the device's stream, on XLA:CPU one per thunk. Self times
+(:func:`benchmarks.step_profile.self_times`) summed by ``hlo_op`` and divided by the steps
+traced are each op's device time per step. Beside ``step_profile`` (a CPU training step by
+model part), this module serves any compiled step on any backend, by HLO category.
+
+Each op is put in a category from the compiled HLO text (:func:`hlo_ops`): the
 instruction's opcode, or for a fusion the heaviest opcode inside it (convolution before
 dot before FFT, ...), and a custom call by its target (cuDNN convolutions and cuBLAS GEMMs
 are custom calls on a GPU). Ops inside a ``while`` body appear once per trip, so a serial
@@ -22,13 +25,12 @@ the step's wall time says how much of it the device spent running ops at all.
 from __future__ import annotations
 
 import collections
-import glob
-import gzip
-import json
-import os
+import pathlib
 import re
 import tempfile
 import time
+
+from benchmarks.step_profile import read_trace, self_times
 
 #: The opcode that names a fusion's category, first match wins.
 HEAVY = ("convolution", "dot", "fft", "custom-call", "scatter", "gather", "sort", "reduce-window",
@@ -85,45 +87,11 @@ def hlo_ops(hlo_text: str) -> dict[str, dict]:
   return out
 
 
-def trace_events(folder: str) -> list[dict]:
-  """The complete events of the one Perfetto trace under ``folder`` that carry an ``hlo_op``."""
-  paths = glob.glob(os.path.join(folder, "**", "perfetto_trace.json.gz"), recursive=True)
-  if not paths:
-    raise FileNotFoundError(f"{folder}: no perfetto_trace.json.gz (jax.profiler wrote no trace)")
-  with gzip.open(max(paths, key=os.path.getmtime)) as f:
-    data = json.load(f)
-  events = data["traceEvents"] if isinstance(data, dict) else data
-  return [e for e in events if e.get("ph") == "X" and "hlo_op" in (e.get("args") or {})]
-
-
-def exclusive_us(events: list[dict]) -> list[float]:
-  """Each event's duration less that of the events nested in it on the same thread (microseconds).
-
-  XLA:CPU records a ``while`` (or ``conditional``, ``call``) op as one event spanning the
-  events of its body's ops; counted whole, the body's time would count twice.
-  """
-  out = [float(e.get("dur", 0.0)) for e in events]
-  by_thread = collections.defaultdict(list)
-  for i, e in enumerate(events):
-    if "ts" in e:                                          # an event without a start nests nothing
-      by_thread[(e.get("pid"), e.get("tid"))].append(i)
-  for idx in by_thread.values():
-    idx.sort(key=lambda i: (float(events[i]["ts"]), -float(events[i].get("dur", 0.0))))
-    stack: list[int] = []                                  # open events, outermost first
-    for i in idx:
-      start = float(events[i]["ts"])
-      while stack and start >= float(events[stack[-1]]["ts"]) + float(events[stack[-1]].get("dur", 0.0)):
-        stack.pop()
-      if stack:
-        out[stack[-1]] -= float(events[i].get("dur", 0.0))
-      stack.append(i)
-  return [max(v, 0.0) for v in out]
-
-
 def summarize(events: list[dict], ops: dict[str, dict], steps: int, top: int = 15) -> dict:
   """Per-op and per-category milliseconds per step of ``events`` (as :func:`trace_events` returns).
 
-  Each event counts its exclusive time (:func:`exclusive_us`).
+  Each op counts its self time (:func:`benchmarks.step_profile.self_times`: a ``while`` op's
+  event spans its body's ops on XLA:CPU; counted whole, the body would count twice).
 
   Returns ``{"ops": [{"op", "category", "op_name", "ms", "share", "count"}, ...] (the
   ``top`` largest), "categories": {category: {"ms", "share"}}, "busy_ms", "distinct_ops"}``;
@@ -131,11 +99,8 @@ def summarize(events: list[dict], ops: dict[str, dict], steps: int, top: int = 1
   """
   if steps < 1:
     raise ValueError(f"steps must be >= 1, got {steps}")
-  us = collections.Counter()
-  count = collections.Counter()
-  for e, exclusive in zip(events, exclusive_us(events)):
-    us[e["args"]["hlo_op"]] += exclusive
-    count[e["args"]["hlo_op"]] += 1
+  us = collections.Counter({op: max(t, 0.0) for op, t in self_times(events).items()})
+  count = collections.Counter(e["args"]["hlo_op"] for e in events)
   busy = sum(us.values()) / 1e3 / steps
   share = (lambda ms: ms / busy) if busy > 0 else (lambda ms: 0.0)
   unknown = {"opcode": "?", "category": "?", "op_name": ""}
@@ -163,15 +128,18 @@ def op_profile(run, hlo_text: str, *, steps: int = 2, top: int = 15) -> dict:
   """
   import jax
   ops = hlo_ops(hlo_text)
+  module = re.match(r"\s*HloModule\s+([\w.\-]+)", hlo_text)
+  if module is None:
+    raise ValueError("hlo_text does not start with an HloModule line")
   # One call first, waited for: a call still running when the trace starts would add a partial step.
   jax.block_until_ready(run())
   with tempfile.TemporaryDirectory() as d:
-    with jax.profiler.trace(d, create_perfetto_trace=True):
+    with jax.profiler.trace(d):
       t0 = time.perf_counter()
       for _ in range(steps):
         jax.block_until_ready(run())
       wall = (time.perf_counter() - t0) / steps
-    events = trace_events(d)
+    events = read_trace(pathlib.Path(d), module.group(1))
   return {**summarize(events, ops, steps, top), "wall_ms": wall * 1e3, "steps": steps}
 
 

@@ -55,9 +55,9 @@ def test_each_instruction_gets_its_opcode_or_its_fusions_heaviest_op():
 
 def test_the_summary_is_the_sum_by_op_per_step_and_shares_add_to_one():
   ops = P.hlo_ops(HLO)
-  ev = [{"dur": d, "args": {"hlo_op": op}} for op, d in
-        [("conv_fusion", 3000.0), ("conv_fusion", 1000.0), ("cudnn", 2000.0), ("transpose.7", 2000.0),
-         ("mystery", 0.0)]]
+  ev = [{"ts": 10000.0 * k, "dur": d, "pid": 0, "tid": 0, "args": {"hlo_op": op}}
+        for k, (op, d) in enumerate([("conv_fusion", 3000.0), ("conv_fusion", 1000.0), ("cudnn", 2000.0),
+                                     ("transpose.7", 2000.0), ("mystery", 0.0)])]
   s = P.summarize(ev, ops, steps=2, top=2)
   assert s["busy_ms"] == pytest.approx(4.0)                             # 8000 us over 2 steps
   assert [(r["op"], r["ms"], r["count"]) for r in s["ops"]] == [("conv_fusion", 2.0, 1.0), ("cudnn", 1.0, 0.5)]
@@ -74,8 +74,9 @@ def test_a_loop_event_counts_only_the_time_its_body_ops_do_not():
     return {"ts": ts, "dur": dur, "tid": tid, "pid": 0, "args": {"hlo_op": op}}
   events = [ev("while.1", 0, 100), ev("body.a", 10, 30), ev("body.b", 50, 40), ev("other", 20, 50, tid=2),
             ev("after", 100, 5)]
-  assert P.exclusive_us(events) == [30.0, 30.0, 40.0, 50.0, 5.0]
-  s = P.summarize(events, {}, steps=1)
+  s = P.summarize(events, {}, steps=1, top=10)
+  assert {r["op"]: r["ms"] * 1e3 for r in s["ops"]} == pytest.approx(
+      {"while.1": 30.0, "body.a": 30.0, "body.b": 40.0, "other": 50.0, "after": 5.0})
   assert s["busy_ms"] == pytest.approx(0.155)                            # 30 + 30 + 40 + 50 + 5 us, no overlap
 
 
