@@ -88,7 +88,7 @@ def hlo_ops(hlo_text: str) -> dict[str, dict]:
 
 
 def summarize(events: list[dict], ops: dict[str, dict], steps: int, top: int = 15) -> dict:
-  """Per-op and per-category milliseconds per step of ``events`` (as :func:`trace_events` returns).
+  """Per-op and per-category milliseconds per step of ``events`` (as ``step_profile.read_trace`` returns).
 
   Each op counts its self time (:func:`benchmarks.step_profile.self_times`: a ``while`` op's
   event spans its body's ops on XLA:CPU; counted whole, the body would count twice).
