@@ -18,8 +18,11 @@ dot before FFT, ...), and a custom call by its target (cuDNN convolutions and cu
 are custom calls on a GPU). Ops inside a ``while`` body appear once per trip, so a serial
 loop's cost is the sum of its body's rows.
 
-Limits: time between ops (launch gaps, host syncs) is not in any row; ``busy_ms`` against
-the step's wall time says how much of it the device spent running ops at all.
+Limits: time between ops (launch gaps, host syncs) is not in any row. ``busy_ms`` sums op
+time over every thread (``lanes``) that ran ops: on a GPU one stream, so against the step's
+wall time it says how much of it the device spent running ops at all; on XLA:CPU the
+thunk executor runs independent ops on several threads at once, and ``busy_ms`` may
+exceed the wall time, up to ``lanes`` times it.
 """
 
 from __future__ import annotations
@@ -94,8 +97,9 @@ def summarize(events: list[dict], ops: dict[str, dict], steps: int, top: int = 1
   event spans its body's ops on XLA:CPU; counted whole, the body would count twice).
 
   Returns ``{"ops": [{"op", "category", "op_name", "ms", "share", "count"}, ...] (the
-  ``top`` largest), "categories": {category: {"ms", "share"}}, "busy_ms", "distinct_ops"}``;
-  ``share`` of ``busy_ms``, the summed op time per step.
+  ``top`` largest), "categories": {category: {"ms", "share"}}, "busy_ms", "distinct_ops",
+  "lanes"}``; ``share`` of ``busy_ms``, the op time per step summed over the ``lanes``
+  (distinct ``(pid, tid)`` threads) that ran ops.
   """
   if steps < 1:
     raise ValueError(f"steps must be >= 1, got {steps}")
@@ -114,7 +118,9 @@ def summarize(events: list[dict], ops: dict[str, dict], steps: int, top: int = 1
   for r in rows:
     cats[r["category"]] += r["ms"]
   categories = {c: {"ms": ms, "share": share(ms)} for c, ms in sorted(cats.items(), key=lambda kv: -kv[1])}
-  return {"ops": rows[:top], "categories": categories, "busy_ms": busy, "distinct_ops": len(rows)}
+  lanes = len({(e["pid"], e["tid"]) for e in events})
+  return {"ops": rows[:top], "categories": categories, "busy_ms": busy, "distinct_ops": len(rows),
+          "lanes": lanes}
 
 
 def op_profile(run, hlo_text: str, *, steps: int = 2, top: int = 15) -> dict:
@@ -162,8 +168,11 @@ def format_profile(prof: dict, flops: float | None = None, peak: tuple | None = 
   """Markdown lines: the achieved FLOP/s against ``peak`` (as :func:`peak_flops`), the categories, the top ops."""
   out = []
   wall = prof["wall_ms"]
-  line = (f"Traced {prof['steps']} step(s): {wall:.1f} ms a step (profiler on), the device busy "
-          f"{prof['busy_ms']:.1f} ms of it ({prof['busy_ms'] / wall:.0%}) over {prof['distinct_ops']} distinct ops.")
+  lanes = prof.get("lanes", 1)
+  over = f", summed over {lanes} threads" if lanes > 1 else ""
+  line = (f"Traced {prof['steps']} step(s): {wall:.1f} ms a step (profiler on), ops busy "
+          f"{prof['busy_ms']:.1f} ms ({prof['busy_ms'] / wall:.0%} of the wall time{over}) over "
+          f"{prof['distinct_ops']} distinct ops.")
   if flops:
     achieved = flops / (wall / 1e3)
     line += f" {flops / 1e9:.4g} GFLOP a step: {achieved / 1e12:.3g} TFLOP/s"

@@ -62,7 +62,7 @@ def test_the_summary_is_the_sum_by_op_per_step_and_shares_add_to_one():
   assert s["busy_ms"] == pytest.approx(4.0)                             # 8000 us over 2 steps
   assert [(r["op"], r["ms"], r["count"]) for r in s["ops"]] == [("conv_fusion", 2.0, 1.0), ("cudnn", 1.0, 0.5)]
   assert s["categories"]["convolution"] == {"ms": 2.0, "share": 0.5}
-  assert s["categories"]["?"]["ms"] == 0.0 and s["distinct_ops"] == 4
+  assert s["categories"]["?"]["ms"] == 0.0 and s["distinct_ops"] == 4 and s["lanes"] == 1
   assert sum(c["share"] for c in s["categories"].values()) == pytest.approx(1.0)
   with pytest.raises(ValueError, match="steps"):
     P.summarize(ev, ops, steps=0)
@@ -78,6 +78,7 @@ def test_a_loop_event_counts_only_the_time_its_body_ops_do_not():
   assert {r["op"]: r["ms"] * 1e3 for r in s["ops"]} == pytest.approx(
       {"while.1": 30.0, "body.a": 30.0, "body.b": 40.0, "other": 50.0, "after": 5.0})
   assert s["busy_ms"] == pytest.approx(0.155)                            # 30 + 30 + 40 + 50 + 5 us, no overlap
+  assert s["lanes"] == 2                                                  # "other" ran beside the loop: 155 us in 105
 
 
 def test_a_real_trace_puts_the_large_matmul_first_and_counts_each_op_once_a_step():
@@ -88,7 +89,7 @@ def test_a_real_trace_puts_the_large_matmul_first_and_counts_each_op_once_a_step
   assert prof["steps"] == 3 and prof["ops"][0]["category"] == "dot"
   assert prof["categories"]["dot"]["share"] > 0.5
   assert all(r["count"] == 1 for r in prof["ops"])                       # no call outside the trace leaks in
-  assert 0 < prof["busy_ms"] <= prof["wall_ms"]
+  assert 0 < prof["busy_ms"] <= prof["wall_ms"] * prof["lanes"]
   lines = P.format_profile(prof, flops=2 * 384 ** 3, peak=(1e12, None))
   assert "of the 1 TFLOP/s float32 peak." in lines[0] and any(line.startswith("| dot |") for line in lines)
   assert P.peak_flops("NVIDIA H200") == (67e12, 495e12) and P.peak_flops("cpu") == (None, None)
