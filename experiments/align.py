@@ -1,7 +1,8 @@
 """The second training stage on unlabelled measured scans, leave one scan out.
 
     python -m experiments.align --checkpoint runs/real [--variants ours ours_s] [--data-dir DIR]
-        [--steps 100] [--lam 1.0] [--learning-rate 1e-4] [--workdir runs/align] [--data FILE]
+        [--steps 100] [--lam 1.0 | --lam balanced] [--learning-rate 1e-4] [--workdir runs/align]
+        [--data FILE]
 
 For each measured scan (``--data-dir``, the scans of ``experiments.real_undersampling``)
 and each variant of the trained run ``--checkpoint`` (a workdir of
@@ -13,10 +14,16 @@ the trained stride, time summed to the trained bins), into
 ``WORKDIR/<variant>-without-<scene>/`` (``params.npz``, ``align.json``). So a
 scan's score (``python -m experiments.real_undersampling --aligned WORKDIR``)
 comes from a network that never read that scan. Steps, ``lam`` and the
-learning rate are fixed before any score is seen. A folder that holds
-``params.npz`` is skipped (the command resumes). The synthetic data are the
+learning rate are fixed before any score is seen. A finished fold (its folder
+holds ``params.npz`` and ``align.json``) is skipped, so the command resumes. The synthetic data are the
 run config's ``data.path`` unless ``--data`` names the file; an absent file is
 generated from the run config's data spec first (``nlosjax.train.ensure_dataset``).
+
+``--lam balanced`` sets each fold's ``lam`` from the training side alone: the MMD term's
+gradient as large as the synthetic loss's, in the median over 8 synthetic training
+batches, at the starting parameters, with that fold's measured inputs
+(:func:`nlosjax.train.align.balanced_lam`); the norms and the ``lam`` are recorded in the
+fold's ``align.json`` (``"lam_rule"``).
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
+from typing import Callable
 
 import numpy as np
 
@@ -46,6 +54,77 @@ def measured_inputs(files, model_config) -> dict:
 
 def fold_folder(workdir, variant: str, scene: str) -> pathlib.Path:
   return pathlib.Path(workdir) / f"{variant}-without-{scene}"
+
+
+def fold_files(folder) -> list[pathlib.Path]:
+  """A finished fold's files (``params.npz``, then ``align.json``, written last), or [] if unfinished."""
+  files = [pathlib.Path(folder) / "params.npz", pathlib.Path(folder) / "align.json"]
+  return files if all(f.exists() for f in files) else []
+
+
+#: ``--lam balanced``: the MMD gradient this many times the synthetic one, over this many batches.
+BALANCED_SHARE, BALANCED_BATCHES = 1.0, 8
+
+
+def lam_arg(text: str) -> float | str:
+  """``--lam``: a float >= 0, or ``balanced``."""
+  if text == "balanced":
+    return text
+  try:
+    value = float(text)
+  except ValueError:
+    raise argparse.ArgumentTypeError(f"--lam takes a number >= 0 or 'balanced', got {text!r}") from None
+  if not value >= 0:
+    raise argparse.ArgumentTypeError(f"--lam must be >= 0, got {text!r}")
+  return value
+
+
+def fold_lam(lam: float | str, config: dict, data_path, model_config, params, measured,
+             log: Callable[[str], None] = print) -> tuple[float, dict | None]:
+  """``(lam, rule record)``: ``lam`` itself, or for ``"balanced"`` the one measured on ``measured``."""
+  if lam != "balanced":
+    return float(lam), None
+  from nlosjax.train.align import balanced_lam, term_gradient_norms
+  norms = term_gradient_norms(config, data_path, model_config, params, measured, batches=BALANCED_BATCHES)
+  value = balanced_lam(norms, BALANCED_SHARE)
+  log(f"[align] balanced lam {value:.4g} (median gradient norms: synthetic "
+      f"{np.median(norms['synthetic']):.4g}, mmd {np.median(norms['mmd']):.4g})")
+  return value, {"rule": "balanced", "share": BALANCED_SHARE, "batches": BALANCED_BATCHES, "norms": norms}
+
+
+def align_folds(config: dict, data_path, model_config, params, inputs: dict, workdir, variant: str, *,
+                steps: int = 100, lam: float | str = 1.0, learning_rate: float = 1e-4, validate=None,
+                before_fold: Callable[[str], bool] | None = None,
+                after_fold: Callable[[pathlib.Path], None] | None = None,
+                log: Callable[[str], None] = print) -> tuple[bool, bool]:
+  """Leave one scan out: for each scan of ``inputs``, ``params`` aligned on the *other* scans' inputs.
+
+  ``inputs``: ``scene -> [n, F, T, h, w]`` (:func:`measured_inputs`); each fold trains
+  :func:`nlosjax.train.align.align` into :func:`fold_folder` ``(workdir, variant, scene)``;
+  finished folds (:func:`fold_files`) are skipped. ``lam``: a number, or ``"balanced"``
+  (:func:`fold_lam`, measured per fold). ``before_fold(scene)`` returning False
+  stops before that fold (a deadline); ``after_fold(folder)`` runs after each one trained.
+  Returns ``(every fold finished, at least one trained now)``.
+  """
+  from nlosjax.train.align import align
+  started = False
+  for scene in inputs:
+    folder = fold_folder(workdir, variant, scene)
+    if fold_files(folder):
+      log(f"[align] {folder}: done already")
+      continue
+    if before_fold is not None and not before_fold(scene):
+      return False, started
+    others = np.concatenate([v for k, v in inputs.items() if k != scene])
+    log(f"[align] {variant} without {scene}: {len(others)} measured inputs")
+    value, rule = fold_lam(lam, config, data_path, model_config, params, others, log)
+    align(config, data_path, model_config, params, others, folder, steps=steps, lam=value,
+          learning_rate=learning_rate, validate=validate, log=log,
+          extra=None if rule is None else {"lam_rule": rule})
+    started = True
+    if after_fold is not None:
+      after_fold(folder)
+  return True, started
 
 
 def load_source(checkpoint: str, variants) -> tuple[dict, dict]:
@@ -71,14 +150,14 @@ def main(argv=None) -> int:
   from experiments.real_undersampling import default_files
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
-  from nlosjax.train.align import align
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--checkpoint", required=True,
                       help="a run of python -m experiments.train (its workdir), or pretrained:NAME")
   parser.add_argument("--variants", nargs="+", default=["ours", "ours_s"])
   parser.add_argument("--data-dir", default=None, help="folder of measured .mat scans")
   parser.add_argument("--steps", type=int, default=100)
-  parser.add_argument("--lam", type=float, default=1.0)
+  parser.add_argument("--lam", type=lam_arg, default=1.0,
+                      help="the MMD term's weight, or 'balanced' (measured per fold; module docstring)")
   parser.add_argument("--learning-rate", type=float, default=1e-4)
   parser.add_argument("--workdir", default="runs/align")
   parser.add_argument("--data", default=None,
@@ -94,16 +173,8 @@ def main(argv=None) -> int:
   validate = protocol.validation_psnr(config, data_path)
   for variant in args.variants:
     mcfg, params = trained[variant]                # load_run without seeds: (model_config, params)
-    inputs = measured_inputs(files, mcfg)
-    for scene in inputs:
-      folder = fold_folder(args.workdir, variant, scene)
-      if (folder / "params.npz").exists():
-        print(f"[align] {folder}: done already")
-        continue
-      others = np.concatenate([v for k, v in inputs.items() if k != scene])
-      print(f"[align] {variant} without {scene}: {len(others)} measured inputs")
-      align(config, data_path, mcfg, params, others, folder, steps=args.steps, lam=args.lam,
-            learning_rate=args.learning_rate, validate=validate)
+    align_folds(config, data_path, mcfg, params, measured_inputs(files, mcfg), args.workdir, variant,
+                steps=args.steps, lam=args.lam, learning_rate=args.learning_rate, validate=validate)
   return 0
 
 

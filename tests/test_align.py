@@ -67,3 +67,41 @@ def test_align_trains_writes_its_record_and_refuses_bad_measured_inputs(tiny, tm
   assert any(changed)
   with pytest.raises(ValueError, match="measured must be"):
     A.align(cfg, path, mcfg, params, measured[:, :1], tmp_path, steps=1)
+
+
+@pytest.mark.full
+def test_term_gradient_norms_are_the_norms_of_the_two_terms_of_the_loss(tiny):
+  """Against the loss itself: the synthetic term's gradient is the loss's at lam 0, the MMD
+  term's the difference of the loss's gradients at lam 1 and lam 0, on the batch, measured
+  draw and sample key that align's first step uses."""
+  import optax
+  cfg, path, mcfg, model, params, _, measured = tiny
+  norms = A.term_gradient_norms(cfg, path, mcfg, params, measured[:1], batches=1, measured_batch=2, samples=32)
+  assert set(norms) == {"synthetic", "mmd", "mmd_value"} and all(len(v) == 1 for v in norms.values())
+  loader = T.make_loader(cfg, path, "train", batch_size=int(cfg["train"]["batch_size"]), shuffle=True, seed=0)
+  batch = A._device_batch(loader.batch(0), mcfg)
+  loader.close()
+  meas = jnp.asarray(np.repeat(measured[:1], 2, axis=0))             # one measured input: every draw is it
+  key = jax.random.fold_in(jax.random.key(0), 0)
+  loss_fn = A._loss_fn(cfg, mcfg, lam=1.0, samples=32, layer=A.DEFAULT_LAYER)
+  ops = mcfg.physics_operators()
+  from nlosjax.physics import operator_args
+
+  def grads(p, lam):
+    return jax.grad(lambda q: loss_fn(q, batch, meas, key, lam=lam)[0])(p)
+  g0, g1 = operator_args.bind(lambda p: (grads(p, 0.0), grads(p, 1.0)), ops)(params)
+  want_syn = float(optax.global_norm(g0))
+  want_mmd = float(optax.global_norm(jax.tree_util.tree_map(lambda a, b: a - b, g1, g0)))
+  assert norms["synthetic"][0] == pytest.approx(want_syn, rel=1e-4)
+  assert norms["mmd"][0] == pytest.approx(want_mmd, rel=1e-3, abs=1e-7)
+  with pytest.raises(ValueError, match="measured must be"):
+    A.term_gradient_norms(cfg, path, mcfg, params, measured[:, :1])
+
+
+def test_balanced_lam_is_the_ratio_of_the_median_norms():
+  norms = {"synthetic": [1.0, 2.0, 30.0], "mmd": [0.5, 1e3, 0.25]}
+  assert A.balanced_lam(norms) == pytest.approx(2.0 / 0.5)
+  assert A.balanced_lam(norms, share=0.5) == pytest.approx(1.0 / 0.5)
+  for bad in ({"synthetic": [1.0], "mmd": [0.0]}, {"synthetic": [np.nan], "mmd": [1.0]}):
+    with pytest.raises(ValueError, match="no balanced lam"):
+      A.balanced_lam(bad)

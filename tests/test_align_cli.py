@@ -32,6 +32,7 @@ def recorded(monkeypatch, tmp_path):
     calls.append({"folder": folder, "mcfg": mcfg, "params": params, "measured": measured, **kw})
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "params.npz").write_bytes(b"")
+    (folder / "align.json").write_text("{}")     # a fold is finished once its record is written
     return params, {}
 
   monkeypatch.setattr(stage, "align", fake_align)
@@ -66,3 +67,30 @@ def test_an_unknown_source_or_variant_is_refused_before_anything_runs(recorded):
   with pytest.raises(SystemExit, match="pretrained:real"):
     cli.main(["--checkpoint", "pretrained:real", "--variants", "ours_x", *argv])
   assert calls == []
+
+
+def test_lam_balanced_sets_each_folds_lam_from_its_own_training_inputs_and_records_it(recorded, monkeypatch):
+  calls, argv = recorded
+  seen = []
+
+  def fake_norms(config, data_path, mcfg, params, measured, **kw):
+    seen.append(float(np.unique(measured)[0]))                     # the fold's inputs: the other scan
+    return {"synthetic": [2.0, 4.0, 6.0], "mmd": [0.01, 0.02, 0.03], "mmd_value": [0.0] * 3}
+  monkeypatch.setattr(stage, "term_gradient_norms", fake_norms)
+  assert cli.main(["--checkpoint", "pretrained:real", "--variants", "ours_s", "--lam", "balanced", *argv]) == 0
+  assert seen == [1.0, 0.0]
+  for c in calls:
+    assert c["lam"] == pytest.approx(4.0 / 0.02)
+    assert c["extra"]["lam_rule"]["rule"] == "balanced" and c["extra"]["lam_rule"]["norms"]["mmd"][1] == 0.02
+  for bad in ("-1", "lots"):
+    with pytest.raises(SystemExit):
+      cli.main(["--checkpoint", "pretrained:real", "--lam", bad, *argv])
+
+
+def test_a_fold_without_its_record_is_not_finished(recorded, tmp_path):
+  calls, argv = recorded
+  half = cli.fold_folder(tmp_path / "w", "ours_s", "a")
+  half.mkdir(parents=True)
+  (half / "params.npz").write_bytes(b"")                             # killed before align.json was written
+  assert cli.main(["--checkpoint", "pretrained:real", "--variants", "ours_s", *argv]) == 0
+  assert [c["folder"].name for c in calls] == ["ours_s-without-a", "ours_s-without-b"]

@@ -332,17 +332,44 @@ def test_adapted_models_and_their_table():
   marker = object()
   out = R.adapted_models({"ours": ("cfg", marker), "usm": ("ucfg", None)})
   assert out == {"ours|adapted": ("cfg", marker, True)}
-  score = lambda p, t=1.0: {"psnr": p, "ssim": 0.5, "vs": {}, "time_s": t}
+  def score(p, t=1.0, lct=None):                 # scored against FBP (p) and, where given, LCT
+    vs = {"fbp": {"psnr": p, "ssim": 0.5}, **({"lct": {"psnr": lct, "ssim": 0.5}} if lct is not None else {})}
+    return {"psnr": p, "ssim": 0.5, "vs": vs, "time_s": t}
   results = {"strides": [4, 8], "methods": ["lct", "ours"],
-             "scenes": {"a": {"scores": {("ours", 4): score(16.0), ("ours", 8): score(14.0)}},
-                        "b": {"scores": {("ours", 4): score(18.0), ("ours", 8): score(15.0)}}}}
+             "scenes": {"a": {"scores": {("ours", 4): score(16.0, lct=10.0), ("ours", 8): score(14.0)}},
+                        "b": {"scores": {("ours", 4): score(18.0, lct=12.0), ("ours", 8): score(15.0)}}}}
   adaptation = {"methods": ["ours|adapted"],
-                "scenes": {"a": {"scores": {("ours|adapted", 4): score(17.0, 30.0), ("ours|adapted", 8): score(13.0)}},
-                           "b": {"scores": {("ours|adapted", 4): score(18.5, 50.0), ("ours|adapted", 8): score(15.0)}}}}
+                "scenes": {"a": {"scores": {("ours|adapted", 4): score(17.0, 30.0, lct=13.0),
+                                            ("ours|adapted", 8): score(13.0)}},
+                           "b": {"scores": {("ours|adapted", 4): score(18.5, 50.0, lct=9.0),
+                                            ("ours|adapted", 8): score(15.0)}}}}
   lines = R_ablation._adaptation_lines(results, adaptation)
-  assert "| Ours | 16 × 16 | 16.00 → 17.00 | 18.00 → 18.50 | **17.00 → 17.75** | 40.0 |" in lines
-  assert "| Ours | 8 × 8 | 14.00 → 13.00 | 15.00 → 15.00 | **14.50 → 14.00** | 1.0 |" in lines
+  assert "| Ours | 16 × 16 | 16.00 → 17.00 | 18.00 → 18.50 | **17.00 → 17.75** | 2 of 2 | 40.0 |" in lines
+  assert "| Ours | 8 × 8 | 14.00 → 13.00 | 15.00 → 15.00 | **14.50 → 14.00** | 0 of 2 | 1.0 |" in lines
+  # Per reference: the mean over the scans of each reference's score, a reference never scored left blank.
+  assert "| Ours | 16 × 16 | 17.00 → 17.75 | 11.00 → 11.00 | – | – | – |" in lines
+  assert "| Ours | 8 × 8 | 14.50 → 14.00 | – | – | – | – |" in lines
   assert R_ablation._adaptation_lines(results, None) == []
+
+
+def test_the_all_zero_floor_is_the_closed_form_psnr_of_each_reference_and_has_a_row():
+  """A reference of constant value c scores 10 log10(1 / c^2) dB against the all-zero image."""
+  from experiments.real_undersampling import protocol, report
+  consts = dict(zip(protocol.REFERENCES, (0.5, 0.25, 0.1, 0.2, 0.4)))
+  refs = {"a": {r: np.full((4, 4), c, np.float32) for r, c in consts.items()},
+          "b": {r: np.full((4, 4), c / 2, np.float32) for r, c in consts.items()}}
+  want = {sc: {r: 10 * np.log10(1 / c ** 2) for r, c in ((r, float(im[0, 0])) for r, im in refs[sc].items())}
+          for sc in refs}
+  results = {"strides": [4], "methods": ["lct"],
+             "scenes": {sc: {"references": refs[sc], "scores": {}} for sc in refs}}
+  floor = report._zero_floor(results, ["a", "b"])
+  for r in protocol.REFERENCES:
+    assert floor["vs"][r] == pytest.approx((want["a"][r] + want["b"][r]) / 2, abs=1e-4)
+  assert floor["scenes"]["a"] == pytest.approx(np.mean(list(want["a"].values())), abs=1e-4)
+  assert floor["mean"] == pytest.approx(np.mean([np.mean(list(w.values())) for w in want.values()]), abs=1e-4)
+  lines = report._table(results)
+  assert f"| *All-zero image (floor)* | {floor['scenes']['a']:.2f} / – | {floor['scenes']['b']:.2f} / – " \
+         f"| {floor['mean']:.2f} / – |" in lines
 
 
 def test_align_reads_every_offset_of_each_scan_at_the_networks_bins():
@@ -376,3 +403,41 @@ def test_figures_take_the_reports_name_so_a_second_report_keeps_the_firsts(tmp_p
   assert first == ["real_s_u.png", "real_summary.png"]
   assert second == ["real_public_s_u.png", "real_public_summary.png"]
   assert sorted(p.name for p in tmp_path.iterdir()) == sorted(first + second)
+
+
+def test_aligned_run_scores_each_scan_only_with_its_finished_fold_and_names_the_lam(tmp_path, monkeypatch):
+  import pathlib
+
+  from experiments.align import fold_folder
+  from experiments.real_undersampling import ablation as R_ablation
+  from nlosjax.pretrained import flatten_params
+  params = {"dense": {"kernel": np.arange(4, dtype=np.float32).reshape(2, 2)}}
+  for scene, lam, rule in (("a", 12.5, {"rule": "balanced"}), ("b", 1.0, None)):
+    f = fold_folder(tmp_path, "ours_s", scene)
+    f.mkdir(parents=True)
+    np.savez(f / "params.npz", **flatten_params(jax_tree_plus(params, lam)))
+    (f / "align.json").write_text(json.dumps({"lam": lam, **({"lam_rule": rule} if rule else {})}))
+  half = fold_folder(tmp_path, "ours_s", "c")                    # params without the record: unfinished
+  half.mkdir(parents=True)
+  np.savez(half / "params.npz", **flatten_params(params))
+  seen = {}
+
+  def fake_run(files, strides, checkpoint, *, trained, classic, references):
+    (path,) = files
+    scene = pathlib.Path(path).stem[len("data_"):]
+    seen[scene] = {k: float(v[1]["dense"]["kernel"][0, 0]) for k, v in trained.items()}
+    return {"scenes": {scene: {"scores": {}, "references": references[scene]}}}
+  monkeypatch.setattr(R_ablation, "run", fake_run)
+  files = [tmp_path / f"data_{s}.mat" for s in "abc"]
+  results = {"trained": {"ours_s": ("cfg", params)},
+             "scenes": {s: {"references": {"lct": np.zeros((2, 2))}} for s in "abc"}}
+  merged = R_ablation.aligned_run(files, [4], results, tmp_path)
+  assert seen == {"a": {"ours_s|aligned": 12.5}, "b": {"ours_s|aligned": 1.0}}    # never scene c
+  assert set(merged["scenes"]) == {"a", "b"} and merged["methods"] == ["ours_s|aligned"]
+  assert merged["lam"] == ["Ours-S 1", "Ours-S 12.5 (balanced)"] and merged["workdir"] == tmp_path.name
+
+
+def jax_tree_plus(tree, value):
+  """``tree`` with ``value`` added to every leaf (a fold's parameters, told apart by it)."""
+  import jax
+  return jax.tree_util.tree_map(lambda x: x + np.float32(value), tree)

@@ -158,6 +158,13 @@ def test_alignment_folds_accumulate_across_stretches_and_machines(tmp_path, monk
   assert [c[0] for c in calls] == ["ours_s-without-p", "ours_s-without-q", "ours_s-without-r"]
   assert rows[0]["done"] == ["p", "q", "r"] and rows[0]["left"] == 0
   assert (study.alignment_workdir(a) / "ours_s-without-p" / "params.npz").exists()   # restored
-  assert "| align-x | `pretrained:real` | ours_s | 3 | 0 | 600 | 0 |" in study.format_alignment_status(rows)
+  assert "| align-x | `pretrained:real` | ours_s | 1.0 | 3 | 0 | 600 | 0 |" in study.format_alignment_status(rows)
+  b = study.Alignment("align-y", "pretrained:real", "ours_s", "balanced", "align-y")   # not started: a's rate
+  monkeypatch.setattr(study, "ALIGNMENTS", (a, b))
+  row = study.alignment_status(b, ["p", "q", "r"])
+  assert row["done"] == [] and row["estimated"] and row["hours_left"] == pytest.approx(0.5)
+  assert "| align-y | `pretrained:real` | ours_s | balanced | 0 | 3 | 600 (est.) | 0.5 (est.) |" in \
+      study.format_alignment_status([row])
+  assert study.alignment_workdir(b) != study.alignment_workdir(a)
   with pytest.raises(ValueError, match="unknown alignment"):
     study.run_alignments(files, ["nope"])

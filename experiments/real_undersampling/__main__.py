@@ -49,9 +49,10 @@ def main(argv=None):
                       help="skip the networks with their learned residuals zeroed (ablated_models)")
   parser.add_argument("--adapt", action="store_true",
                       help="also fit each network to each scan before reconstructing it (adapted_models)")
-  parser.add_argument("--aligned", default=None, metavar="WORKDIR",
+  parser.add_argument("--aligned", nargs="+", default=None, metavar="WORKDIR",
                       help="also score each scan with the networks of python -m experiments.align --workdir"
-                           " WORKDIR that left it out (aligned_models)")
+                           " WORKDIR that left it out (aligned_run); several workdirs (e.g. two lam"
+                           " settings) get one table each")
   args = parser.parse_args(argv)
   t0 = time.perf_counter()
   command = "python -m experiments.real_undersampling " + " ".join(
@@ -89,7 +90,7 @@ def main(argv=None):
   if args.adapt and results["trained"]:
     adaptation = run(files, args.strides, None, trained=adapted_models(results["trained"]), classic=False,
                      references={sc: e["references"] for sc, e in results["scenes"].items()})
-  aligned = aligned_run(files, args.strides, results, args.aligned) if args.aligned else None
+  aligned = [aligned_run(files, args.strides, results, w) for w in args.aligned or ()]
   notes = pathlib.Path(args.notes).read_text() if args.notes else ""
   write_report(results, out, timing=timing, warm=warm, synthetic=synthetic, binned=binned,
                ablation=ablation, adaptation=adaptation, aligned=aligned, facts=facts,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from experiments.real_undersampling.protocol import CLASSIC, LABELS, over_scenes, run, scene_name
+from experiments.real_undersampling.protocol import CLASSIC, LABELS, REFERENCES, over_scenes, run, scene_name
 
 #: What each ablation zeroes in an ST-Mamba network (parameter path prefixes). With
 #: ``spread/to_transient`` zero the recovered transient is the skip alone: the sparse
@@ -52,25 +52,36 @@ def ablated_models(trained: dict) -> dict:
 def aligned_run(files, strides, results, workdir) -> dict:
   """Each scan scored by the networks of ``python -m experiments.align --workdir WORKDIR`` that left it out.
 
-  Returns the :func:`run` results of ``"<variant>|aligned"`` (scenes without such a network are absent).
+  Returns the :func:`run` results of ``"<variant>|aligned"`` (scenes without such a network are
+  absent), with ``"workdir"`` (its folder's name) and ``"lam"`` (the sorted distinct ``lam`` of
+  the folds' ``align.json``, with ``"lam_rule"`` names where a rule set it).
   """
-  from experiments.align import fold_folder
+  import json
+  import pathlib
+
+  from experiments.align import fold_files, fold_folder
   from nlosjax.pretrained import unflatten_params
-  merged = {"strides": list(strides), "methods": [], "scenes": {}, "trained": {}}
+  merged = {"strides": list(strides), "methods": [], "scenes": {}, "trained": {},
+            "workdir": pathlib.Path(workdir).name, "lam": []}
+  lams = set()
   for path in files:
     scene = scene_name(path)
     models = {}
     for v, (mcfg, _) in results["trained"].items():
-      f = fold_folder(workdir, v, scene) / "params.npz"
-      if f.exists():
-        with np.load(f) as z:
+      finished = fold_files(fold_folder(workdir, v, scene))        # params.npz, align.json
+      if finished:
+        with np.load(finished[0]) as z:
           models[f"{v}|aligned"] = (mcfg, unflatten_params({k: z[k] for k in z.files}))
+        record = json.loads(finished[1].read_text())
+        rule = record.get("lam_rule", {}).get("rule")
+        lams.add(f"{LABELS[v]} {record['lam']:.4g}" + (f" ({rule})" if rule else ""))
     if not models:
       continue
     part = run([path], strides, None, trained=models, classic=False,
                references={scene: results["scenes"][scene]["references"]})
     merged["scenes"][scene] = part["scenes"][scene]
     merged["methods"] = sorted(set(merged["methods"]) | set(models))
+  merged["lam"] = sorted(lams)
   return merged
 
 
@@ -91,16 +102,27 @@ ALIGNED_TEXT = ("Each network after the second training stage on unlabelled meas
 
 
 def _adaptation_lines(results, adaptation, suffix: str = "adapted", text: str = ADAPTATION_TEXT) -> list[str]:
-  """Each network as trained and as ``"<variant>|<suffix>"`` in ``adaptation``, per scan and mean."""
+  """Each network as trained and as ``"<variant>|<suffix>"`` in ``adaptation``: per scan, then per reference.
+
+  The first table: per scan (the mean over the references), the mean over the scans and
+  how many scans went up; the second: against each full-scan reference, the mean over
+  the same scans, as trained → ``suffix``.
+  """
   if not adaptation:
     return []
   scenes = list(results["scenes"])
-  lines = [text, "", "| network | input | " + " | ".join(scenes) + " | mean | s per scan |",
-           "|---|---|" + "---|" * (len(scenes) + 2)]
+  lines = [text, "", "| network | input | " + " | ".join(scenes) + " | mean | scans up | s per scan |",
+           "|---|---|" + "---|" * (len(scenes) + 3)]
+  by_ref = ["", f"The same networks against each full-scan reference (intensity PSNR (dB), mean over the"
+            f" scans above, as trained → {suffix}; a network is not scored against a reference it is"
+            " not; each reference is one classic method on the full 64 × 64 scan):", "",
+            "| network | input | " + " | ".join(f"vs {LABELS[r]} 64 × 64" for r in REFERENCES) + " |",
+            "|---|---|" + "---|" * len(REFERENCES)]
   for v in [m for m in results["methods"] if f"{m}|{suffix}" in adaptation["methods"]]:
     for stride in results["strides"]:
       g = 64 // stride
       cells, before, after, secs = [], [], [], []
+      ref_before, ref_after = {r: [] for r in REFERENCES}, {r: [] for r in REFERENCES}
       for sc in scenes:
         a = results["scenes"][sc]["scores"].get((v, stride))
         b = adaptation["scenes"].get(sc, {}).get("scores", {}).get((f"{v}|{suffix}", stride))
@@ -111,10 +133,18 @@ def _adaptation_lines(results, adaptation, suffix: str = "adapted", text: str = 
         before.append(a["psnr"])
         after.append(b["psnr"])
         secs.append(b["time_s"])
+        for r in REFERENCES:
+          if r in a["vs"] and r in b["vs"]:
+            ref_before[r].append(a["vs"][r]["psnr"])
+            ref_after[r].append(b["vs"][r]["psnr"])
       mean = f"**{np.mean(before):.2f} → {np.mean(after):.2f}**" if before else "–"
-      lines.append(f"| {LABELS[v]} | {g} × {g} | " + " | ".join(cells) + f" | {mean} | "
+      up = f"{sum(y > x for x, y in zip(before, after))} of {len(before)}" if before else "–"
+      lines.append(f"| {LABELS[v]} | {g} × {g} | " + " | ".join(cells) + f" | {mean} | {up} | "
                    f"{np.median(secs) if secs else float('nan'):.1f} |")
-  return lines + [""]
+      ref_cells = [f"{np.mean(ref_before[r]):.2f} → {np.mean(ref_after[r]):.2f}" if ref_before[r] else "–"
+                   for r in REFERENCES]
+      by_ref.append(f"| {LABELS[v]} | {g} × {g} | " + " | ".join(ref_cells) + " |")
+  return lines + by_ref + [""]
 
 
 def _ablation_lines(results, ablation) -> list[str]:

@@ -45,16 +45,35 @@ def _table(results) -> list[str]:
                     f"{np.mean([v['ssim'] for v in per_ref[r]]):.3f}") if per_ref[r] else "(own)"
                    for r in REFERENCES]
       by_ref.append(f"| {LABELS[m]} | " + " | ".join(ref_cells) + f" | {mean} |")
+    floor = _zero_floor(results, scenes)
+    by_ref.append("| *All-zero image (floor)* | " + " | ".join(f"{floor['vs'][r]:.2f} / –" for r in REFERENCES)
+                  + f" | {floor['mean']:.2f} / – |")
+    rows.append("| *All-zero image (floor)* | " + " | ".join(f"{floor['scenes'][sc]:.2f} / –" for sc in scenes)
+                + f" | {floor['mean']:.2f} / – |")
     lines += [f"### Input {grid} × {grid} (stride {stride}): intensity PSNR (dB) / SSIM, mean over scenes, "
               "against each full-scan reconstruction", "",
               "| method | " + " | ".join(f"vs {LABELS[r]} 64 × 64" for r in REFERENCES)
               + " | mean of the columns |",
               "|---|" + "---|" * (len(REFERENCES) + 1), *by_ref, "",
               f"Per scene (input {grid} × {grid}; each cell the mean over the references but the "
-              "method's own):", "",
+              "method's own; the all-zero image's over every reference):", "",
               "| method | " + " | ".join(scenes) + " | mean |",
               "|---|" + "---|" * (len(scenes) + 1), *rows, ""]
   return lines
+
+
+def _zero_floor(results, scenes) -> dict:
+  """The all-zero image's intensity PSNR (dB) against each reference: the score a dark image gets.
+
+  ``{"vs": {reference: mean over scenes}, "scenes": {scene: mean over references}, "mean"}``
+  (:func:`nlosjax.metrics.psnr_zero`); a reconstruction near it has drawn little of the scene.
+  """
+  from nlosjax import metrics
+  per = {sc: {r: float(metrics.psnr_zero(np.asarray(results["scenes"][sc]["references"][r], np.float32)))
+              for r in REFERENCES} for sc in scenes}
+  vs = {r: float(np.mean([per[sc][r] for sc in scenes])) for r in REFERENCES}
+  by_scene = {sc: float(np.mean(list(per[sc].values()))) for sc in scenes}
+  return {"vs": vs, "scenes": by_scene, "mean": float(np.mean(list(by_scene.values())))}
 
 
 def _time_lines(results) -> list[str]:
@@ -169,7 +188,7 @@ def _binned_lines(results, binned) -> list[str]:
 
 
 def write_report(results, out: pathlib.Path, *, timing=None, warm=None, synthetic=None,
-                 binned=None, ablation=None, adaptation=None, aligned=None, facts: list[str],
+                 binned=None, ablation=None, adaptation=None, aligned=(), facts: list[str],
                  elapsed: float, figures: list[str], notes: str = "") -> None:
   lines = ["# Under-scanning on measured scans", ""] + facts + [
       f"- Wall time: {elapsed / 60:.1f} min; numpy {np.__version__}",
@@ -192,7 +211,10 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
   lines += _binned_lines(results, binned)
   lines += _ablation_lines(results, ablation)
   lines += _adaptation_lines(results, adaptation)
-  lines += _adaptation_lines(results, aligned, "aligned", ALIGNED_TEXT)
+  for a in aligned or ():
+    lams = "; ".join(a.get("lam", [])) or "not recorded"
+    lines += _adaptation_lines(results, a, "aligned", ALIGNED_TEXT.replace(
+        " per scan and mean;", f" per scan and mean (workdir `{a.get('workdir', '?')}`, lam per fold: {lams});"))
   if synthetic:
     lines += [
         f"In-domain check (same code, the networks' own data): {synthetic['frames']} frames of"

@@ -14,6 +14,11 @@ each step reads ``measured_batch`` of them. Steps, learning rate and ``lam``
 are fixed beforehand: nothing is chosen on the measured inputs' scores, and
 a caller that scores a scan must leave that scan's inputs out of
 ``measured`` (``experiments.align``).
+
+``lam`` may be set from the training side alone: :func:`term_gradient_norms` measures
+each term's gradient norm at the starting parameters on synthetic training batches and
+the (training) measured inputs, and :func:`balanced_lam` the ``lam`` at which the MMD
+term pulls as hard as the synthetic loss (the median norms' ratio times ``share``).
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ import optax
 from nlosjax import losses
 from nlosjax.train.step import make_targets
 
-__all__ = ["DEFAULT_LAYER", "layer_features", "align_loss", "align"]
+__all__ = ["DEFAULT_LAYER", "layer_features", "align_loss", "align", "term_gradient_norms", "balanced_lam"]
 
 #: The layer whose output is aligned.
 DEFAULT_LAYER = "st_mamba0"
@@ -71,10 +76,95 @@ def align_loss(params, batch, measured, key, *, model, weights, wavelet, time_wi
   return total, {**terms, "mmd": mmd, "synthetic": loss, "loss": total}
 
 
+def _checked_measured(measured, model_config) -> np.ndarray:
+  measured = np.asarray(measured, np.float32)
+  if measured.ndim != 5 or measured.shape[1:] != tuple(model_config.input_shape(1))[1:]:
+    raise ValueError(f"measured must be [M, F, T, h, w] = [M, *{model_config.input_shape(1)[1:]}], "
+                     f"got {measured.shape}")
+  return measured
+
+
+def _loss_fn(config: dict, model_config, *, lam: float, samples: int, layer: str):
+  """:func:`align_loss` bound to the run's model, loss weights and wavelet."""
+  from nlosjax.physics import illumination_wavelet
+  from nlosjax.train.loop import training_recipe
+  _, weights = training_recipe(config, "ours" if model_config.frames > 1 else "ours_s")
+  wavelet = (illumination_wavelet(model_config.setup, cycles=model_config.wavelet_cycles,
+                                  sampling_coeff=model_config.wavelet_sampling)
+             if weights.phasor_field else None)
+  return functools.partial(align_loss, model=model_config.module(), weights=weights, wavelet=wavelet,
+                           time_window=model_config.time_window, lam=lam, samples=samples, layer=layer)
+
+
+def _device_batch(host: dict, model_config) -> dict:
+  """A loader batch on the device, its measurement cut to the network's frames."""
+  from nlosjax.train.loop import select_frames
+  batch = {name: jnp.asarray(host[name]) for name in ("measurement", "transient", "intensity", "depth")}
+  batch["measurement"] = jnp.asarray(select_frames(host["measurement"], model_config.frames))
+  return batch
+
+
+def term_gradient_norms(config: dict, data_path, model_config, params, measured: np.ndarray, *,
+                        batches: int = 8, measured_batch: int = 4, samples: int = 512,
+                        layer: str = DEFAULT_LAYER, seed: int = 0) -> dict:
+  """Each term's global gradient norm at ``params``, on ``batches`` synthetic training batches.
+
+  As :func:`align`'s first steps draw them (same loader order, measured draws and sample
+  keys for ``seed``), but nothing is trained: the norms of the gradients of the synthetic
+  loss and of the MMD² term (:func:`align_loss`'s ``"synthetic"`` and ``"mmd"``) with
+  respect to every parameter, and the MMD² itself. ``measured``: ``[M, F, T, h, w]``, the
+  inputs the stage will train on (never a scan that is then scored).
+
+  Returns ``{"synthetic": [batches], "mmd": [batches], "mmd_value": [batches]}`` (floats).
+  """
+  from nlosjax.physics import operator_args
+  from nlosjax.train.loop import make_loader
+  measured = _checked_measured(measured, model_config)
+  if not (isinstance(batches, int) and batches >= 1 and measured_batch >= 1 and samples >= 2):
+    raise ValueError("batches >= 1, measured_batch >= 1 and samples >= 2 are needed")
+  loss_fn = _loss_fn(config, model_config, lam=1.0, samples=int(samples), layer=layer)
+
+  def norms(p, batch, meas, key):
+    def term(name):
+      return lambda q: loss_fn(q, batch, meas, key)[1][name]
+    mmd, g_mmd = jax.value_and_grad(term("mmd"))(p)
+    return optax.global_norm(jax.grad(term("synthetic"))(p)), optax.global_norm(g_mmd), mmd
+
+  run = operator_args.bind(norms, model_config.physics_operators())
+  loader = make_loader(config, data_path, "train", batch_size=int(config["train"]["batch_size"]),
+                       shuffle=True, seed=seed)
+  rng = np.random.default_rng(seed)
+  key = jax.random.key(seed)
+  p = jax.tree_util.tree_map(jnp.asarray, params)
+  out = {"synthetic": [], "mmd": [], "mmd_value": []}
+  try:
+    for k in range(batches):
+      batch = _device_batch(loader.batch(k), model_config)
+      meas = jnp.asarray(measured[rng.choice(measured.shape[0], measured_batch)])
+      for name, v in zip(out, run(p, batch, meas, jax.random.fold_in(key, k))):
+        out[name].append(float(v))
+  finally:
+    loader.close()
+  return out
+
+
+def balanced_lam(norms: dict, share: float = 1.0) -> float:
+  """``share`` times the median synthetic gradient norm over the median MMD² one (:func:`term_gradient_norms`).
+
+  At that ``lam`` the MMD term's gradient is, in the median, ``share`` times as large as
+  the synthetic loss's. Raises ``ValueError`` when the MMD gradient is zero or not finite.
+  """
+  syn, mmd = float(np.median(norms["synthetic"])), float(np.median(norms["mmd"]))
+  if not (np.isfinite(syn) and np.isfinite(mmd) and mmd > 0 and share > 0):
+    raise ValueError(f"no balanced lam: median gradient norms synthetic {syn}, mmd {mmd}, share {share}")
+  return share * syn / mmd
+
+
 def align(config: dict, data_path, model_config, params, measured: np.ndarray, workdir, *,
           steps: int = 100, learning_rate: float = 1e-4, lam: float = 1.0, measured_batch: int = 4,
           samples: int = 512, layer: str = DEFAULT_LAYER, validate: Callable | None = None,
-          every: int = 25, seed: int = 0, log: Callable[[str], None] = print) -> tuple[dict, dict]:
+          every: int = 25, seed: int = 0, extra: dict | None = None,
+          log: Callable[[str], None] = print) -> tuple[dict, dict]:
   """Run the second stage (module docstring) for ``steps`` steps; returns ``(params, record)``.
 
   Args:
@@ -87,30 +177,21 @@ def align(config: dict, data_path, model_config, params, measured: np.ndarray, w
     steps, learning_rate, lam, measured_batch, samples, layer: the stage (module docstring).
     validate: optional ``(model_config, params) -> validation PSNR``, scored every ``every`` steps.
     seed: the synthetic batches' order and the samples' draws.
+    extra: more entries for the record (e.g. how ``lam`` was set).
   Returns:
     ``(params, record)``; ``record``: the settings, the loss terms every ``every`` steps, the
     validation scores, the wall time.
   """
-  from nlosjax.physics import illumination_wavelet, operator_args
+  from nlosjax.physics import operator_args
   from nlosjax.pretrained import flatten_params
-  from nlosjax.train.loop import make_loader, select_frames, training_recipe
-  measured = np.asarray(measured, np.float32)
-  if measured.ndim != 5 or measured.shape[1:] != tuple(model_config.input_shape(1))[1:]:
-    raise ValueError(f"measured must be [M, F, T, h, w] = [M, *{model_config.input_shape(1)[1:]}], "
-                     f"got {measured.shape}")
+  from nlosjax.train.loop import make_loader
+  measured = _checked_measured(measured, model_config)
   if not (isinstance(steps, int) and steps >= 1 and lam >= 0 and measured_batch >= 1 and samples >= 2):
     raise ValueError("steps >= 1, lam >= 0, measured_batch >= 1 and samples >= 2 are needed")
   t0 = time.perf_counter()
   workdir = pathlib.Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
-  _, weights = training_recipe(config, "ours" if model_config.frames > 1 else "ours_s")
-  wavelet = (illumination_wavelet(model_config.setup, cycles=model_config.wavelet_cycles,
-                                  sampling_coeff=model_config.wavelet_sampling)
-             if weights.phasor_field else None)
-  model = model_config.module()
-  loss_fn = functools.partial(align_loss, model=model, weights=weights, wavelet=wavelet,
-                              time_window=model_config.time_window, lam=float(lam), samples=int(samples),
-                              layer=layer)
+  loss_fn = _loss_fn(config, model_config, lam=float(lam), samples=int(samples), layer=layer)
   tx = optax.adam(learning_rate)
 
   def step(p, opt_state, batch, meas, key):
@@ -128,14 +209,12 @@ def align(config: dict, data_path, model_config, params, measured: np.ndarray, w
   curve = []
   record = {"steps": steps, "learning_rate": learning_rate, "lam": lam, "measured_batch": measured_batch,
             "samples": samples, "layer": layer, "measured_inputs": int(measured.shape[0]), "seed": seed,
-            "curve": curve}
+            "curve": curve, **(extra or {})}
   if validate is not None:
     curve.append({"step": 0, "val_psnr": float(validate(model_config, jax.tree_util.tree_map(np.asarray, p)))})
   try:
     for k in range(steps):
-      host = loader.batch(k)
-      batch = {name: jnp.asarray(host[name]) for name in ("measurement", "transient", "intensity", "depth")}
-      batch["measurement"] = jnp.asarray(select_frames(host["measurement"], model_config.frames))
+      batch = _device_batch(loader.batch(k), model_config)
       meas = jnp.asarray(measured[rng.choice(measured.shape[0], measured_batch)])
       p, opt_state, terms = run(p, opt_state, batch, meas, jax.random.fold_in(key, k))
       done = k + 1

@@ -38,5 +38,9 @@ the hours left::
 
     python -m experiments.studies.real_preset --align --hours 1.5
     python -m experiments.real_undersampling --adapt --no-timing --out benchmarks/results/real_adapt.md \
-        --aligned <store>/runs/real_preset/align
+        --aligned <store>/runs/real_preset/align <store>/runs/real_preset/align-balanced
+
+The ``*-balanced`` alignments (``lam`` set per fold from the training side: the MMD
+term's gradient as large as the synthetic loss's; ``experiments.align --lam balanced``)
+keep their folds in ``align-balanced/`` (store and ``state/``), one table each.
 """

@@ -277,41 +277,45 @@ class Alignment:
 
   ``source``: ``pretrained:NAME``, the weights shipped as ``NAME-<variant>`` (so a fresh
   clone has them); their training data are made in the store from the provenance's config.
+  ``lam``: ``experiments.align``'s ``--lam`` (a number or ``"balanced"``); ``folder``: the
+  workdir's name in the store and in ``state/`` (alignments of one ``lam`` share one, so one
+  ``--aligned`` scores them together).
   """
 
   name: str
   source: str
   variant: str
+  lam: float | str = 1.0
+  folder: str = "align"
 
 
 #: Alignment from the winner of each variant on validation
 #: (benchmarks/results/preset_choice_real.md), both shipped as ``real``: Ours-S trained on the
 #: v5 candidate's data (``v5-ours_s``), Ours on the preset's own. Steps, ``lam`` and the
-#: learning rate are the CLI's defaults, fixed before any score was seen.
+#: learning rate are the CLI's defaults, fixed before any score was seen. At ``lam = 1`` the
+#: MMD term stayed 0.000-0.1 against a synthetic loss of about 2 (the stage was inert), so
+#: the ``balanced`` pair sets ``lam`` per fold from the training side alone: the MMD
+#: gradient as large as the synthetic one at the start (``experiments.align --lam balanced``).
 ALIGNMENTS = (
     Alignment("align-ours_s", "pretrained:real", "ours_s"),
     Alignment("align-ours", "pretrained:real", "ours"),
+    Alignment("align-ours_s-balanced", "pretrained:real", "ours_s", "balanced", "align-balanced"),
+    Alignment("align-ours-balanced", "pretrained:real", "ours", "balanced", "align-balanced"),
 )
 
 
 def alignment_workdir(a: Alignment) -> pathlib.Path:
-  """``<store>/runs/real_preset/align``: ``experiments.align``'s ``--workdir``, one folder a fold.
+  """``<store>/runs/real_preset/<a.folder>``: ``experiments.align``'s ``--workdir``, one folder a fold.
 
-  One folder for every alignment (the folds are named by variant and scan), so one
-  ``python -m experiments.real_undersampling --aligned`` scores them all.
+  One folder for the alignments of one ``lam`` (the folds are named by variant and scan),
+  so one ``python -m experiments.real_undersampling --aligned`` scores them together.
   """
-  return store.run_path(STUDY, "align")
+  return store.run_path(STUDY, a.folder)
 
 
 def alignment_state(a: Alignment) -> pathlib.Path:
-  """``state/align/``: the committed finished folds of every alignment."""
-  return STATE_DIR / "align"
-
-
-def _fold_files(folder: pathlib.Path) -> list[pathlib.Path]:
-  """A finished fold's files (``params.npz`` and ``align.json``), or [] if it is not finished."""
-  files = [folder / "params.npz", folder / "align.json"]
-  return files if all(f.exists() for f in files) else []
+  """``state/<a.folder>/``: the committed finished folds of the alignments of that folder."""
+  return STATE_DIR / a.folder
 
 
 def sync_alignment(a: Alignment) -> list[str]:
@@ -323,18 +327,20 @@ def sync_alignment(a: Alignment) -> list[str]:
   2 cores: it restarts).
   """
   import shutil
-  work, state = alignment_workdir(a), alignment_state(a)
+
+  from experiments.align import fold_files
   done = set()
+  work, state = alignment_workdir(a), alignment_state(a)
   for src_root, dst_root in ((state, work), (work, state)):
     if not src_root.is_dir():
       continue
     for folder in sorted(p for p in src_root.iterdir() if p.is_dir()):
-      if not folder.name.startswith(f"{a.variant}-without-") or not _fold_files(folder):
+      if not folder.name.startswith(f"{a.variant}-without-") or not fold_files(folder):
         continue
       done.add(folder.name)
       target = dst_root / folder.name
       target.mkdir(parents=True, exist_ok=True)
-      for f in _fold_files(folder):
+      for f in fold_files(folder):
         if not (target / f.name).exists():
           shutil.copy2(f, target / f.name)
   return sorted(done)
@@ -344,16 +350,14 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
                   log: Callable[[str], None] = print) -> tuple[bool, bool]:
   """Align ``a`` fold by fold until every scan is done or ``deadline``: ``(done, started a fold)``.
 
-  As ``python -m experiments.align --checkpoint <source> --variants <variant>`` with the
-  store's workdir and data, and ``deadline`` checked before each fold starts (with
-  ``start_one``, not before the first).
+  :func:`experiments.align.align_folds` (as ``python -m experiments.align --checkpoint
+  <source> --variants <variant>``) with the store's workdir and data, ``deadline`` checked
+  before each fold starts (with ``start_one``, not before the first), and each finished fold
+  copied into the committed state.
   """
-  import numpy as np
-
   from experiments import align as cli
   from nlosjax import train
   from nlosjax.evaluation import protocol
-  from nlosjax.train.align import align
   config, trained = cli.load_source(a.source, [a.variant])
   config = train.with_defaults(config)
   data_path = store.data_path(pathlib.Path(config["data"]["path"]).name)   # made in the store, checked strictly
@@ -361,42 +365,55 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
   ensure_data(config, data_path, log=log)
   validate = protocol.validation_psnr(config, data_path)
   mcfg, params = trained[a.variant]
-  inputs = cli.measured_inputs(files, mcfg)
   sync_alignment(a)
-  started = False
-  for scene in inputs:
-    folder = cli.fold_folder(alignment_workdir(a), a.variant, scene)
-    if _fold_files(folder):
-      continue
-    if deadline is not None and time.time() >= deadline and (started or not start_one):
-      return False, started
-    log(f"[{a.name}] {a.variant} without {scene}")
-    align(config, data_path, mcfg, params, np.concatenate([v for k, v in inputs.items() if k != scene]),
-          folder, validate=validate, log=log)
-    started = True
+  started = []
+
+  def before_fold(scene: str) -> bool:
+    return deadline is None or time.time() < deadline or (start_one and not started)
+
+  def after_fold(folder: pathlib.Path) -> None:
+    started.append(folder.name)
     sync_alignment(a)
-  return True, started
+
+  done, _ = cli.align_folds(config, data_path, mcfg, params, cli.measured_inputs(files, mcfg),
+                            alignment_workdir(a), a.variant, lam=a.lam, validate=validate,
+                            before_fold=before_fold, after_fold=after_fold, log=log)
+  return done, bool(started)
+
+
+def _fold_seconds(a: Alignment, scenes) -> tuple[list[str], list[float]]:
+  from experiments.align import fold_files
+  state = alignment_state(a)
+  done = [s for s in scenes if fold_files(state / f"{a.variant}-without-{s}")]
+  return done, [json.loads((state / f"{a.variant}-without-{s}" / "align.json").read_text())["seconds"]
+                for s in done]
 
 
 def alignment_status(a: Alignment, scenes) -> dict:
-  """What the committed state says of ``a``: folds done and left, seconds a fold, hours left."""
-  state = alignment_state(a)
-  done = [s for s in scenes if _fold_files(state / f"{a.variant}-without-{s}")]
-  seconds = [json.loads((state / f"{a.variant}-without-{s}" / "align.json").read_text())["seconds"]
-             for s in done]
+  """What the committed state says of ``a``: folds done and left, seconds a fold, hours left.
+
+  Before ``a`` has a finished fold, the rate is that of another alignment of the same
+  variant (``"estimated": True``), else unknown.
+  """
+  done, seconds = _fold_seconds(a, scenes)
+  estimated = not seconds
+  if estimated:
+    seconds = [t for b in ALIGNMENTS if b.variant == a.variant and b != a for t in _fold_seconds(b, scenes)[1]]
   rate = sum(seconds) / len(seconds) if seconds else None
   left = len(scenes) - len(done)
-  return {"name": a.name, "source": a.source, "variant": a.variant, "done": done, "left": left,
-          "s_per_fold": rate, "hours_left": None if rate is None else round(left * rate / 3600, 2)}
+  return {"name": a.name, "source": a.source, "variant": a.variant, "lam": a.lam, "done": done, "left": left,
+          "s_per_fold": rate, "estimated": estimated and rate is not None,
+          "hours_left": None if rate is None else round(left * rate / 3600, 2)}
 
 
 def format_alignment_status(rows: list[dict]) -> str:
-  """The alignment table (Markdown)."""
-  lines = ["| alignment | source | variant | folds done | folds left | s / fold | hours left |",
-           "|---|---|---|---|---|---|---|"]
+  """The alignment table (Markdown); a rate borrowed from another alignment of the variant is marked *est.*"""
+  lines = ["| alignment | source | variant | lam | folds done | folds left | s / fold | hours left |",
+           "|---|---|---|---|---|---|---|---|"]
   for r in rows:
-    rate = "—" if r["s_per_fold"] is None else f"{r['s_per_fold']:.0f}"
-    hours = "0" if not r["left"] else ("not measured" if r["hours_left"] is None else f"{r['hours_left']:.1f}")
-    lines.append(f"| {r['name']} | `{r['source']}` | {r['variant']} | {len(r['done'])} | {r['left']} | "
-                 f"{rate} | {hours} |")
+    est = " (est.)" if r.get("estimated") else ""
+    rate = "—" if r["s_per_fold"] is None else f"{r['s_per_fold']:.0f}{est}"
+    hours = "0" if not r["left"] else ("not measured" if r["hours_left"] is None else f"{r['hours_left']:.1f}{est}")
+    lines.append(f"| {r['name']} | `{r['source']}` | {r['variant']} | {r.get('lam', 1.0)} | {len(r['done'])} | "
+                 f"{r['left']} | {rate} | {hours} |")
   return "\n".join(lines)
