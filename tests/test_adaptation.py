@@ -59,12 +59,17 @@ def test_holdout_mask_draws_its_share_reproducibly():
     adaptation.holdout_mask((4, 4), 1.0)
 
 
-@pytest.fixture(scope="module")
-def tiny():
+def _tiny_inputs():
+  """A tiny Ours and its three-frame counts ``[1, 32, 4, 4]``."""
   cfg = ModelConfig.cpu(SETUP, stride=STRIDE, width=4, d_state=2, extract_time_stride=2, extract_blocks=1,
                         st_depth=1, cross_depth=1, spread_min_width=1, volume_features=1, refine_width=2,
                         frames=3, conv_impl="fold")
-  frames = np.random.default_rng(2).poisson(2.0, (1, 32, 4, 4)).astype(np.float32)
+  return cfg, np.random.default_rng(2).poisson(2.0, (1, 32, 4, 4)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+  cfg, frames = _tiny_inputs()
   frames[0, 10:14] += 20.0
   init = jax.jit(cfg.module().init)                                        # eager init takes minutes
   params = init(jax.random.key(0, impl="rbg"), jnp.asarray(frames[None].repeat(3, 1)))["params"]
@@ -91,8 +96,17 @@ def test_adapt_moves_only_the_trainable_leaves_and_returns_the_best_held_out_ste
   assert all(np.array_equal(v, _paths(again.params)[k]) for k, v in before.items())
 
 
-def test_adapt_refuses_bad_input(tiny):
-  cfg, params, frames = tiny
+@pytest.fixture(scope="module")
+def tiny_shapes():
+  """As ``tiny``, its parameters zeros of the right shapes (refusals need no trained values)."""
+  cfg, frames = _tiny_inputs()
+  shapes = jax.eval_shape(cfg.module().init, jax.random.key(0, impl="rbg"),
+                          jax.ShapeDtypeStruct((1, 3) + frames.shape[1:], jnp.float32))["params"]
+  return cfg, jax.tree_util.tree_map(lambda a: np.zeros(a.shape, a.dtype), shapes), frames
+
+
+def test_adapt_refuses_bad_input(tiny_shapes):
+  cfg, params, frames = tiny_shapes
   with pytest.raises(ValueError, match="frames"):
     adaptation.adapt(cfg, params, frames[:, :, :2])
   with pytest.raises(ValueError, match="negative"):

@@ -83,6 +83,7 @@ def test_auto_picks_direct_for_few_channels_only():
     conv.Conv3D(2, time_stride=2, impl="direct").init(jax.random.key(0), jnp.zeros((1, 4, 3, 3, 1)))
 
 
+@pytest.mark.full
 def test_fast_path_equals_the_fold_reference_at_the_cpu_preset():
   """The cpu preset's Ours (its widths, a small Setup): its volume stage, which holds every conv
   that "auto" runs "direct" at these widths, gives the same loss and gradients (parameters and

@@ -297,14 +297,17 @@ def test_feature_transform_with_public_operators_is_the_public_physics(method):
     FeatureTransform(setup, method, variant="public", oversample=2).apply({}, jnp.asarray(x)[None, ..., None])
 
 
-def test_model_config_physics_variant_reaches_the_layer_and_is_checked():
-  """``ModelConfig.physics_variant`` builds the public layer (reading every bin, its own
-  operators, another output from the same parameters) and the refined one by default; bad
-  values fail when the config is made; a checkpoint written before the field existed (its
-  ``repr`` lacks it) matches a refined run and not a public one."""
-  from nlosjax.train import compare_model
+def _physics_variants():
   gated = ModelConfig.cpu(TINY.with_depth_range(0.08, 0.25), **TINY_KW)
-  public = dataclasses.replace(gated, physics_variant="public")
+  return gated, dataclasses.replace(gated, physics_variant="public")
+
+
+def test_model_config_physics_variant_is_checked_and_recorded():
+  """``ModelConfig.physics_variant``: the refined layer by default, the public one reading every
+  bin with its own operators; bad values fail when the config is made; a checkpoint written
+  before the field existed (its ``repr`` lacks it) matches a refined run and not a public one."""
+  from nlosjax.train import compare_model
+  gated, public = _physics_variants()
   assert gated.physics_variant == "refined"
   assert public.volume_kwargs()["variant"] == "public"
   assert public.time_window == (0, TINY.num_bins)
@@ -312,13 +315,6 @@ def test_model_config_physics_variant_reaches_the_layer_and_is_checked():
   assert lct["public"].time_window == (0, TINY.num_bins) != lct["refined"].time_window   # gated
   assert [k[0] for k in public.physics_operators().keys] == ["public_lct_operators"]
   assert [k[0] for k in gated.physics_operators().keys] == ["lct_operators"]
-  x = jnp.zeros(public.input_shape(1), jnp.float32).at[..., 20, :, :].set(1.0)
-  params = jax.jit(gated.module().init)(jax.random.key(0), x)["params"]      # jit: eager takes a minute
-  assert jax.tree.map(jnp.shape, jax.eval_shape(public.module().init, jax.random.key(0), x)["params"]) == \
-      jax.tree.map(jnp.shape, params)                               # the same parameters
-  a = jax.jit(gated.module().apply)({"params": params}, x)["volume"]
-  b = jax.jit(public.module().apply)({"params": params}, x)["volume"]
-  assert np.isfinite(np.asarray(b)).all() and not np.allclose(a, b, atol=1e-3)
   with pytest.raises(ValueError, match="not resolved"):   # checked for the public wavelet too
     dataclasses.replace(public, setup=Setup(0.6, (8, 8), 256e-12, 32), wavelet_sampling=1.0)
   with pytest.raises(ValueError, match="physics_variant"):
@@ -330,6 +326,20 @@ def test_model_config_physics_variant_reaches_the_layer_and_is_checked():
   assert compare_model(before, gated) == ([], ["setup.aperture", "physics_variant"])
   differ, _ = compare_model(before, public)
   assert len(differ) == 1 and differ[0].startswith("physics_variant: not recorded, 'public' now")
+
+
+@pytest.mark.full
+def test_model_config_physics_variant_reaches_the_layer():
+  """The public layer takes the refined network's parameters and gives another output (three
+  whole-network compiles: in the full tier)."""
+  gated, public = _physics_variants()
+  x = jnp.zeros(public.input_shape(1), jnp.float32).at[..., 20, :, :].set(1.0)
+  params = jax.jit(gated.module().init)(jax.random.key(0), x)["params"]      # jit: eager takes a minute
+  assert jax.tree.map(jnp.shape, jax.eval_shape(public.module().init, jax.random.key(0), x)["params"]) == \
+      jax.tree.map(jnp.shape, params)                               # the same parameters
+  a = jax.jit(gated.module().apply)({"params": params}, x)["volume"]
+  b = jax.jit(public.module().apply)({"params": params}, x)["volume"]
+  assert np.isfinite(np.asarray(b)).all() and not np.allclose(a, b, atol=1e-3)
 
 
 def test_volume_stage_physics_channel_is_the_physics_of_the_pooled_transient():

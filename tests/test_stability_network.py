@@ -198,6 +198,7 @@ def test_network_zero_photon_and_saturated_frames(net, net_out):
   assert float(out["scale"][3]) == 65535.0
 
 
+@pytest.mark.full
 def test_network_bfloat16_end_to_end_stays_close_to_float32(net, net_out):
   cfg, params, _ = net
   x, out = net_out
