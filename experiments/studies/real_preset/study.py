@@ -375,10 +375,9 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
     started.append(folder.name)
     sync_alignment(a)
 
-  done, _ = cli.align_folds(config, data_path, mcfg, params, cli.measured_inputs(files, mcfg),
-                            alignment_workdir(a), a.variant, lam=a.lam, validate=validate,
-                            before_fold=before_fold, after_fold=after_fold, log=log)
-  return done, bool(started)
+  return cli.align_folds(config, data_path, mcfg, params, cli.measured_inputs(files, mcfg),
+                         alignment_workdir(a), a.variant, lam=a.lam, validate=validate,
+                         before_fold=before_fold, after_fold=after_fold, log=log)
 
 
 def _fold_seconds(a: Alignment, scenes) -> tuple[list[str], list[float]]:
