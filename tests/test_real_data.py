@@ -41,14 +41,22 @@ TWIN_CASES = [("fbp", {}), ("lct", {}), ("lct", dict(snr=0.8, falloff="retrorefl
               ("fk", {}), ("phasor", {}), ("rsd", dict(cycles=5.0))]
 
 
-@pytest.fixture(scope="module", params=[io.SHIPPED_SCAN_NAMES[0]] + [
-    pytest.param(name, marks=pytest.mark.full) for name in io.SHIPPED_SCAN_NAMES[1:]])
-def thinned_scans(request):
-  """``(setup, {fraction: [T, H, W] counts})``: a shipped scan binomially thinned (seed 0).
+#: The scans of the twin comparison: ``(shipped scan, spatial step)``. The default tier reads
+#: every other scan point of the first shipped scan (32 x 32 x 512: the same claim on a measured
+#: file, a quarter of the voxels); the full tier every scan point of every shipped scan.
+TWIN_SCANS = [(io.SHIPPED_SCAN_NAMES[0], 2)] + [pytest.param((name, 1), marks=pytest.mark.full)
+                                               for name in io.SHIPPED_SCAN_NAMES]
 
-  The first shipped scan in the default tier, the others in the full tier (the same claim on
-  another capture, a minute and a half of full 64 x 64 x 512 reconstructions each)."""
-  transient, setup = io.load_measurement(io.shipped_scan_path(request.param))
+
+@pytest.fixture(scope="module", params=TWIN_SCANS, ids=lambda p: f"{p[0]}-step{p[1]}")
+def thinned_scans(request):
+  """``(setup, {fraction: [T, H, W] counts})``: a shipped scan (every ``step``-th scan point)
+  binomially thinned (seed 0)."""
+  import dataclasses
+  name, step = request.param
+  transient, setup = io.load_measurement(io.shipped_scan_path(name))
+  transient = transient[:, ::step, ::step]
+  setup = dataclasses.replace(setup, grid=tuple(transient.shape[1:]))
   counts = np.rint(transient).astype(np.int64)
   assert np.array_equal(counts, transient)          # whole counts after the 4-bin sums
   rng = np.random.default_rng(0)
