@@ -8,4 +8,7 @@ tree.
 
 * :mod:`experiments.studies.real_preset` -- the ``real`` preset's candidate data
   trained to their validation plateau, across working stretches.
+* :mod:`experiments.studies.csa` -- CSA's prior weight chosen on simulated
+  validation sequences (``pending-dispatch.patch``: CSA's place in
+  ``physics.reconstruct`` and the CLI, applied with the measured-protocol rerun).
 """
