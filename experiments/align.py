@@ -35,10 +35,11 @@ from typing import Callable
 
 import numpy as np
 
+from experiments.real_undersampling.protocol import default_files, fold_files, fold_folder, scene_name
+
 
 def measured_inputs(files, model_config) -> dict:
   """``scene -> [stride^2, F, T, h, w]``: each scan at the model's bins, under-scanned at every offset."""
-  from experiments.real_undersampling import scene_name
   from nlosjax import inference
   from nlosjax.data import io
   out = {}
@@ -50,16 +51,6 @@ def measured_inputs(files, model_config) -> dict:
     views = np.stack([prepared[:, a::s, b::s][:, :h, :w] for a in range(s) for b in range(s)])
     out[scene_name(pathlib.Path(path))] = np.repeat(views[:, None], model_config.frames, axis=1)
   return out
-
-
-def fold_folder(workdir, variant: str, scene: str) -> pathlib.Path:
-  return pathlib.Path(workdir) / f"{variant}-without-{scene}"
-
-
-def fold_files(folder) -> list[pathlib.Path]:
-  """A finished fold's files (``params.npz``, then ``align.json``, written last), or [] if unfinished."""
-  files = [pathlib.Path(folder) / "params.npz", pathlib.Path(folder) / "align.json"]
-  return files if all(f.exists() for f in files) else []
 
 
 #: ``--lam balanced``: the MMD gradient this many times the synthetic one, over this many batches.
@@ -147,7 +138,6 @@ def load_source(checkpoint: str, variants) -> tuple[dict, dict]:
 
 
 def main(argv=None) -> int:
-  from experiments.real_undersampling import default_files
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -333,9 +333,9 @@ def test_ablated_models_zero_exactly_the_named_parts_and_skip_networks_without_t
               "scenes": {sc: {"scores": {("ours_s|no_refinement", 4): score(p),
                                          ("ours_s|physics_only", 4): score(p + 1)}}
                          for sc, p in (("a", 15.0), ("b", 16.0))}}
-  lines = R_ablation._ablation_lines(results, ablation)
+  lines = R_ablation.ablation_lines(results, ablation)
   assert "| Ours-S | 16 × 16 | 17.00 / 0.500 | 15.50 / 0.500 | 16.50 / 0.500 |" in lines
-  assert R_ablation._ablation_lines(results, None) == []
+  assert R_ablation.ablation_lines(results, None) == []
 
 
 def test_adapted_models_and_their_table():
@@ -355,13 +355,20 @@ def test_adapted_models_and_their_table():
                                             ("ours|adapted", 8): score(13.0)}},
                            "b": {"scores": {("ours|adapted", 4): score(18.5, 50.0, lct=9.0),
                                             ("ours|adapted", 8): score(15.0)}}}}
-  lines = R_ablation._adaptation_lines(results, adaptation)
+  lines = R_ablation.adaptation_lines(results, adaptation)
   assert "| Ours | 16 × 16 | 16.00 → 17.00 | 18.00 → 18.50 | **17.00 → 17.75** | 2 of 2 | 40.0 |" in lines
   assert "| Ours | 8 × 8 | 14.00 → 13.00 | 15.00 → 15.00 | **14.50 → 14.00** | 0 of 2 | 1.0 |" in lines
   # Per reference: the mean over the scans of each reference's score, a reference never scored left blank.
   assert "| Ours | 16 × 16 | 17.00 → 17.75 | 11.00 → 11.00 | – | – | – |" in lines
   assert "| Ours | 8 × 8 | 14.50 → 14.00 | – | – | – | – |" in lines
-  assert R_ablation._adaptation_lines(results, None) == []
+  assert R_ablation.adaptation_lines(results, None) == []
+  # The aligned tables name their workdir and lam per fold in the heading.
+  aligned = {**adaptation, "methods": ["ours|aligned"], "workdir": "w/align", "lam": ["ours 1.0"],
+             "scenes": {sc: {"scores": {(k[0].replace("adapted", "aligned"), k[1]): v
+                                        for k, v in d["scores"].items()}} for sc, d in adaptation["scenes"].items()}}
+  heading = R_ablation.aligned_lines(results, aligned)[0]
+  assert "(workdir `w/align`, lam per fold: ours 1.0)" in heading and "{detail}" not in heading
+  assert "{detail}" not in R_ablation.adaptation_lines(results, adaptation)[0]
 
 
 def test_the_all_zero_floor_is_the_closed_form_psnr_of_each_reference_and_has_a_row():

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from experiments.real_undersampling.protocol import CLASSIC, LABELS, REFERENCES, over_scenes, run, scene_name
+from experiments.real_undersampling.protocol import (
+  CLASSIC,
+  LABELS,
+  REFERENCES,
+  fold_files,
+  fold_folder,
+  over_scenes,
+  run,
+  scene_name,
+)
 
 #: What each ablation zeroes in an ST-Mamba network (parameter path prefixes). With
 #: ``spread/to_transient`` zero the recovered transient is the skip alone: the sparse
@@ -59,7 +68,6 @@ def aligned_run(files, strides, results, workdir) -> dict:
   import json
   import pathlib
 
-  from experiments.align import fold_files, fold_folder
   from nlosjax.pretrained import unflatten_params
   merged = {"strides": list(strides), "methods": [], "scenes": {}, "trained": {},
             "workdir": pathlib.Path(workdir).name, "lam": []}
@@ -92,26 +100,36 @@ def adapted_models(trained: dict) -> dict:
 
 ADAPTATION_TEXT = ("Each network fitted to each scan before reconstructing it (`nlosjax.adaptation.adapt` with"
                    " its defaults and the retroreflective forward model, nothing chosen on these scans):"
-                   " intensity PSNR (dB), mean over the references, as trained → fitted, per scan and mean;"
+                   " intensity PSNR (dB), mean over the references, as trained → fitted, per scan and mean{detail};"
                    " last column the seconds per scan the fitted network took, fitting included:")
 ALIGNED_TEXT = ("Each network after the second training stage on unlabelled measured inputs"
                 " (`python -m experiments.align`: the synthetic loss plus the MMD² of the first ST-Mamba"
                 " block's features to measured inputs), one network per scan, trained on the *other*"
                 " scans' inputs only: intensity PSNR (dB), mean over the references, as trained → aligned"
-                " without that scan, per scan and mean; last column the seconds per scan:")
+                " without that scan, per scan and mean{detail}; last column the seconds per scan:")
 
 
-def _adaptation_lines(results, adaptation, suffix: str = "adapted", text: str = ADAPTATION_TEXT) -> list[str]:
+def aligned_lines(results, aligned: dict) -> list[str]:
+  """:func:`adaptation_lines` for one :func:`aligned_run`, its workdir and lam per fold in the text."""
+  lams = "; ".join(aligned.get("lam", [])) or "not recorded"
+  return adaptation_lines(results, aligned, "aligned", ALIGNED_TEXT,
+                          detail=f" (workdir `{aligned.get('workdir', '?')}`, lam per fold: {lams})")
+
+
+def adaptation_lines(results, adaptation, suffix: str = "adapted", text: str = ADAPTATION_TEXT,
+                     detail: str = "") -> list[str]:
   """Each network as trained and as ``"<variant>|<suffix>"`` in ``adaptation``: per scan, then per reference.
 
   The first table: per scan (the mean over the references), the mean over the scans and
   how many scans went up; the second: against each full-scan reference, the mean over
-  the same scans, as trained → ``suffix``.
+  the same scans, as trained → ``suffix``. ``text`` heads the tables, with ``detail``
+  put in its ``{detail}`` field.
   """
   if not adaptation:
     return []
   scenes = list(results["scenes"])
-  lines = [text, "", "| network | input | " + " | ".join(scenes) + " | mean | scans up | s per scan |",
+  lines = [text.format(detail=detail), "",
+           "| network | input | " + " | ".join(scenes) + " | mean | scans up | s per scan |",
            "|---|---|" + "---|" * (len(scenes) + 3)]
   by_ref = ["", f"The same networks against each full-scan reference (intensity PSNR (dB), mean over the"
             f" scans above, as trained → {suffix}; a network is not scored against a reference it is"
@@ -147,7 +165,7 @@ def _adaptation_lines(results, adaptation, suffix: str = "adapted", text: str = 
   return lines + by_ref + [""]
 
 
-def _ablation_lines(results, ablation) -> list[str]:
+def ablation_lines(results, ablation) -> list[str]:
   """Mean intensity PSNR / SSIM of each network as trained and with its residuals zeroed."""
   if not ablation:
     return []

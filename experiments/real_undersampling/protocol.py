@@ -44,6 +44,17 @@ def scene_name(path: pathlib.Path) -> str:
   return stem[5:] if stem.startswith("data_") else stem
 
 
+def fold_folder(workdir, variant: str, scene: str) -> pathlib.Path:
+  """``<workdir>/<variant>-without-<scene>``: one leave-one-scan-out fold (``experiments.align``)."""
+  return pathlib.Path(workdir) / f"{variant}-without-{scene}"
+
+
+def fold_files(folder) -> list[pathlib.Path]:
+  """A finished fold's files (``params.npz``, then ``align.json``, written last), or [] if unfinished."""
+  files = [pathlib.Path(folder) / "params.npz", pathlib.Path(folder) / "align.json"]
+  return files if all(f.exists() for f in files) else []
+
+
 def interpolate_every_other(image: np.ndarray, full: int) -> np.ndarray:
   """``[..., n, n]`` on full-grid points ``0, 2, ..., 2 (n - 1)`` -> ``[..., full, full]`` (linear, edges held)."""
   n = image.shape[-1]

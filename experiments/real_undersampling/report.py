@@ -7,7 +7,7 @@ import pathlib
 
 import numpy as np
 
-from experiments.real_undersampling.ablation import ALIGNED_TEXT, _ablation_lines, _adaptation_lines
+from experiments.real_undersampling.ablation import ablation_lines, adaptation_lines, aligned_lines
 from experiments.real_undersampling.protocol import (
   CAPTURE_BIN_WIDTH,
   CLASSIC,
@@ -209,12 +209,10 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
   if wl:
     lines += ["Does the trained network beat every classic method (means over scenes)?", "", *wl, ""]
   lines += _binned_lines(results, binned)
-  lines += _ablation_lines(results, ablation)
-  lines += _adaptation_lines(results, adaptation)
+  lines += ablation_lines(results, ablation)
+  lines += adaptation_lines(results, adaptation)
   for a in aligned or ():
-    lams = "; ".join(a.get("lam", [])) or "not recorded"
-    lines += _adaptation_lines(results, a, "aligned", ALIGNED_TEXT.replace(
-        " per scan and mean;", f" per scan and mean (workdir `{a.get('workdir', '?')}`, lam per fold: {lams});"))
+    lines += aligned_lines(results, a)
   if synthetic:
     lines += [
         f"In-domain check (same code, the networks' own data): {synthetic['frames']} frames of"
