@@ -31,7 +31,8 @@ capture as described above (``nlosjax.inference.adapt_to_capture``).
 
 ``--scan-stride K`` under-scans the capture (interval sampling: scan points
 ``K // 2 + K i``, the network's convention): classic methods then run on the
-sparse scan interpolated back to the full grid (the paper's protocol), the
+sparse scan interpolated back to the full grid (the paper's protocol), ``csa``
+on the sparse scan as a masked full grid (what it is made for), the
 network on the sparse scan itself (its trained stride; the default for
 ``model``). ``--depth-range A B`` (metres) reconstructs only those depths;
 ``--depth-range auto`` estimates them from the capture.
@@ -55,7 +56,7 @@ import time
 
 import numpy as np
 
-METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "model", "ours", "ours_s", "usm")
+METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "csa", "model", "ours", "ours_s", "usm")
 LEARNED = ("model", "ours", "ours_s", "usm")
 #: Shipped weights used when neither --checkpoint nor --pretrained is given.
 DEFAULT_PRETRAINED = "real"
@@ -63,7 +64,8 @@ DEFAULT_PRETRAINED = "real"
 METHOD_OPTIONS = {"fbp": ("falloff", "operators", "oversample"),
                   "lct": ("snr", "falloff", "operators", "oversample"),
                   "fk": ("operators",), "phasor": ("cycles", "sampling_coeff", "operators", "oversample"),
-                  "rsd": ("cycles", "sampling_coeff", "ratio")}
+                  "rsd": ("cycles", "sampling_coeff", "ratio"),
+                  "csa": ("tau_rel", "iterations", "falloff", "oversample")}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -111,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
                       " its image) or our refined ones (see nlosjax.physics.reconstruct)")
   g.add_argument("--oversample", type=int, default=None,
                  help="lct, fbp, phasor with --operators refined: v-bins per time bin")
+  g.add_argument("--tau-rel", type=float, default=None,
+                 help="csa: l1 weight as a share of max(A^T b) (0.1)")
+  g.add_argument("--iterations", type=int, default=None, help="csa: the most FISTA steps (200)")
   g = p.add_argument_group("model options")
   g.add_argument("--checkpoint", default=None,
                  help="training workdir, variant folder or checkpoints folder (default: the shipped"
@@ -219,7 +224,8 @@ def parse_depth_range(values: list[str], transient, setup) -> tuple[float, float
 def classic_options(args) -> dict:
   allowed = METHOD_OPTIONS[args.method]
   given = {k: getattr(args, k) for k in ("snr", "falloff", "cycles", "sampling_coeff", "ratio",
-                                         "operators", "oversample") if getattr(args, k) is not None}
+                                         "operators", "oversample", "tau_rel", "iterations")
+           if getattr(args, k) is not None}
   bad = sorted(set(given) - set(allowed))
   if bad:
     flags = ", ".join("--" + b.replace("_", "-") for b in bad)
@@ -251,7 +257,8 @@ def reconstruct_classic(transient, setup, method: str, options: dict, stride: in
   """``(volume [F, Z, H, W], intensity [F, H, W], depth [F, H, W])`` of a classic method.
 
   With ``stride``, the capture is under-scanned (points ``stride // 2 + stride i``)
-  and interpolated back to the full grid before reconstructing. The intensity
+  and interpolated back to the full grid before reconstructing; ``"csa"`` instead
+  takes the sparse scan as a masked full grid (``mask=``). The intensity
   and depth images leave out the histogram's last ``edge_bins`` depth bins
   (:data:`EDGE_BINS`, as the public code); f-k's volume (albedo squared) is
   square-rooted for them. The returned volume is the method's output, unmasked.
@@ -260,7 +267,11 @@ def reconstruct_classic(transient, setup, method: str, options: dict, stride: in
 
   from nlosjax import physics
   x = transient
-  if stride is not None and stride > 1:
+  if method == "csa" and stride is not None and stride > 1:
+    from nlosjax.physics.methods.csa import interval_mask  # CSA reads the sparse scan itself
+    mask = interval_mask(setup.height, setup.width, stride)
+    x, options = x * mask, {**options, "mask": mask}
+  elif stride is not None and stride > 1:
     from nlosjax.evaluation.baselines import upsample_scan
     from nlosjax.models.network import underscan
     x = upsample_scan(underscan(x, stride), setup.grid, stride)

@@ -111,6 +111,26 @@ def test_scan_stride_and_depth_range(capture, tmp_path):
     assert tuple(f.attrs["depth_range"]) == (0.2, 0.5) and f.attrs["scan_stride"] == 4
 
 
+def test_csa_reads_the_sparse_scan_as_a_masked_grid_and_matches_the_library(capture, tmp_path):
+  path, counts, setup = capture
+  res = run_cli([path, "--method", "csa", "--scan-stride", "4", "--tau-rel", "0.1", "--iterations", "20",
+                 "--out", tmp_path / "csa"])
+  # Independent mask: the scan points 2 + 4 i, nothing interpolated.
+  mask = np.zeros((16, 16), np.float32)
+  mask[2::4, 2::4] = 1.0
+  expected = np.asarray(physics.reconstruct(counts * mask, setup, "csa", mask=mask, tau_rel=0.1, iterations=20))
+  np.testing.assert_allclose(res["volume"][0], expected, rtol=1e-5, atol=1e-6 * expected.max())
+  # The unscanned points are read as absent: any counts there change nothing.
+  noisy = counts + (1 - mask) * 1e3
+  again = np.asarray(physics.reconstruct(noisy * mask, setup, "csa", mask=mask, tau_rel=0.1, iterations=20))
+  np.testing.assert_array_equal(again, expected)
+  with h5py.File(tmp_path / "csa" / "volume.h5", "r") as f:
+    assert f.attrs["method"] == "csa" and f.attrs["scan_stride"] == 4
+    assert json.loads(f.attrs["options"])["tau_rel"] == 0.1
+  with pytest.raises(SystemExit):
+    run_cli([path, "--method", "lct", "--tau-rel", "0.1", "--out", tmp_path / "x"])
+
+
 @pytest.mark.parametrize("case", ["corrupt", "unknown", "override", "option", "method_option"])
 def test_errors_name_the_file_and_the_problem(case, capture, tmp_path, capsys):
   path, _, _ = capture

@@ -18,13 +18,13 @@ from nlosjax.physics.depth_range import auto_depth_range, estimate_depth_range
 from nlosjax.physics.forward import render, render_points
 from nlosjax.physics.noise import add_spad_noise, expected_counts, jitter_kernel
 from nlosjax.physics.project import intensity_depth
-from nlosjax.physics.reconstruct import METHODS, fbp, fk, lct, phasor, reconstruct, rsd
+from nlosjax.physics.reconstruct import ITERATIVE_METHODS, METHODS, csa, fbp, fk, lct, phasor, reconstruct, rsd
 from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
 from nlosjax.physics.wavelet import Wavelet, convolve_time, illumination_wavelet
 
 __all__ = [
     "Setup", "SPEED_OF_LIGHT", "render", "render_points", "add_spad_noise", "expected_counts",
-    "jitter_kernel", "reconstruct", "METHODS", "fbp", "lct", "fk", "phasor", "rsd",
+    "jitter_kernel", "reconstruct", "METHODS", "ITERATIVE_METHODS", "csa", "fbp", "lct", "fk", "phasor", "rsd",
     "illumination_wavelet", "Wavelet", "convolve_time", "intensity_depth", "checked",
     "estimate_depth_range", "auto_depth_range",
 ]

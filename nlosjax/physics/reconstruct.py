@@ -1,4 +1,4 @@
-"""Classic confocal NLOS reconstructions: FBP, LCT, f-k, phasor fields, RSD.
+"""Confocal NLOS reconstructions: the classic FBP, LCT, f-k, phasor fields, RSD, and the iterative CSA.
 
 Every method maps a transient ``[..., T, H, W]`` (counts, non-negative) to a
 non-negative volume ``[..., Z, H, W]`` on the Setup's depth grid (``Z`` =
@@ -46,7 +46,7 @@ nlos3d, LFE/USM):
   stays available as ``depth_sum="direct"``).
 
 Each method lives in its own module of :mod:`nlosjax.physics.methods`
-(``lct.py``, ``fbp.py``, ``fk.py``, ``phasor.py``, ``rsd.py``, each with its
+(``lct.py``, ``fbp.py``, ``fk.py``, ``phasor.py``, ``rsd.py``, ``csa.py``, each with its
 private helpers; ``fbp`` and ``phasor`` build on ``lct``'s cached operators).
 This module holds the :func:`reconstruct` dispatch and re-exports the five
 functions and the helpers tests and benchmarks import from here
@@ -59,6 +59,7 @@ from __future__ import annotations
 import jax
 
 from nlosjax.physics.depth_range import auto_depth_range
+from nlosjax.physics.methods.csa import csa
 from nlosjax.physics.methods.fbp import _neg_log_kernel as _neg_log_kernel
 from nlosjax.physics.methods.fbp import fbp
 from nlosjax.physics.methods.fbp import neg_log_filter as neg_log_filter
@@ -73,19 +74,23 @@ from nlosjax.physics.methods.rsd import rsd
 from nlosjax.physics.setup import Setup
 
 METHODS = ("fbp", "lct", "fk", "phasor", "rsd")
+#: Iterative methods: a solver with a prior, for under-scanned captures (``mask=``).
+ITERATIVE_METHODS = ("csa",)
 
 
 # ------------------------------------------------------------------ dispatch
-_FUNCTIONS = {"fbp": fbp, "lct": lct, "fk": fk, "phasor": phasor, "rsd": rsd}
+_FUNCTIONS = {"fbp": fbp, "lct": lct, "fk": fk, "phasor": phasor, "rsd": rsd, "csa": csa}
 
 
 def reconstruct(transient, setup: Setup, method: str, *, depth_range=None, **options) -> jax.Array:
-  """Reconstruct a hidden volume with one of the classic methods.
+  """Reconstruct a hidden volume with one of the classic methods or CSA.
 
   Args:
     transient: ``[..., T, H, W]`` counts >= 0 (t = 0 at the wall).
     setup: the capture; its ``depth_range`` gates time and crops the volume.
-    method: ``"fbp"``, ``"lct"``, ``"fk"``, ``"phasor"`` or ``"rsd"``.
+    method: ``"fbp"``, ``"lct"``, ``"fk"``, ``"phasor"``, ``"rsd"`` or ``"csa"``
+      (:func:`nlosjax.physics.methods.csa.csa`: iterative, takes the scan ``mask``
+      of an under-scanned capture).
     depth_range: ``None`` (the Setup's), ``(z_min, z_max)`` metres, or
       ``"auto"``: estimated from the capture
       (:func:`nlosjax.physics.depth_range.auto_depth_range`; the volume's depth
@@ -97,7 +102,7 @@ def reconstruct(transient, setup: Setup, method: str, *, depth_range=None, **opt
     ValueError: unknown method or option, bad shapes or values.
   """
   if method not in _FUNCTIONS:
-    raise ValueError(f"unknown method {method!r}; choose one of {METHODS}")
+    raise ValueError(f"unknown method {method!r}; choose one of {METHODS + ITERATIVE_METHODS}")
   if isinstance(depth_range, str):
     if depth_range != "auto":
       raise ValueError(f"depth_range must be None, (z_min, z_max) or 'auto', got {depth_range!r}")
