@@ -48,11 +48,14 @@ GOALS = {
                "at 64² and 128²",
     "physics_shift": "on every renderer family left out of training: Ours >= best classic + 1 dB, object "
                      "recall >= the best classic's, Ours >= Ours-S",
-    "real": "the network ahead of every classic method against every other method's full scan",
+    "real": "the network ahead of every method without training (the classic ones and CSA) against every"
+            " other method's full scan",
     "real_public": "a network whose physics layer has the public operators, beside the refined one it "
                    "would replace, on the measured scans",
     "real_adapt": "each network fitted to each scan never worse on average than as trained; ahead of "
-                  "every classic method",
+                  "every method without training (the classic ones and CSA)",
+    "csa_choice": "CSA's prior weight chosen per stride on simulated validation sequences, never on measured"
+                  " scans",
     "realism": "a classifier tells measured from simulated inputs in <= 60 % of held-out cases",
     "realism_v4": "a classifier tells measured from simulated inputs in <= 60 % of held-out cases",
     "realism_v5": "a classifier tells measured from simulated inputs in <= 60 % of held-out cases",
