@@ -42,6 +42,23 @@ TOLERANCE = 1e-5
 NAME = "equivalence"
 
 
+def use_todays_weights(tree: pathlib.Path) -> list[str]:
+  """Put today's shipped weights (``nlosjax/weights/``) into ``tree``; returns the names that differed.
+
+  The probe asks whether the *code* computes the same numbers. Weights are an input to it,
+  like the probe's fixed data: a network shipped since the base (the replaced ``real-ours_s``)
+  is a new result, judged by the files its own command regenerates, and both trees run it.
+  """
+  import shutil
+  src, dst = provenance.ROOT / "nlosjax" / "weights", tree / "nlosjax" / "weights"
+  changed = sorted(p.name for p in src.iterdir() if p.is_dir() and any(
+      not (dst / p.name / f.name).exists() or (dst / p.name / f.name).read_bytes() != f.read_bytes()
+      for f in p.iterdir()))
+  shutil.rmtree(dst, ignore_errors=True)
+  shutil.copytree(src, dst)
+  return changed
+
+
 def run_probe(tree: pathlib.Path, out: pathlib.Path, *, log=print) -> dict:
   """Run today's probe script on ``tree``'s packages; returns its arrays (and its JSON under ``"_meta"``)."""
   env = {**os.environ, "PYTHONPATH": str(tree)}
@@ -114,18 +131,20 @@ def changed_modules(base: str) -> list[str]:
 
 
 def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], seconds: dict,
-          command: str) -> dict:
+          command: str, weights: tuple[str, ...] = ()) -> dict:
   modules = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe"])
   passed = all(r["passed"] for r in rows)
   record = {"base": base, "head": provenance.git_commit(), "tolerance": TOLERANCE, "passed": passed,
-            "changed": changed, "closure": modules, "probes": rows, "seconds": seconds}
+            "changed": changed, "closure": modules, "probes": rows, "seconds": seconds,
+            "weights_since_base": list(weights)}
   lines = [f"# Results carried forward: the code at {base[:12]} and today's, side by side", "",
            *provenance.provenance(command), "",
            f"Every probe of `benchmarks/equivalence_probe.py` run on commit `{base[:12]}`'s tree and on "
            f"this one (probe times: base {seconds['base']:.0f} s, today {seconds['today']:.0f} s). "
            f"A probe passes when every array is within {TOLERANCE:g} of the base value, relative to "
            "the base array's largest magnitude (float32 rounding); `identical` counts arrays equal "
-           "bit for bit.", "",
+           "bit for bit. Both trees run today's shipped weights (`use_todays_weights`; shipped since the"
+           " base: " + (", ".join(f"`{w}`" for w in weights) or "none") + "): the check is of the code.", "",
            "| probe | arrays | identical | largest relative change | passed | added since |",
            "|---|---|---|---|---|---|"]
   for r in rows:
@@ -191,6 +210,7 @@ def main(argv=None) -> int:
     subprocess.run(["git", "worktree", "add", "--detach", str(tree), base], cwd=provenance.ROOT,
                    check=True, capture_output=True)
     try:
+      weights = use_todays_weights(tree)
       t0 = time.perf_counter()
       old = run_probe(tree, pathlib.Path(d) / "base.npz")
       t1 = time.perf_counter()
@@ -201,7 +221,7 @@ def main(argv=None) -> int:
                      capture_output=True)
   rows = compare(old, new)
   record = write(pathlib.Path(args.out), base, rows, changed_modules(base),
-                 {"base": t1 - t0, "today": t2 - t1}, command)
+                 {"base": t1 - t0, "today": t2 - t1}, command, weights)
   for r in rows:
     print(f"  {r['probe']}: {r['identical']}/{r['arrays']} identical, worst {r['worst']:.2e}"
           f"{'' if r['passed'] else '  FAILED'}")

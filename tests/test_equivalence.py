@@ -75,3 +75,19 @@ def test_a_file_current_at_the_base_whose_changes_the_check_ran_is_carried_forwa
   md = tmp_path / "equivalence.md"
   md.write_text(md.read_text().replace("- Code: `", "- Code: `f"))
   assert equivalence.carried_forward(carried, results=tmp_path) is None
+
+
+def test_the_base_tree_runs_todays_weights_and_names_those_shipped_since(tmp_path):
+  src = provenance.ROOT / "nlosjax" / "weights"
+  names = sorted(p.name for p in src.iterdir() if p.is_dir())
+  tree = tmp_path / "base"
+  for n in names:                                # the base: every network as today's but one
+    (tree / "nlosjax" / "weights" / n).mkdir(parents=True)
+    for f in (src / n).iterdir():
+      (tree / "nlosjax" / "weights" / n / f.name).write_bytes(f.read_bytes())
+  first = tree / "nlosjax" / "weights" / names[0] / "params.npz"
+  first.write_bytes(b"older weights")
+  (tree / "nlosjax" / "weights" / "gone").mkdir()
+  assert equivalence.use_todays_weights(tree) == [names[0]]
+  assert first.read_bytes() == (src / names[0] / "params.npz").read_bytes()
+  assert not (tree / "nlosjax" / "weights" / "gone").exists()
