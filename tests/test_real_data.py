@@ -460,3 +460,28 @@ def jax_tree_plus(tree, value):
   """``tree`` with ``value`` added to every leaf (a fold's parameters, told apart by it)."""
   import jax
   return jax.tree_util.tree_map(lambda x: x + np.float32(value), tree)
+
+
+def test_csa_in_the_protocol_reads_the_masked_scan_with_its_strides_prior_and_counts_as_untrained(
+    monkeypatch):
+  from experiments.real_undersampling import protocol, report
+  from nlosjax.physics.setup import Setup
+  setup = Setup(wall_size=0.6, grid=(16, 16), bin_width=64e-12, num_bins=64)
+  x = np.random.default_rng(1).poisson(0.5, (64, 16, 16)).astype(np.float32)
+  monkeypatch.setitem(protocol.CSA_TAU_REL, 4, 0.2)
+  monkeypatch.setitem(protocol.OPTIONS, "csa", {"falloff": "retroreflective", "iterations": 5})
+  image = protocol.classic_intensity(x, setup, "csa", 4)
+  mask = np.zeros((16, 16), np.float32)
+  mask[2::4, 2::4] = 1
+  vol = np.asarray(physics.reconstruct(x * mask, setup, "csa", mask=mask, tau_rel=0.2, iterations=5,
+                                       falloff="retroreflective"))
+  from experiments.reconstruct import edge_masked, project
+  expected, _ = project(edge_masked(vol, setup), setup)
+  np.testing.assert_allclose(image, expected, atol=1e-6)
+  # The networks' bar is every method without training, CSA included.
+  assert "csa" in protocol.UNTRAINED and "csa" not in protocol.REFERENCES
+  scores = {("lct", 4): {"psnr": 10.0, "ssim": 0.1}, ("csa", 4): {"psnr": 14.0, "ssim": 0.5},
+            ("ours", 4): {"psnr": 12.0, "ssim": 0.3}}
+  lines = report._winner_lines({"strides": [4], "methods": ["lct", "csa", "ours"],
+                                "scenes": {"s": {"scores": scores}}})
+  assert len(lines) == 1 and "best without training (CSA) 14.00 dB -> does not beat" in lines[0]

@@ -22,6 +22,13 @@ Protocol (the paper's under-scanning experiment, on measured data):
   linearly interpolated back to 64 x 64 (``nlosjax.evaluation.baselines.upsample_scan``), with
   the options these retroreflective scenes were published with (LCT snr 0.8
   and FBP with the t^2 falloff; f-k, phasor, RSD defaults);
+* CSA (``nlosjax.physics.methods.csa``, the iterative method made for
+  under-scanned scans) reconstructs the sparse scan itself, as a masked
+  64 x 64 grid, with the t^2 falloff and the prior weight ``CSA_TAU_REL``
+  chosen per stride on the ``real`` preset's simulated validation split
+  (``python -m experiments.studies.csa``, ``benchmarks/results/csa_choice.md``),
+  never on these scans. It is scored, not a reference, and not run on the
+  full scan;
 * the trained networks (Ours-S, Ours and, where trained, USM of ``--checkpoint``,
   e.g. ``runs/real``: ``python -m experiments.train --config real --workdir
   runs/real``, trained on synthetic 64 x 64 scans of a 0.6 m wall at stride 4
@@ -71,9 +78,11 @@ from experiments.real_undersampling.ablation import ablated_models, adapted_mode
 from experiments.real_undersampling.figures import write_figures
 from experiments.real_undersampling.protocol import (
                                                      CLASSIC,
+                                                     ITERATIVE,
                                                      LABELS,
                                                      OPTIONS,
                                                      REFERENCES,
+                                                     UNTRAINED,
                                                      binned_classic,
                                                      classic_intensity,
                                                      default_files,
@@ -83,6 +92,6 @@ from experiments.real_undersampling.protocol import (
 )
 from experiments.real_undersampling.report import pretrained_data, training_data, write_report
 
-__all__ = ["CLASSIC", "LABELS", "OPTIONS", "REFERENCES", "ablated_models", "adapted_models",
+__all__ = ["CLASSIC", "ITERATIVE", "LABELS", "OPTIONS", "REFERENCES", "UNTRAINED", "ablated_models", "adapted_models",
            "binned_classic", "classic_intensity", "default_files", "load_models", "pretrained_data", "run",
            "scene_name", "training_data", "write_figures", "write_report"]

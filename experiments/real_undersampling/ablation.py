@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from experiments.real_undersampling.protocol import (
-  CLASSIC,
   LABELS,
   REFERENCES,
+  UNTRAINED,
   fold_files,
   fold_folder,
   over_scenes,
@@ -180,7 +180,7 @@ def ablation_lines(results, ablation) -> list[str]:
     vals = over_scenes(res, m, stride)
     return (f"{np.mean([v['psnr'] for v in vals]):.2f} / {np.mean([v['ssim'] for v in vals]):.3f}"
             if vals else "–")
-  for v in [m for m in results["methods"] if m not in CLASSIC]:
+  for v in [m for m in results["methods"] if m not in UNTRAINED]:
     if not any(f"{v}|{c}" in ablation["methods"] for c in cols):
       continue
     for stride in results["strides"]:

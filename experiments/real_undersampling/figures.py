@@ -6,7 +6,7 @@ import pathlib
 
 import numpy as np
 
-from experiments.real_undersampling.protocol import LABELS, REFERENCES, over_scenes
+from experiments.real_undersampling.protocol import ITERATIVE, LABELS, REFERENCES, over_scenes
 
 
 def write_figures(results, out_dir: pathlib.Path, prefix: str = "real") -> list[str]:
@@ -28,8 +28,8 @@ def write_figures(results, out_dir: pathlib.Path, prefix: str = "real") -> list[
         img = entry["images"].get((m, s))
         if img is None:
           ax.set_facecolor("0.85")
-          ax.text(0.5, 0.5, "needs a\nsparse scan", ha="center", va="center", fontsize=7,
-                  transform=ax.transAxes)
+          why = "not a\nreference" if m in ITERATIVE else "needs a\nsparse scan"
+          ax.text(0.5, 0.5, why, ha="center", va="center", fontsize=7, transform=ax.transAxes)
         else:
           ax.imshow(img, cmap="gray", vmin=0, vmax=1)
           sc = entry["scores"].get((m, s))

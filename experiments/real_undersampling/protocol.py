@@ -14,9 +14,18 @@ REPO = pathlib.Path(__file__).resolve().parents[2]
 CLASSIC = CLASSIC_METHODS
 VARIANTS = ("ours_s", "ours", "usm")
 LABELS = METHOD_LABELS
+#: CSA's l1 weight (a share of max(A^T b)) by stride, from csa_choice.md.
+CSA_TAU_REL = {4: 0.1, 8: 0.1}
 #: Options of the classic methods on these retroreflective scans (O'Toole et al. 2018: snr 0.8, t^2).
 OPTIONS = {"fbp": {"falloff": "retroreflective"}, "lct": {"snr": 0.8, "falloff": "retroreflective"},
-           "fk": {}, "phasor": {}, "rsd": {}}
+           "fk": {}, "phasor": {}, "rsd": {},
+           # tau_rel: chosen on the real preset's simulated validation split, never on these scans
+           # (benchmarks/results/csa_choice.md, python -m experiments.studies.csa); t^2 as LCT's.
+           "csa": {"falloff": "retroreflective"}}
+#: The iterative method made for under-scanned scans: scored on the masked sparse scan itself.
+ITERATIVE = ("csa",)
+#: Every method that needs no training (the classic ones and CSA), the networks' bar.
+UNTRAINED = CLASSIC + ITERATIVE
 #: The full-scan reconstructions a sparse-scan image is scored against (each but its own).
 REFERENCES = CLASSIC
 #: Bin width of the measured scans after the published preparation (s).
@@ -68,9 +77,16 @@ def interpolate_every_other(image: np.ndarray, full: int) -> np.ndarray:
 
 
 def classic_intensity(transient, setup, method: str, stride: int, options=None) -> np.ndarray:
-  """Intensity ``[H, W]`` of a classic method on the scan under-scanned by ``stride`` (1: full)."""
+  """Intensity ``[H, W]`` of a classic method or CSA on the scan under-scanned by ``stride`` (1: full).
+
+  Classic methods see the sparse scan interpolated to the full grid, CSA the
+  sparse scan as a masked full grid (``experiments.reconstruct.reconstruct_classic``).
+  """
   from experiments.reconstruct import reconstruct_classic
-  options = OPTIONS[method] if options is None else options
+  if options is None:
+    options = OPTIONS[method]
+    if method == "csa":
+      options = {**options, "tau_rel": CSA_TAU_REL[stride]}
   _, intensity, _ = reconstruct_classic(transient[None], setup, method, options,
                                         stride if stride > 1 else None)
   return intensity[0]
@@ -170,11 +186,11 @@ def run(files, strides, checkpoint, log=print, *, trained: dict | None = None,
   from nlosjax.data import io
   if trained is None:
     trained = load_models(checkpoint, log=log) if checkpoint is not None else {}
-  methods = (CLASSIC if classic else ()) + tuple(trained)
+  methods = (UNTRAINED if classic else ()) + tuple(trained)
   results = {"strides": list(strides), "methods": list(methods), "scenes": {}, "trained": trained}
   jobs = len(files) * ((0 if references else len(REFERENCES)) + len(methods) * len(strides))
   bar = tqdm(total=jobs, desc="reconstructions", unit="recon", dynamic_ncols=True)
-  for path in files:
+  for index, path in enumerate(files):
     transient, setup = io.load_measurement(path)
     scene = scene_name(path)
     if references:
@@ -188,13 +204,18 @@ def run(files, strides, checkpoint, log=print, *, trained: dict | None = None,
              "scores": {}}
     for method in methods:
       for stride in (1,) + tuple(strides):
+        if stride == 1 and method in ITERATIVE:     # made for sparse scans; not a reference
+          continue
         if stride == 1 and (method in trained or method in refs):
           if method in refs:
             entry["images"][(method, 1)] = refs[method]
           continue
         times = []
         fitted = method in trained and len(trained[method]) > 2
-        for _ in range(1 if fitted else 2):   # the second call reuses what the first compiled
+        # The second call reuses what the first compiled; an iterative solve (a minute a scan)
+        # is timed twice on the first scan only.
+        once = fitted or (method in ITERATIVE and index > 0)
+        for _ in range(1 if once else 2):
           t0 = time.perf_counter()
           if method in trained:
             image = model_intensity(trained[method], transient, setup, stride)
@@ -203,7 +224,7 @@ def run(files, strides, checkpoint, log=print, *, trained: dict | None = None,
           times.append(time.perf_counter() - t0)
         entry["images"][(method, stride)] = image
         entry["scores"][(method, stride)] = {**score_against(image, refs, method), "time_s": times[0],
-                                             **({} if fitted else {"again_s": times[1]})}
+                                             **({} if once else {"again_s": times[1]})}
         bar.update(1)
     results["scenes"][scene] = entry
   bar.close()
@@ -295,7 +316,7 @@ def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict
   if not path.is_file() or not trained:
     return None
   stride = next(iter(trained.values()))[0].stride
-  scores = {m: {"psnr": [], "ssim": []} for m in CLASSIC + tuple(trained)}
+  scores = {m: {"psnr": [], "ssim": []} for m in UNTRAINED + tuple(trained)}
   with dataset.open_dataset(path) as ds:
     names = ds.names("test")[:sequences]
     for name in names:
@@ -303,8 +324,12 @@ def synthetic_check(path, trained, *, sequences: int = 4, frames=(2, 5)) -> dict
         x, setup = io.load_measurement(path, sequence=name, frame=fr)
         gt = ds.read(name, "intensity", frames=fr)
         for m in scores:
-          image = (model_intensity(trained[m], x, setup, stride) if m in trained
-                   else classic_intensity(x, setup, m, stride, options=B.default_options(m, setup)))
+          if m in trained:
+            image = model_intensity(trained[m], x, setup, stride)
+          elif m in ITERATIVE:                 # the measured protocol's options
+            image = classic_intensity(x, setup, m, stride)
+          else:
+            image = classic_intensity(x, setup, m, stride, options=B.default_options(m, setup))
           scores[m]["psnr"].append(float(metrics.psnr(image, gt)))
           scores[m]["ssim"].append(float(metrics.ssim(image, gt)))
   shown = path.resolve()

@@ -10,10 +10,11 @@ import numpy as np
 from experiments.real_undersampling.ablation import ablation_lines, adaptation_lines, aligned_lines
 from experiments.real_undersampling.protocol import (
   CAPTURE_BIN_WIDTH,
-  CLASSIC,
+  CSA_TAU_REL,
   DEFAULT_PRETRAINED,
   LABELS,
   REFERENCES,
+  UNTRAINED,
   over_scenes,
 )
 
@@ -89,8 +90,8 @@ def _time_lines(results) -> list[str]:
     return []
   lines = ["Seconds per scan in this process, on the machine above (*first*: the first call on"
            f" {scenes[0]}, tracing and compilation included; *per frame*: the median over the scenes of"
-           " a second call on the same scan, compiled; the networks' times include moving the physics"
-           " layer to the scan's setup and the time binning):", "",
+           " a second call on the same scan, compiled (CSA: on the first scan only); the networks' times"
+           " include moving the physics layer to the scan's setup and the time binning):", "",
            "| method | " + " | ".join(f"{64 // s} × {64 // s} first | {64 // s} × {64 // s} per frame"
                                       for s in results["strides"]) + " |",
            "|---|" + "---|---|" * len(results["strides"])]
@@ -107,8 +108,8 @@ def _time_lines(results) -> list[str]:
 
 def _winner_lines(results) -> list[str]:
   lines = []
-  classic = [m for m in results["methods"] if m in CLASSIC]
-  models = [m for m in results["methods"] if m not in CLASSIC]
+  classic = [m for m in results["methods"] if m in UNTRAINED]
+  models = [m for m in results["methods"] if m not in UNTRAINED]
   for stride in results["strides"]:
     means = {}
     for m in results["methods"]:
@@ -125,9 +126,9 @@ def _winner_lines(results) -> list[str]:
       beats_p = means[v][0] > means[best_c][0]
       beats_s = means[v][1] > means[best_cs][1]
       lines.append(
-          f"- stride {stride}: {LABELS[v]} mean PSNR {means[v][0]:.2f} dB vs the best classic"
+          f"- stride {stride}: {LABELS[v]} mean PSNR {means[v][0]:.2f} dB vs the best without training"
           f" ({LABELS[best_c]}) {means[best_c][0]:.2f} dB -> {'beats' if beats_p else 'does not beat'}"
-          f" every classic method; mean SSIM {means[v][1]:.3f} vs best ({LABELS[best_cs]})"
+          f" every method without training; mean SSIM {means[v][1]:.3f} vs best ({LABELS[best_cs]})"
           f" {means[best_cs][1]:.3f} -> {'beats' if beats_s else 'does not beat'}.")
   return lines
 
@@ -198,7 +199,11 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
       " classic method on the full 64 × 64 scan, a method scored against every reference but its"
       " own; sparse scans = scan points `stride // 2 + stride i`;"
       " classic methods on the sparse scan interpolated to 64 × 64 (LCT snr 0.8 and FBP with"
-      " the retroreflective t² falloff, f-k / phasor / RSD defaults); " + _network_text(results),
+      " the retroreflective t² falloff, f-k / phasor / RSD defaults); CSA on the sparse scan itself,"
+      " a masked 64 × 64 grid (t² falloff, 200 FISTA iterations, tau_rel "
+      + ", ".join(f"{v:g} at stride {k}" for k, v in sorted(CSA_TAU_REL.items()))
+      + ", chosen on the `real` preset's simulated validation split: `benchmarks/results/csa_choice.md`); "
+      + _network_text(results),
       "",
   ]
   lines += _table(results)
@@ -207,7 +212,8 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
     lines += [notes, ""]
   wl = _winner_lines(results)
   if wl:
-    lines += ["Does the trained network beat every classic method (means over scenes)?", "", *wl, ""]
+    lines += ["Does the trained network beat every method without training, the classic ones and CSA"
+              " (means over scenes)?", "", *wl, ""]
   lines += _binned_lines(results, binned)
   lines += ablation_lines(results, ablation)
   lines += adaptation_lines(results, adaptation)
@@ -217,7 +223,7 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
     lines += [
         f"In-domain check (same code, the networks' own data): {synthetic['frames']} frames of"
         f" the synthetic test split of `{synthetic['file']}` at stride {synthetic['stride']},"
-        " scored against the ground-truth intensity (classic methods with default options"
+        " scored against the ground-truth intensity (CSA with the options above; classic methods with default options"
         + "".join(f", {LABELS[m]} " + ", ".join(f"{k} {v:.3g}" for k, v in o.items())
                   for m, o in synthetic.get("options", {}).items() if o)
         + "; the adaptation is the identity there: bin factor 1, the trained wavelet):", "",
