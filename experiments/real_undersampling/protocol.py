@@ -15,7 +15,7 @@ CLASSIC = CLASSIC_METHODS
 VARIANTS = ("ours_s", "ours", "usm")
 LABELS = METHOD_LABELS
 #: CSA's l1 weight (a share of max(A^T b)) by stride, from csa_choice.md.
-CSA_TAU_REL = {4: 0.1, 8: 0.1}
+CSA_TAU_REL = {4: 0.1, 8: 0.03}
 #: Options of the classic methods on these retroreflective scans (O'Toole et al. 2018: snr 0.8, t^2).
 OPTIONS = {"fbp": {"falloff": "retroreflective"}, "lct": {"snr": 0.8, "falloff": "retroreflective"},
            "fk": {}, "phasor": {}, "rsd": {},
