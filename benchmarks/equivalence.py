@@ -18,6 +18,10 @@ in this command's own import closure (the code the probes ran). The numbers stay
 ones measured, with their commit; the index names this check beside them. A change that
 moves a probe beyond the tolerance carries nothing: those files are regenerated, or a
 study's seed is retrained at the new code and shown to land inside its interval.
+
+Records against several bases may stand side by side (``--out
+benchmarks/results/equivalence_<COMMIT>.md``, :func:`records`): a file is carried when
+one of them carries it, so files current at different commits can all be carried.
 """
 
 from __future__ import annotations
@@ -165,36 +169,52 @@ def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], se
   return record
 
 
+def records(results: pathlib.Path) -> list[str]:
+  """The names of the check's records in ``results``: ``equivalence`` and any ``equivalence_<base>``.
+
+  Several records let a file current at another commit be carried too: each was written by
+  ``python -m benchmarks.equivalence --base COMMIT --out results/equivalence_<COMMIT>.md``.
+  """
+  return sorted(p.stem for p in results.glob(f"{NAME}*.json")
+                if (p.stem == NAME or p.stem.startswith(f"{NAME}_")) and p.with_suffix(".md").exists())
+
+
 def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
-  """``"carried forward from <base> by equivalence.md"`` where the rule above holds for ``entry``, else None.
+  """``"carried forward from <base> by <record>.md"`` where the rule above holds for ``entry``
+  with one of the :func:`records`, else None.
 
   ``entry``: a :class:`benchmarks.index.Entry` that is stale today.
   """
-  from benchmarks.index import _GitFiles, _same_code, read_entry
-  path = results / f"{NAME}.json"
-  if entry.name == NAME or not path.exists() or not (results / f"{NAME}.md").exists() or not entry.digest:
+  if entry.name in records(results) or not entry.digest:
     return None
-  record = json.loads(path.read_text())
-  own = read_entry(results / f"{NAME}.md")
   files = provenance.project_files() if files is None else files
+  for name in records(results):
+    if _carries(entry, results, name, files):
+      base = json.loads((results / f"{name}.json").read_text())["base"]
+      return f"carried forward from {base[:7]} by {name}.md"
+  return None
+
+
+def _carries(entry, results: pathlib.Path, name: str, files) -> bool:
+  from benchmarks.index import _GitFiles, _same_code, read_entry
+  record = json.loads((results / f"{name}.json").read_text())
+  own = read_entry(results / f"{name}.md")
   if not record.get("passed") or any(m not in files for m in own.modules) \
      or provenance.code_digest(own.modules) != own.digest:
-    return None
+    return False
   base = record["base"]
   show = _GitFiles()
   try:
     if any(show(base, m) is None for m in entry.modules):
-      return None
+      return False
     if provenance.code_digest(entry.modules, lambda p: show(base, p)) != entry.digest:
-      return None                          # not current at the base: nothing to carry
+      return False                         # not current at the base: nothing to carry
     closure = set(own.modules)
     moved = [m for m in entry.modules
              if not _same_code(show(base, m), (provenance.ROOT / m).read_text() if m in files else None, m)]
   finally:
     show.close()
-  if any(m not in closure for m in moved):
-    return None
-  return f"carried forward from {base[:7]} by {NAME}.md"
+  return all(m in closure for m in moved)
 
 
 def main(argv=None) -> int:

@@ -30,13 +30,13 @@ def test_compare_tells_identical_rounding_moved_added_and_missing_arrays():
   assert not gone["data/lct"]["passed"] and gone["data/lct"]["missing"] == ["data/lct/x"]
 
 
-def _record(tmp_path, *, passed=True, leave_out=()):
+def _record(tmp_path, *, passed=True, leave_out=(), base=BASE, name="equivalence"):
   closure = [m for m in provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe"])
              if m not in leave_out]
-  (tmp_path / "equivalence.md").write_text(
+  (tmp_path / f"{name}.md").write_text(
       "# Results carried forward\n\nProduced by `python -m benchmarks.equivalence --base x`.\n\n"
       "- Date: 2026-12-01T00:00:00+00:00\n- Machine: M\n- Commit: abc\n" + provenance.code_line(closure) + "\n")
-  (tmp_path / "equivalence.json").write_text(json.dumps({"base": BASE, "passed": passed}))
+  (tmp_path / f"{name}.json").write_text(json.dumps({"base": base, "passed": passed}))
 
 
 def _entry(modules, digest):
@@ -91,3 +91,21 @@ def test_the_base_tree_runs_todays_weights_and_names_those_shipped_since(tmp_pat
   assert equivalence.use_todays_weights(tree) == [names[0]]
   assert first.read_bytes() == (src / names[0] / "params.npz").read_bytes()
   assert not (tree / "nlosjax" / "weights" / "gone").exists()
+
+
+def test_a_second_record_carries_a_file_current_at_its_own_base(tmp_path):
+  later = index._git("rev-parse", "--short=7", "HEAD~1")
+  if later is None or index._git("cat-file", "-e", f"{BASE}^{{commit}}") is None:
+    pytest.skip("this clone lacks the commits (a shallow clone)")
+  later = later.strip()
+  inside = ["nlosjax/train/loop.py", "nlosjax/metrics.py"]
+  at_later = _entry(inside, _digest_at(later, inside))
+  _record(tmp_path)                                        # the record against BASE alone
+  if _digest_at(later, inside) != _digest_at(BASE, inside):
+    assert equivalence.carried_forward(at_later, results=tmp_path) is None
+  _record(tmp_path, base=later, name=f"equivalence_{later}")
+  assert equivalence.records(tmp_path) == ["equivalence", f"equivalence_{later}"]
+  assert equivalence.carried_forward(at_later, results=tmp_path) is not None
+  # A record is never carried by another.
+  assert equivalence.carried_forward(index.Entry(f"equivalence_{later}", "T", "x", "2026", "M", BASE, "0" * 12,
+                                                 tuple(inside)), results=tmp_path) is None
