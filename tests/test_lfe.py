@@ -44,8 +44,8 @@ def hand_interpolation(x):
 
 def test_published_size_is_the_public_parts_count():
   cfg = LFEConfig(setup=TINY, extract_width=3)
-  params = cfg.module().init(jax.random.PRNGKey(0), jnp.zeros(cfg.input_shape()))["params"]
-  assert count_params(params) == 1_095 + 2 * 13_659
+  shapes = jax.eval_shape(cfg.module().init, jax.random.PRNGKey(0), jnp.zeros(cfg.input_shape()))
+  assert count_params(shapes["params"]) == 1_095 + 2 * 13_659
   assert cfg.render_widths == (8, 16)
 
 
@@ -80,22 +80,29 @@ def test_with_the_residual_zeroed_the_intensity_is_lct_of_the_pooled_interpolate
   assert out["transient"].shape == (1, 64, 16, 16)
 
 
-@pytest.mark.parametrize("case", ["zeros", "one_photon", "saturated"])
-def test_extreme_inputs_give_finite_outputs_and_gradients(case):
+@pytest.fixture(scope="module")
+def loss_and_grad():
+  """``(params, jitted (params, frames) -> (loss, grads))`` of a tiny LFE: one compile for every case."""
   cfg = LFEConfig(setup=TINY, extract_width=1)
-  x = np.zeros(cfg.input_shape(), np.float32)
+  net = cfg.module()
+  params = net.init(jax.random.PRNGKey(0), jnp.zeros(cfg.input_shape()))["params"]
+
+  def loss(p, x):
+    out = net.apply({"params": p}, x)
+    return jnp.mean(out["intensity"] ** 2) + jnp.mean(out["depth"] ** 2)
+
+  return params, cfg.input_shape(), jax.jit(jax.value_and_grad(loss))
+
+
+@pytest.mark.parametrize("case", ["zeros", "one_photon", "saturated"])
+def test_extreme_inputs_give_finite_outputs_and_gradients(case, loss_and_grad):
+  params, shape, fn = loss_and_grad
+  x = np.zeros(shape, np.float32)
   if case == "one_photon":
     x[0, 0, 20, 1, 2] = 1.0
   elif case == "saturated":
     x[:] = 1e6
-  net = cfg.module()
-  params = net.init(jax.random.PRNGKey(0), jnp.zeros(cfg.input_shape()))["params"]
-
-  def loss(p):
-    out = net.apply({"params": p}, x)
-    return jnp.mean(out["intensity"] ** 2) + jnp.mean(out["depth"] ** 2)
-
-  value, grads = jax.value_and_grad(loss)(params)
+  value, grads = fn(params, x)
   assert np.isfinite(float(value))
   assert all(np.all(np.isfinite(g)) for g in jax.tree_util.tree_leaves(grads))
 
