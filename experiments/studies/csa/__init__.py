@@ -12,5 +12,5 @@ about 15 s a sequence) is under-scanned at the measured protocol's strides (4:
 ``experiments.real_undersampling`` does. Intensity PSNR against the simulator's
 ground truth, mean and 95 % interval over sequences (:mod:`nlosjax.stats`);
 the chosen ``tau_rel`` per stride is the best mean, and the measured protocol
-(``experiments.real_undersampling.protocol.OPTIONS["csa"]``) takes it.
+(``experiments.real_undersampling.protocol.CSA_TAU_REL``) takes it.
 """
