@@ -40,7 +40,7 @@ FORMAT_VERSION = 1
 PARAMS_FILE = "params.npz"
 PROVENANCE_FILE = "provenance.json"
 #: The trained models a run or weights folder may hold (``nlosjax.inference`` reads them from here).
-VARIANTS = ("ours", "ours_s", "usm")
+VARIANTS = ("ours", "ours_s", "usm", "lfe")
 #: Keys every ``provenance.json`` must hold (:func:`write_weights` sets the first five).
 REQUIRED_KEYS = ("format", "format_version", "name", "variant", "params_sha256", "config",
                  "model_config", "param_fingerprint", "validation")

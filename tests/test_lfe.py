@@ -125,3 +125,35 @@ def test_wrong_frames_and_negative_counts_are_refused():
     net.apply({"params": params}, jnp.zeros((1, 1, 64, 5, 5)))
   with pytest.raises(ValueError):
     net.apply({"params": params}, -np.ones(cfg.input_shape(), np.float32))
+
+
+def test_the_training_loop_builds_lfe_and_one_step_moves_every_learned_part():
+  import optax
+
+  from experiments import cli
+  from nlosjax import losses, train
+  from nlosjax.train.sharding import make_mesh
+  from nlosjax.train.state import create_train_state
+  from nlosjax.train.step import make_train_step
+  config = train.with_defaults({"data": {"input_stride": 4}, "model": {"wavelet_cycles": 4.0},
+                                "train": {"optim": {"learning_rate": 1e-3}},
+                                "lfe": {"model": {"extract_width": 1}, "optim": {"learning_rate": 3e-4}}})
+  mcfg = train.model_config_for(config, TINY, "lfe")
+  assert mcfg == LFEConfig(setup=TINY, stride=4, extract_width=1, wavelet_cycles=4.0)
+  assert train.training_recipe(config, "lfe")[0].learning_rate == 3e-4
+  assert train.training_recipe(config, "ours")[0].learning_rate == 1e-3
+  assert cli._schema(("lfe", "model"))[0] >= {"extract_width", "physics", "lct_snr"}
+  weights = losses.LossWeights()
+  state = create_train_state(mcfg.module(), mcfg.input_shape(2), optax.adam(1e-2), jax.random.PRNGKey(0),
+                             make_mesh())
+  before = jax.device_get(state.params)
+  rng = np.random.default_rng(0)
+  batch = {"measurement": np.concatenate([scene(0), scene(1)]).astype(np.float32),
+           "transient": rng.poisson(1.0, (2, 64, 16, 16)).astype(np.float32),
+           "intensity": rng.uniform(size=(2, 16, 16)).astype(np.float32),
+           "depth": rng.uniform(0.3, 1.0, (2, 16, 16)).astype(np.float32)}
+  state, metrics = make_train_step(mcfg, weights, make_mesh())(state, batch, jax.random.PRNGKey(1))
+  assert np.isfinite(float(metrics["loss"]))
+  moved = jax.tree_util.tree_map(lambda a, b: bool(np.any(a != b)), before, jax.device_get(state.params))
+  assert all(jax.tree_util.tree_leaves(moved["render_intensity"]))
+  assert all(jax.tree_util.tree_leaves(moved["extract"]))

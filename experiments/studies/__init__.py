@@ -9,6 +9,6 @@ tree.
 * :mod:`experiments.studies.real_preset` -- the ``real`` preset's candidate data
   trained to their validation plateau, across working stretches.
 * :mod:`experiments.studies.csa` -- CSA's prior weight chosen on simulated
-  validation sequences (``pending-dispatch.patch``: CSA's place in
-  ``physics.reconstruct`` and the CLI, applied with the measured-protocol rerun).
+  validation sequences (``tau-rel-help.patch``: ``--tau-rel``'s help corrected, to be
+  applied with the next rerun of the measured protocol, whose results it stales).
 """

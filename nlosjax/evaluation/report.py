@@ -22,9 +22,10 @@ __all__ = ["METHOD_LABELS", "TABLE_METHODS", "METRIC_LABELS", "label", "format_t
            "format_comparisons", "format_choices"]
 
 METHOD_LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "RSD",
-                 "csa": "CSA", "ours_s": "Ours-S", "ours": "Ours", "usm": "USM"}
+                 "csa": "CSA", "lfe": "LFE", "ours_s": "Ours-S", "ours": "Ours",
+                 "usm": "USM"}
 #: Row order of every table.
-TABLE_METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "usm", "ours_s", "ours")
+TABLE_METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "lfe", "usm", "ours_s", "ours")
 METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2),
                  "psnr_zero": ("all-zero image's PSNR", "dB", 2),
                  "intensity_mae_object": ("object intensity error", "", 3), "ssim": ("intensity SSIM", "", 3),

@@ -42,7 +42,6 @@ scan, as the paper's protocol feeds every baseline not made for sparse scans.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import flax.linen as nn
 import jax
@@ -51,12 +50,9 @@ import numpy as np
 
 from nlosjax.models import blocks, physics_layer
 from nlosjax.models.network import INPUT_NORMS, ScanInputConfig, input_scale
-
-# USM's min-max normalisation and x2 upsampling are private there; making them public edits
-# usm.py, which every trained result's code digest covers: it waits for the next closure batch.
-from nlosjax.models.usm import Extraction, Rendering, _minmax, _upsample2, half_setup
+from nlosjax.models.usm import Extraction, HalfResolutionShapes, minmax_normalise, project_and_render
 from nlosjax.physics import _validate
-from nlosjax.physics.operators import check_falloff, lct_domain
+from nlosjax.physics.operators import check_falloff
 from nlosjax.physics.setup import Setup
 
 __all__ = ["LFEConfig", "LFENet", "PHYSICS", "interpolate_scan"]
@@ -66,7 +62,7 @@ PHYSICS = ("lct", "phasor")
 
 
 @dataclasses.dataclass(frozen=True)
-class LFEConfig(ScanInputConfig):
+class LFEConfig(HalfResolutionShapes, ScanInputConfig):
   """Every hyper-parameter of :class:`LFENet` (frozen, hashable).
 
   Attributes:
@@ -121,34 +117,10 @@ class LFEConfig(ScanInputConfig):
     return LFENet(self)
 
   @property
-  def channels(self) -> int:
-    """``C``: feature channels through the transform (the pooled transient + ``extract_width``)."""
-    return 1 + int(self.extract_width)
-
-  @property
   def render_widths(self) -> tuple[int, int]:
     """The rendering heads' conv widths, ``(2 C, 4 C)`` (LFE's ``nf0`` and ``2 nf0``)."""
     return (2 * self.channels, 4 * self.channels)
 
-  @property
-  def time_window(self) -> tuple[int, int]:
-    """``(0, T)``: LFE reads every bin."""
-    return (0, self.setup.num_bins)
-
-  # What nlosjax.inference.adapt_to_capture reads: time is halved once, before the transform.
-  extract_time_stride = 1
-  volume_time_stride = 2
-
-  @property
-  def coarse_setup(self) -> Setup:
-    """The Setup of the transform: :func:`~nlosjax.models.usm.half_setup` of ``setup``."""
-    return half_setup(self.setup)
-
-  def analytic_flops(self, batch: int) -> tuple[float, float]:
-    """``(fft, 0)``: FLOPs of the transform's FFTs (``2.5 N log2 N`` per real FFT), no scan."""
-    dom = lct_domain(self.coarse_setup, fft_length=physics_layer.physics_fft_length(self.physics))
-    n = math.prod(dom.fft_shape)
-    return batch * self.channels * 2 * 2.5 * n * math.log2(n), 0.0
 
 
 def interpolate_scan(x: jax.Array, grid: tuple[int, int], stride: int) -> jax.Array:
@@ -196,20 +168,13 @@ class LFENet(nn.Module):
     x = jnp.asarray(frames, jnp.float32)[:, 0]                          # [B, T, h, w]
     scale = input_scale(x, cfg.input_norm)
     dense = interpolate_scan(x / scale[:, None, None, None], cfg.setup.grid, cfg.stride)
-    feats = Extraction(cfg.extract_width, name="extract")(_minmax(dense, (1, 2, 3)))
+    feats = Extraction(cfg.extract_width, name="extract")(minmax_normalise(dense, (1, 2, 3)))
     coarse = cfg.coarse_setup
     transform = physics_layer.FeatureTransform(
         coarse, cfg.physics, snr=cfg.lct_snr, falloff=cfg.falloff, cycles=cfg.wavelet_cycles,
         sampling_coeff=cfg.wavelet_sampling, name="transform")
     a, b = transform.window()
-    vol = _minmax(transform(feats[:, a:b], time_offset=a), (1, 2, 3))   # [B, Zc, h2, w2, C]
-    z = vol.shape[1]
-    inten_f = jnp.max(vol, axis=1)                                      # [B, h2, w2, C]
-    arg = jax.lax.stop_gradient(jnp.argmax(vol, axis=1)).astype(jnp.float32)
-    proj = jnp.concatenate([inten_f, (z - 1 - arg) / max(z - 1, 1)], axis=-1)
-    intensity = Rendering(cfg.render_widths, "intensity", name="render_intensity")(proj)
-    depth = Rendering(cfg.render_widths, "depth", name="render_depth")(proj)
-    v0 = physics_layer.resample_depth(vol[..., 0], coarse, cfg.setup)   # [B, Z, h2, w2]
-    volume = jnp.moveaxis(_upsample2(jnp.moveaxis(v0, 1, -1)), -1, 1)
+    vol = minmax_normalise(transform(feats[:, a:b], time_offset=a), (1, 2, 3))   # [B, Zc, h2, w2, C]
+    intensity, depth, volume = project_and_render(vol, cfg.render_widths, coarse, cfg.setup)
     return {"transient": dense, "volume": volume, "feature_volume": vol,
             "intensity": jnp.clip(intensity, 0.0, 1.0), "depth": depth, "scale": scale}

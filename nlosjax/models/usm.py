@@ -78,8 +78,9 @@ from nlosjax.physics import _validate
 from nlosjax.physics.operators import check_falloff, lct_domain
 from nlosjax.physics.setup import Setup
 
-__all__ = ["USMConfig", "USMNet", "zero_fill", "scan_mask", "half_setup", "PUBLISHED_OPTIM",
-           "PUBLISHED_LOSS"]
+__all__ = ["USMConfig", "USMNet", "zero_fill", "scan_mask", "half_setup", "minmax_normalise", "upsample2",
+           "project_and_render", "HalfResolutionShapes",
+           "PUBLISHED_OPTIM", "PUBLISHED_LOSS"]
 
 #: USM's optimiser (train.sh): AdamW, lr 1e-4, weight decay 1e-4, no schedule, no clipping
 #: (fields of :class:`nlosjax.train.OptimConfig`).
@@ -106,8 +107,42 @@ def _positive_ints(value, name: str) -> tuple[int, ...]:
   return out
 
 
+class HalfResolutionShapes:
+  """Shapes of a network that halves time and space once before its physics layer (USM, LFE).
+
+  Needs ``setup`` and ``extract_width``; ``physics`` names the layer's method ("lct" unless
+  the config has the field).
+  """
+
+  physics = "lct"
+  # What nlosjax.inference.adapt_to_capture reads: time is halved once, before the physics layer.
+  extract_time_stride = 1
+  volume_time_stride = 2
+
+  @property
+  def channels(self) -> int:
+    """``C``: feature channels through the physics layer (the pooled transient + ``extract_width``)."""
+    return 1 + int(self.extract_width)
+
+  @property
+  def time_window(self) -> tuple[int, int]:
+    """``(0, T)``: every bin is read."""
+    return (0, self.setup.num_bins)
+
+  @property
+  def coarse_setup(self) -> Setup:
+    """The Setup of the physics layer: :func:`half_setup` of ``setup``."""
+    return half_setup(self.setup)
+
+  def analytic_flops(self, batch: int) -> tuple[float, float]:
+    """``(fft, 0)``: FLOPs of the physics layer's FFTs (``2.5 N log2 N`` per real FFT), no scan."""
+    dom = lct_domain(self.coarse_setup, fft_length=physics_layer.physics_fft_length(self.physics))
+    n = math.prod(dom.fft_shape)
+    return batch * self.channels * 2 * 2.5 * n * math.log2(n), 0.0
+
+
 @dataclasses.dataclass(frozen=True)
-class USMConfig(ScanInputConfig):
+class USMConfig(HalfResolutionShapes, ScanInputConfig):
   """Every hyper-parameter of :class:`USMNet` (frozen, hashable).
 
   Attributes:
@@ -195,31 +230,6 @@ class USMConfig(ScanInputConfig):
     """The Flax module of this config."""
     return USMNet(self)
 
-  # --------------------------------------------------------------- shapes
-  @property
-  def channels(self) -> int:
-    """``C``: feature channels through the LCT layer (the pooled transient + ``extract_width``)."""
-    return 1 + int(self.extract_width)
-
-  @property
-  def time_window(self) -> tuple[int, int]:
-    """``(0, T)``: USM reads and recovers every bin."""
-    return (0, self.setup.num_bins)
-
-  # What nlosjax.inference.adapt_to_capture reads: time is halved once, before the LCT layer.
-  extract_time_stride = 1
-  volume_time_stride = 2
-
-  @property
-  def coarse_setup(self) -> Setup:
-    """The Setup of the LCT layer: :func:`half_setup` of ``setup``."""
-    return half_setup(self.setup)
-
-  def analytic_flops(self, batch: int) -> tuple[float, float]:
-    """``(fft, 0)``: FLOPs of the LCT layer's FFTs (``2.5 N log2 N`` per real FFT), no scan."""
-    dom = lct_domain(self.coarse_setup, fft_length=physics_layer.physics_fft_length("lct"))
-    n = math.prod(dom.fft_shape)
-    return batch * self.channels * 2 * 2.5 * n * math.log2(n), 0.0
 
 
 def half_setup(setup: Setup) -> Setup:
@@ -269,7 +279,7 @@ def _nearest_fill(x: jax.Array, grid: tuple[int, int], stride: int) -> jax.Array
   return x[..., ri, :][..., ci]
 
 
-def _minmax(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+def minmax_normalise(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
   """``(x - min) / (max - min)`` over ``axes`` (USM ``normalize``), guarded against a flat input."""
   lo = jnp.min(x, axis=axes, keepdims=True)
   hi = jnp.max(x, axis=axes, keepdims=True)
@@ -312,7 +322,7 @@ def _reflect_conv(features: int, name: str):
   return lambda x: conv(jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="reflect"))
 
 
-def _upsample2(x: jax.Array) -> jax.Array:
+def upsample2(x: jax.Array) -> jax.Array:
   """Bilinear x2 with half-pixel centres (PyTorch ``align_corners=False``): ``[N, h, w, C] -> [N, 2h, 2w, C]``."""
   n, h, w, c = x.shape
   return jax.image.resize(x, (n, 2 * h, 2 * w, c), "linear")
@@ -384,16 +394,37 @@ class Rendering(nn.Module):
     pair = jnp.stack([feats[..., 0], feats[..., c]], axis=-1)          # [N, h, w, 2]
     init = np.array([[1.0], [0.0]] if self.base == "intensity" else [[0.0], [1.0]], np.float32)
     w_base = self.param("base", lambda *_: jnp.asarray(init), (2, 1))
-    base = _upsample2(pair) @ w_base                                    # [N, H, W, 1]
+    base = upsample2(pair) @ w_base                                    # [N, H, W, 1]
     y = _reflect_conv(self.widths[0], "conv0")(feats)
     for i in range(2):
       y = ResConv2D(name=f"res0_{i}")(y)
-    y = jnp.concatenate([_upsample2(y), base], axis=-1)
+    y = jnp.concatenate([upsample2(y), base], axis=-1)
     y = _reflect_conv(self.widths[1], "conv1")(y)
     for i in range(2):
       y = ResConv2D(name=f"res1_{i}")(y)
     y = _reflect_conv(1, "conv2")(y)
     return (base + y)[..., 0]
+
+
+def project_and_render(vol: jax.Array, render_widths: tuple[int, int], coarse: Setup, setup: Setup):
+  """The heads USM and LFE share: ``vol [B, Zc, h2, w2, C]`` on ``coarse`` -> ``(intensity, depth, volume)``.
+
+  Projection (max over depth: ``C`` intensity features; ``(Z - 1 - argmax) / (Z - 1)``:
+  ``C`` depth features, no gradient through argmax), the two :class:`Rendering` heads
+  (``[B, H, W]`` each; submodules ``render_intensity`` and ``render_depth`` of the
+  calling module, so call it inside a compact ``__call__``), and ``relu(vol[..., 0])``
+  on ``setup.depths`` and the full grid (``[B, Z, H, W]``, bilinear x2).
+  """
+  z = vol.shape[1]
+  inten_f = jnp.max(vol, axis=1)                                        # [B, h2, w2, C]
+  arg = jax.lax.stop_gradient(jnp.argmax(vol, axis=1)).astype(jnp.float32)
+  depth_f = (z - 1 - arg) / max(z - 1, 1)
+  proj = jnp.concatenate([inten_f, depth_f], axis=-1)                   # [B, h2, w2, 2C]
+  intensity = Rendering(render_widths, "intensity", name="render_intensity")(proj)
+  depth = Rendering(render_widths, "depth", name="render_depth")(proj)
+  v0 = jnp.maximum(vol[..., 0], 0.0)                                    # [B, Zc, h2, w2]
+  v0 = physics_layer.resample_depth(v0, coarse, setup)                  # [B, Z, h2, w2]
+  return intensity, depth, jnp.moveaxis(upsample2(jnp.moveaxis(v0, 1, -1)), -1, 1)
 
 
 class USMNet(nn.Module):
@@ -434,26 +465,17 @@ class USMNet(nn.Module):
     scale = input_scale(x, cfg.input_norm)
     x = x / scale[:, None, None, None]
     transient = TransientRecovery(cfg, name="trn")(zero_fill(x, (H, W), cfg.stride), x)
-    feats = Extraction(cfg.extract_width, name="extract")(_minmax(transient, (1, 2, 3)))
+    feats = Extraction(cfg.extract_width, name="extract")(minmax_normalise(transient, (1, 2, 3)))
     coarse = cfg.coarse_setup
     transform = physics_layer.FeatureTransform(coarse, "lct", snr=cfg.lct_snr, falloff=cfg.falloff,
                                         name="lct")
     a, b = transform.window()
     vol = transform(feats[:, a:b], time_offset=a)                       # [B, Zc, h2, w2, C]
-    vol = _minmax(vol, (1, 2, 3))
+    vol = minmax_normalise(vol, (1, 2, 3))
     for i, (width, k) in enumerate(cfg.refine):
       vol = _lrelu(conv.Conv3D(width, (k, k, k), name=f"refine{i}")(vol))
       vol = ResConv3D(name=f"refine{i}_res")(vol)
-    z = vol.shape[1]
-    inten_f = jnp.max(vol, axis=1)                                      # [B, h2, w2, C]
-    arg = jax.lax.stop_gradient(jnp.argmax(vol, axis=1)).astype(jnp.float32)
-    depth_f = (z - 1 - arg) / max(z - 1, 1)
-    proj = jnp.concatenate([inten_f, depth_f], axis=-1)                 # [B, h2, w2, 2C]
-    intensity = Rendering(cfg.render_widths, "intensity", name="render_intensity")(proj)
-    depth = Rendering(cfg.render_widths, "depth", name="render_depth")(proj)
-    v0 = jnp.maximum(vol[..., 0], 0.0)                                  # [B, Zc, h2, w2]
-    v0 = physics_layer.resample_depth(v0, coarse, cfg.setup)                   # [B, Z, h2, w2]
-    volume = _upsample2(jnp.moveaxis(v0, 1, -1))
-    return {"transient": transient, "volume": jnp.moveaxis(volume, -1, 1),
+    intensity, depth, volume = project_and_render(vol, cfg.render_widths, coarse, cfg.setup)
+    return {"transient": transient, "volume": volume,
             "feature_volume": vol, "intensity": intensity, "depth": depth, "scale": scale}
 

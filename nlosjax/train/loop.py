@@ -26,7 +26,7 @@ from nlosjax.train.state import TrainState, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_train_step
 from nlosjax.train.stopping import BEST_FOLDER, PlateauTracker, StopRule
 
-VARIANT_FRAMES = {"ours": 3, "ours_s": 1, "usm": 1}
+VARIANT_FRAMES = {"ours": 3, "ours_s": 1, "usm": 1, "lfe": 1}
 #: USM's training recipes (``config["usm"]["recipe"]``): "ours" trains it with the config's
 #: ``train.optim`` and ``train.loss`` (Ours' recipe, the like-for-like default); "published"
 #: with USM's own (:data:`nlosjax.models.usm.PUBLISHED_OPTIM`, ``PUBLISHED_LOSS``).
@@ -64,23 +64,25 @@ def model_config_for(config: dict, setup, variant: str):
 
   ``"ours"`` / ``"ours_s"``: a :class:`~nlosjax.models.network.ModelConfig` from
   ``config["model"]``; ``"usm"``: a :class:`~nlosjax.models.usm.USMConfig`
-  from ``config["usm"]["model"]`` (USM's published widths where absent). USM's
-  phasor-field loss wavelet (``wavelet_cycles``, ``wavelet_sampling``) is Ours'
-  from ``config["model"]`` unless ``config["usm"]["model"]`` sets it, so both
+  from ``config["usm"]["model"]`` (USM's published widths where absent); ``"lfe"``:
+  a :class:`~nlosjax.models.lfe.LFEConfig` from ``config["lfe"]["model"]``. The
+  baselines' phasor-field loss wavelet (``wavelet_cycles``, ``wavelet_sampling``) is Ours'
+  from ``config["model"]`` unless their own ``model`` section sets it, so all
   train with the same loss (and a preset that needs a longer wavelet for its
   bins, as ``real``, gives USM one too).
   """
   from nlosjax.models.network import ModelConfig
   if variant not in VARIANT_FRAMES:
     raise ValueError(f"variant must be one of {tuple(VARIANT_FRAMES)}, got {variant!r}")
-  if variant == "usm":
+  if variant in ("usm", "lfe"):
+    from nlosjax.models.lfe import LFEConfig
     from nlosjax.models.usm import USMConfig
-    usm = config.get("usm", {})
-    usm_model = dict(usm.get("model", {}))
+    baseline = dict(config.get(variant, {}).get("model", {}))
     for key in ("wavelet_cycles", "wavelet_sampling"):
       if key in config.get("model", {}):
-        usm_model.setdefault(key, config["model"][key])
-    return USMConfig(setup=setup, stride=int(config["data"]["input_stride"]), **usm_model)
+        baseline.setdefault(key, config["model"][key])
+    cls = USMConfig if variant == "usm" else LFEConfig
+    return cls(setup=setup, stride=int(config["data"]["input_stride"]), **baseline)
   overrides = dict(config.get("model", {}))
   overrides["frames"] = VARIANT_FRAMES[variant]
   return ModelConfig(setup=setup, stride=int(config["data"]["input_stride"]), **overrides)
@@ -382,6 +384,8 @@ def training_recipe(config: dict, variant: str) -> tuple[OptimConfig, losses.Los
       from nlosjax.models.usm import PUBLISHED_LOSS, PUBLISHED_OPTIM
       return OptimConfig(**PUBLISHED_OPTIM), losses.LossWeights(**PUBLISHED_LOSS)
     optim.update(usm.get("optim", {}))
+  if variant == "lfe":     # Ours' recipe; LFE's "transient" is its input: those terms are constant
+    optim.update(config.get("lfe", {}).get("optim", {}))
   return OptimConfig(**optim), losses.LossWeights(**tr.get("loss", {}))
 
 
