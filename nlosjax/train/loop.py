@@ -227,14 +227,18 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   imported_best = None
   exported = read_meta(export.folder(name)) if export is not None else None
   if exported is not None and exported["step"] > start and primary:
-    state, imported_best, _ = import_state(export.folder(name), state, signature=signature, model=mcfg,
-                                           data_digest=export.data_digest,
-                                           allow_data_change=export.allow_data_change)
+    state, imported_best, meta = import_state(export.folder(name), state, signature=signature, model=mcfg,
+                                              data_digest=export.data_digest,
+                                              data_fingerprint=export.data_fingerprint,
+                                              allow_data_change=export.allow_data_change)
     start = int(state.step)
     copy_logs(export.folder(name), vdir)
     ckpt.save(state, start, force=True)
     ckpt.wait()
-    log(f"[{variant}] resumed from step {start} of the exported state {export.folder(name)}")
+    data = {"digest": "", "allowed change": "; on other data (--allow-data-change)"}.get(
+        meta["data_check"], f"; data regenerated with another rounding (fingerprint within "
+        f"{meta['data_check'].split()[-1]} of its mass)")
+    log(f"[{variant}] resumed from step {start} of the exported state {export.folder(name)}{data}")
   elif exported is not None and exported["step"] > start:
     raise ValueError("resuming from an exported state needs a single process; resume once with one, "
                      "then continue with several")
@@ -269,7 +273,8 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
       best_state = current if best_step == int(current.step) else tracker.best_state(current)
     export_state(export.folder(name), vdir, to_host(current), signature=signature,
                  best=None if best_state is None else to_host(best_state),
-                 best_step=best_step, data_digest=export.data_digest)
+                 best_step=best_step, data_digest=export.data_digest,
+                 data_fingerprint=export.data_fingerprint)
     exported_best["step"] = best_step
 
   t_start = time.perf_counter()

@@ -11,7 +11,15 @@ what a resume needs into a folder of its own, rewritten at every checkpoint:
   model folder's files (the plateau rule's state is its curve);
 * ``run_state.json``: the step, the best step, the run signature
   (:func:`~nlosjax.train.checkpoint.run_signature`), the training data's content
-  digest (:func:`nlosjax.data.dataset.dataset_digest`) and when it was written.
+  digest (:func:`nlosjax.data.dataset.dataset_digest`) and when it was written;
+* ``data_fingerprint.json``: the training data summarised so that float rounding
+  leaves it within tolerance (:func:`nlosjax.data.dataset.dataset_fingerprint`).
+
+Data regenerated from their spec on another CPU model round differently (XLA:CPU's
+vector width), so their digest differs. A resume is taken when the digest matches, or
+when the fingerprint is within :data:`~nlosjax.data.dataset.FINGERPRINT_RTOL` of the
+recorded one (the same data, rounded otherwise: the log says by how much); other data
+are refused unless ``allow_data_change``.
 
 The loader's position is the step (:meth:`~nlosjax.data.dataset.TripletLoader.batch`
 is a function of the step) and the step's PRNG key is folded in from the run's seed,
@@ -35,11 +43,13 @@ import time
 import jax
 import numpy as np
 
+from nlosjax.data.dataset import fingerprint_differences, fingerprint_distance
 from nlosjax.train.checkpoint import signature_differences
 
 STATE_FILE = "state.npz"
 BEST_FILE = "best.npz"
 META_FILE = "run_state.json"
+FINGERPRINT_FILE = "data_fingerprint.json"
 #: The model folder's files mirrored into the export (those present).
 COPIED = ("validation_curve.json", "metrics.jsonl", "selection.json")
 
@@ -60,7 +70,10 @@ class StateExport:
     directory: the export root; each model folder of the run gets a sub-folder
       of the same name (``directory/ours``, ``directory/ours_s-seed1``, ...).
     data_digest: the training data's content digest, recorded and, on resume,
-      required to match (None: not checked).
+      required to match (None: not checked) unless ``data_fingerprint`` is within rounding.
+    data_fingerprint: the training data's :func:`~nlosjax.data.dataset.dataset_fingerprint`,
+      recorded and, on resume where the digest differs, required within rounding of the
+      recorded one (None: not recorded, and a differing digest is refused).
     deadline: ``time.time()`` after which training saves, exports and raises
       :class:`TrainingPaused` at the end of the current step (None: never).
     allow_data_change: resume even when the data digest differs (the run record says so).
@@ -68,6 +81,7 @@ class StateExport:
 
   directory: pathlib.Path
   data_digest: str | None = None
+  data_fingerprint: dict | None = None
   deadline: float | None = None
   allow_data_change: bool = False
 
@@ -141,7 +155,7 @@ def read_meta(folder) -> dict | None:
 
 
 def export_state(folder, model_dir, state, *, signature: str, best=None, best_step: int | None = None,
-                 data_digest: str | None = None) -> dict:
+                 data_digest: str | None = None, data_fingerprint: dict | None = None) -> dict:
   """Write ``state`` (and ``best``) with the model folder's logs to ``folder``; returns the metadata.
 
   Args:
@@ -154,6 +168,8 @@ def export_state(folder, model_dir, state, *, signature: str, best=None, best_st
       step must then be ``best_step``).
     best_step: the step of the best state (None: no validation yet).
     data_digest: the training data's content digest.
+    data_fingerprint: the training data's fingerprint (written as :data:`FINGERPRINT_FILE`
+      when given and not already there with the same content).
   The metadata file is written last, so a kill leaves the previous export readable
   (its ``state.npz`` may then be newer than its metadata: the metadata's step is read
   back from the arrays on import, and a mismatch is refused).
@@ -173,6 +189,8 @@ def export_state(folder, model_dir, state, *, signature: str, best=None, best_st
       tmp = folder / (name + ".tmp")
       shutil.copyfile(src, tmp)
       os.replace(tmp, folder / name)
+  if data_fingerprint is not None and read_fingerprint(folder) != data_fingerprint:
+    _write_json(folder / FINGERPRINT_FILE, data_fingerprint)
   meta = {"step": int(state.step), "best_step": None if best_step is None else int(best_step),
           "signature": json.loads(signature), "data_digest": data_digest,
           "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
@@ -180,8 +198,43 @@ def export_state(folder, model_dir, state, *, signature: str, best=None, best_st
   return meta
 
 
+def read_fingerprint(folder) -> dict | None:
+  """An exported model folder's recorded data fingerprint, or None when it has none."""
+  path = pathlib.Path(folder) / FINGERPRINT_FILE
+  return json.loads(path.read_text()) if path.exists() else None
+
+
+def check_data(folder, meta: dict, data_digest: str | None, data_fingerprint: dict | None,
+               allow_data_change: bool = False) -> str:
+  """Whether this run's data are those an export was trained on; returns how that was decided.
+
+  Returns ``"digest"`` (same content digest, or nothing to compare), ``"rounding <d>"`` (digests
+  differ, fingerprints within :data:`~nlosjax.data.dataset.FINGERPRINT_RTOL`; ``d`` the largest
+  relative cell difference) or ``"allowed change"`` (``allow_data_change``, other data).
+  Raises ValueError naming the digests and the fingerprint's differences otherwise.
+  """
+  recorded = meta.get("data_digest")
+  if not recorded or not data_digest or recorded == data_digest:
+    return "digest"
+  fingerprint = read_fingerprint(folder)
+  if fingerprint is not None and data_fingerprint is not None:
+    differ = fingerprint_differences(fingerprint, data_fingerprint)
+    if not differ:
+      return f"rounding {fingerprint_distance(fingerprint, data_fingerprint):.2g}"
+    why = "their fingerprints differ beyond rounding:\n  " + "\n  ".join(differ)
+  elif fingerprint is None:
+    why = f"the export records no data fingerprint ({FINGERPRINT_FILE}) to tell rounding from other data"
+  else:
+    why = "this run computed no data fingerprint to compare"
+  if allow_data_change:
+    return "allowed change"
+  raise ValueError(f"exported state {folder} was trained on data with content digest {recorded}, "
+                   f"but this run's data have {data_digest}; pass --allow-data-change to resume on "
+                   f"these data anyway. Not taken as a rounding difference: {why}")
+
+
 def import_state(folder, template, *, signature: str, model=None, data_digest: str | None = None,
-                 allow_data_change: bool = False):
+                 data_fingerprint: dict | None = None, allow_data_change: bool = False):
   """``(state, best or None, meta)`` from an export folder, checked against this run.
 
   Args:
@@ -190,7 +243,10 @@ def import_state(folder, template, *, signature: str, model=None, data_digest: s
     signature: this run's signature; differences are refused as a checkpoint's are
       (:func:`~nlosjax.train.checkpoint.signature_differences`, with ``model``).
     data_digest: this run's data digest; a recorded digest that differs is
-      refused unless ``allow_data_change``.
+      refused unless ``data_fingerprint`` is within rounding of the recorded one
+      (:func:`check_data`) or ``allow_data_change``.
+    data_fingerprint: this run's data fingerprint.
+  Returns the metadata with ``"data_check"`` added: how the data were accepted (:func:`check_data`).
   Raises ValueError naming what differs.
   """
   folder = pathlib.Path(folder)
@@ -201,11 +257,7 @@ def import_state(folder, template, *, signature: str, model=None, data_digest: s
   if differ:
     raise ValueError(f"exported state {folder} was trained under another run signature:\n  "
                      + "\n  ".join(differ) + "\nuse another export folder or the matching config")
-  recorded = meta.get("data_digest")
-  if recorded and data_digest and recorded != data_digest and not allow_data_change:
-    raise ValueError(f"exported state {folder} was trained on data with content digest {recorded}, "
-                     f"but this run's data have {data_digest} (regenerated differently?); pass "
-                     "--allow-data-change to resume on these data anyway")
+  meta = {**meta, "data_check": check_data(folder, meta, data_digest, data_fingerprint, allow_data_change)}
   state = _load_npz(folder / STATE_FILE, template)
   if int(state.step) != int(meta["step"]):
     raise ValueError(f"{folder}: {STATE_FILE} holds step {int(state.step)} but {META_FILE} says "

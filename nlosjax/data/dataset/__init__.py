@@ -32,12 +32,16 @@ The code, one concern per module; every name is importable from
 
 from nlosjax.data.dataset.file import (
   DATASETS,
+  FINGERPRINT_RTOL,
   FORMAT_NAME,
   FORMAT_VERSION,
   DynamicDataset,
   WriteResult,
   dataset_digest,
+  dataset_fingerprint,
   extend_dataset,
+  fingerprint_differences,
+  fingerprint_distance,
   open_dataset,
   write_dataset,
 )
@@ -60,6 +64,10 @@ __all__ = [
     "ForwardModel",
     "PhysicsMix",
     "dataset_digest",
+    "dataset_fingerprint",
+    "fingerprint_differences",
+    "fingerprint_distance",
+    "FINGERPRINT_RTOL",
     "TripletLoader",
     "WriteResult",
     "open_dataset",

@@ -496,3 +496,87 @@ def dataset_digest(path, *, chunk_bytes: int = 1 << 24) -> str:
       for i in range(0, ds.shape[0], step):
         h.update(np.ascontiguousarray(ds[i:i + step]).tobytes())
   return h.hexdigest()[:16]
+
+
+#: How far a regenerated file's :func:`dataset_fingerprint` may stand from a recorded one and still be
+#: taken as the same data: each cell sum within this fraction of its array's L1 mass. Regenerating the
+#: ``cpu`` preset's data at the tests' size with XLA:CPU's SSE4.2 code against its AVX-512/AVX2 code
+#: moved cell sums by at most 2.1e-7 of that mass (a few noise-free values by float rounding); any
+#: change of spec, seed or generator moves them by percent (``tests/test_data_fingerprint.py``).
+FINGERPRINT_RTOL = 1e-4
+
+
+def _cell_sums(x: np.ndarray, parts: int) -> list[float]:
+  """Sums of ``x`` (float64) over a grid of ``min(parts, n)`` slabs per axis, in C order."""
+  x = np.asarray(x, np.float64)
+  if x.ndim == 0:
+    return [float(x)]
+  for axis in range(x.ndim):
+    n = x.shape[axis]
+    edges = np.linspace(0, n, min(parts, n) + 1).round().astype(int)[:-1] if n else np.zeros(1, int)
+    x = np.add.reduceat(x, edges, axis=axis) if n else np.zeros(x.shape[:axis] + (1,) + x.shape[axis + 1:])
+  return [float(v) for v in x.ravel()]
+
+
+def dataset_fingerprint(path, *, parts: int = 2) -> dict[str, dict]:
+  """A dataset file's content summarised so that float rounding does not change it beyond tolerance.
+
+  :func:`dataset_digest` names exact content, and XLA:CPU rounds differently on another CPU
+  model (another vector width), so a file regenerated there from the same spec has another
+  digest. This summary tells "the same data, rounded differently" from "other data": for each
+  numeric array (each sequence's ``measurement``, ``clean``, ``intensity``, ...), its shape, its
+  L1 mass ``sum |x|`` and its sums over ``parts`` slabs along every axis (16 cells for a
+  ``[F, T, H, W]`` array), all in float64. Compare two with :func:`fingerprint_differences`.
+
+  Returns:
+    ``{array path: {"shape": [...], "mass": float, "cells": [float, ...]}}``, JSON-ready
+    (about 20 numbers an array).
+  """
+  out = {}
+  with h5py.File(pathlib.Path(path), "r") as f:
+    names = []
+    f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+    for name in sorted(names):
+      ds = f[name]
+      if ds.dtype.kind not in "biuf":
+        continue
+      x = np.asarray(ds[()])
+      out[name] = {"shape": list(x.shape), "mass": float(np.abs(x, dtype=np.float64).sum()),
+                   "cells": _cell_sums(x, parts)}
+  return out
+
+
+def _relative_difference(a: dict, b: dict) -> float:
+  """The largest cell (or mass) difference of two fingerprints of one array over the larger L1 mass."""
+  scale = max(float(a["mass"]), float(b["mass"]))
+  diff = max([abs(float(x) - float(y)) for x, y in zip(a["cells"], b["cells"])]
+             + [abs(float(a["mass"]) - float(b["mass"]))])
+  return diff / scale if scale > 0 else (0.0 if diff == 0 else math.inf)
+
+
+def fingerprint_differences(recorded: dict, current: dict, *, rtol: float = FINGERPRINT_RTOL) -> list[str]:
+  """What tells ``current`` (a :func:`dataset_fingerprint`) from ``recorded`` beyond float rounding.
+
+  An array missing or added, a shape that differs, or a cell sum that differs by more than
+  ``rtol`` times the array's L1 mass (the larger of the two) is named, worst first (at most
+  eight lines). An empty list: the same data up to rounding.
+  """
+  if not rtol >= 0:
+    raise ValueError(f"rtol must be >= 0, got {rtol}")
+  lines = [f"{name}: recorded, not in these data" for name in sorted(set(recorded) - set(current))]
+  lines += [f"{name}: in these data, not recorded" for name in sorted(set(current) - set(recorded))]
+  worst = []
+  for name in sorted(set(recorded) & set(current)):
+    a, b = recorded[name], current[name]
+    if list(a["shape"]) != list(b["shape"]) or len(a["cells"]) != len(b["cells"]):
+      lines.append(f"{name}: shape {list(a['shape'])} recorded, {list(b['shape'])} now")
+    elif (rel := _relative_difference(a, b)) > rtol:
+      worst.append((rel, f"{name}: cell sums differ by {rel:.3g} of its L1 mass (tolerance {rtol:g})"))
+  lines += [text for _, text in sorted(worst, reverse=True)]
+  return lines[:8] + ([f"... and {len(lines) - 8} more"] if len(lines) > 8 else [])
+
+
+def fingerprint_distance(recorded: dict, current: dict) -> float:
+  """The largest cell difference over the arrays both fingerprints hold, relative to L1 mass (0: none)."""
+  common = [n for n in set(recorded) & set(current) if len(recorded[n]["cells"]) == len(current[n]["cells"])]
+  return max((_relative_difference(recorded[n], current[n]) for n in common), default=0.0)
