@@ -1,6 +1,6 @@
 """Results carried forward: does a code change move any number the results files are made of?
 
-    python -m benchmarks.equivalence --base COMMIT [--out benchmarks/results/equivalence.md]
+    python -m benchmarks.equivalence --base COMMIT [COMMIT ...] [--out FILE ...]
 
 Runs the fixed probes of :mod:`benchmarks.equivalence_probe` (tiny datasets of every
 renderer family, three train steps of Ours-S, Ours and USM, the evaluation protocol,
@@ -19,9 +19,10 @@ ones measured, with their commit; the index names this check beside them. A chan
 moves a probe beyond the tolerance carries nothing: those files are regenerated, or a
 study's seed is retrained at the new code and shown to land inside its interval.
 
-Records against several bases may stand side by side (``--out
-benchmarks/results/equivalence_<COMMIT>.md``, :func:`records`): a file is carried when
-one of them carries it, so files current at different commits can all be carried.
+Records against several bases may stand side by side (``equivalence.md`` for the first
+base named, ``equivalence_<COMMIT>.md`` for the others; :func:`records`): a file is carried
+when one of them carries it, so files current at different commits can all be carried.
+Today's probe runs once for all the bases.
 """
 
 from __future__ import annotations
@@ -172,8 +173,9 @@ def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], se
 def records(results: pathlib.Path) -> list[str]:
   """The names of the check's records in ``results``: ``equivalence`` and any ``equivalence_<base>``.
 
-  Several records let a file current at another commit be carried too: each was written by
-  ``python -m benchmarks.equivalence --base COMMIT --out results/equivalence_<COMMIT>.md``.
+  Several records let a file current at another commit be carried too: ``python -m
+  benchmarks.equivalence --base A B`` writes ``equivalence.md`` (against A) and
+  ``equivalence_B.md``.
   """
   return sorted(p.stem for p in results.glob(f"{NAME}*.json")
                 if (p.stem == NAME or p.stem.startswith(f"{NAME}_")) and p.with_suffix(".md").exists())
@@ -217,36 +219,51 @@ def _carries(entry, results: pathlib.Path, name: str, files) -> bool:
   return all(m in closure for m in moved)
 
 
+def record_name(base: str, first: bool) -> str:
+  """A record's results file name: ``equivalence.md`` for the first base named, ``equivalence_<base>.md`` after."""
+  return f"{NAME}.md" if first else f"{NAME}_{base}.md"
+
+
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument("--base", required=True, help="the commit the results files were current at")
-  p.add_argument("--out", default=str(HERE / "results" / f"{NAME}.md"))
+  p.add_argument("--base", required=True, nargs="+",
+                 help="the commit(s) the results files were current at; today's probe runs once for all")
+  p.add_argument("--out", nargs="+", default=None,
+                 help="one results file per base (default: equivalence.md for the first, "
+                      "equivalence_<BASE>.md for the others)")
   args = p.parse_args(argv)
-  base = subprocess.run(["git", "rev-parse", args.base], cwd=provenance.ROOT, capture_output=True,
-                        text=True, check=True).stdout.strip()
-  command = f"python -m benchmarks.equivalence --base {args.base}"
+  outs = args.out or [str(HERE / "results" / record_name(b, i == 0)) for i, b in enumerate(args.base)]
+  if len(outs) != len(args.base):
+    p.error(f"--out names {len(outs)} files for {len(args.base)} bases")
+  command = f"python -m benchmarks.equivalence --base {' '.join(args.base)}" + \
+      (f" --out {' '.join(args.out)}" if args.out else "")
+  passed = True
   with tempfile.TemporaryDirectory() as d:
-    tree = pathlib.Path(d) / "base"
-    subprocess.run(["git", "worktree", "add", "--detach", str(tree), base], cwd=provenance.ROOT,
-                   check=True, capture_output=True)
-    try:
-      weights = use_todays_weights(tree)
-      t0 = time.perf_counter()
-      old = run_probe(tree, pathlib.Path(d) / "base.npz")
-      t1 = time.perf_counter()
-      new = run_probe(provenance.ROOT, pathlib.Path(d) / "today.npz")
-      t2 = time.perf_counter()
-    finally:
-      subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=provenance.ROOT,
-                     capture_output=True)
-  rows = compare(old, new)
-  record = write(pathlib.Path(args.out), base, rows, changed_modules(base),
-                 {"base": t1 - t0, "today": t2 - t1}, command, weights)
-  for r in rows:
-    print(f"  {r['probe']}: {r['identical']}/{r['arrays']} identical, worst {r['worst']:.2e}"
-          f"{'' if r['passed'] else '  FAILED'}")
-  print(f"wrote {args.out}: {'passed' if record['passed'] else 'FAILED'}")
-  return 0 if record["passed"] else 1
+    t0 = time.perf_counter()
+    new = run_probe(provenance.ROOT, pathlib.Path(d) / "today.npz")
+    today = time.perf_counter() - t0
+    for name, out in zip(args.base, outs):
+      base = subprocess.run(["git", "rev-parse", name], cwd=provenance.ROOT, capture_output=True,
+                            text=True, check=True).stdout.strip()
+      tree = pathlib.Path(d) / f"base-{base[:12]}"
+      subprocess.run(["git", "worktree", "add", "--detach", str(tree), base], cwd=provenance.ROOT,
+                     check=True, capture_output=True)
+      try:
+        weights = use_todays_weights(tree)
+        t0 = time.perf_counter()
+        old = run_probe(tree, pathlib.Path(d) / f"base-{base[:12]}.npz")
+        seconds = {"base": time.perf_counter() - t0, "today": today}
+      finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=provenance.ROOT,
+                       capture_output=True)
+      rows = compare(old, new)
+      record = write(pathlib.Path(out), base, rows, changed_modules(base), seconds, command, weights)
+      for r in rows:
+        print(f"  {r['probe']}: {r['identical']}/{r['arrays']} identical, worst {r['worst']:.2e}"
+              f"{'' if r['passed'] else '  FAILED'}")
+      print(f"wrote {out}: {'passed' if record['passed'] else 'FAILED'}")
+      passed = passed and record["passed"]
+  return 0 if passed else 1
 
 
 if __name__ == "__main__":

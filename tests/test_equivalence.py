@@ -1,6 +1,8 @@
 """Results carried forward: the probe comparison, and the rule by which the index carries a stale file."""
 
 import json
+import pathlib
+import subprocess
 
 import numpy as np
 import pytest
@@ -109,3 +111,37 @@ def test_a_second_record_carries_a_file_current_at_its_own_base(tmp_path):
   # A record is never carried by another.
   assert equivalence.carried_forward(index.Entry(f"equivalence_{later}", "T", "x", "2026", "M", BASE, "0" * 12,
                                                  tuple(inside)), results=tmp_path) is None
+
+
+def test_several_bases_run_todays_probe_once_and_write_a_record_each(tmp_path, monkeypatch):
+  """``--base A B``: today's tree probed once, each base's tree once, one record per base."""
+  probed, worktrees = [], []
+  arrays = {"data/lct/x": np.arange(3.0)}
+
+  def fake_probe(tree, out, *, log=print):
+    probed.append(pathlib.Path(tree).name)
+    return dict(arrays)
+
+  def fake_run(cmd, **kw):
+    if cmd[:2] == ["git", "rev-parse"]:
+      return subprocess.CompletedProcess(cmd, 0, stdout=cmd[2] * 4 + "\n", stderr="")
+    if cmd[:3] == ["git", "worktree", "add"]:
+      worktrees.append(cmd[-1])
+      pathlib.Path(cmd[-2]).mkdir(parents=True)
+    return subprocess.CompletedProcess(cmd, 0, stdout="", stderr="")
+
+  monkeypatch.setattr(equivalence, "run_probe", fake_probe)
+  monkeypatch.setattr(equivalence, "use_todays_weights", lambda tree: [])
+  monkeypatch.setattr(equivalence, "changed_modules", lambda base: [])
+  monkeypatch.setattr(equivalence.subprocess, "run", fake_run)
+  outs = [str(tmp_path / "equivalence.md"), str(tmp_path / "equivalence_bbb.md")]
+  assert equivalence.main(["--base", "aaa", "bbb", "--out", *outs]) == 0
+  assert worktrees == ["aaa" * 4, "bbb" * 4]
+  assert probed.count(provenance.ROOT.name) == 1 and len(probed) == 3
+  for out, base in zip(outs, ("aaa" * 4, "bbb" * 4)):
+    record = json.loads(pathlib.Path(out).with_suffix(".json").read_text())
+    assert record["base"] == base and record["passed"]
+    assert "--base aaa bbb" in pathlib.Path(out).read_text()
+  assert equivalence.record_name("bbb", False) == "equivalence_bbb.md"
+  with pytest.raises(SystemExit):
+    equivalence.main(["--base", "aaa", "bbb", "--out", outs[0]])
