@@ -2,6 +2,7 @@
 
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -87,6 +88,11 @@ def test_each_row_trains_its_variant_with_the_plateau_rule():
   assert usm["data"] == full["data"] and usm["train"]["stop"] == M.STUDY_STOP
   assert M.essentials(usm)["usm"] == usm["usm"] and "usm" not in M.essentials(full)
   assert ("full", "usm") in M.PAIRS and ("ours_s", "usm") in M.PAIRS
+  # LFE likewise: Ours' data and stopping rule, its section recorded, paired with Ours and Ours-S.
+  lfe = M.run_config({**base, "lfe": {"model": {"extract_width": 3}}}, "full", "lfe", 0, M.STUDY_STOP)
+  assert lfe["train"]["variants"] == ("lfe",) and lfe["data"] == full["data"]
+  assert M.essentials(lfe)["lfe"] == {"model": {"extract_width": 3}} and "lfe" not in M.essentials(usm)
+  assert ("full", "lfe") in M.PAIRS and ("ours_s", "lfe") in M.PAIRS and "lfe" in M.TABLE1_ROWS
   with pytest.raises(SystemExit, match="plateau"):
     M.study_stop({"train": {"stop": {"rule": "steps"}}})
 
@@ -156,9 +162,10 @@ def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch
   seq, frames = [0, 0, 1, 1], [1, 2, 1, 2]
   calls = []
 
-  def fake_run_one(base, budget, row, seed, stop, workdir, results, log=print, keep_loss=()):
+  def fake_run_one(base, budget, row, seed, stop, workdir, results, log=print, keep_loss=(), state=None,
+                   deadline=None):
     calls.append((budget, row, seed))
-    assert keep_loss == ()
+    assert keep_loss == () and state is None and deadline is None
     assert stop == M.STUDY_STOP and base["train"]["stop"] == M.STUDY_STOP
     record = fake_record(budget, row, seed, [20.0, 21.0, 22.0, 23.0], seq, frames)
     record["config"] = M.essentials(M.run_config(base, budget, row, seed, stop))   # as run_one records
@@ -175,6 +182,28 @@ def test_subsets_skip_finished_runs_and_stop_at_the_limits(tmp_path, monkeypatch
   assert len(calls) == 4                                                 # no run starts after the limit
   M.main(args + ["--seeds", "0", "--extra-rows"])
   assert calls[4:] == [("tenth", "bidirectional", 0), ("tenth", "no_pf", 0)]
+
+
+def test_state_exports_each_run_and_a_pause_stops_the_study(tmp_path, monkeypatch, capsys):
+  """``--state DIR --hours H``: each run gets its state folder and deadline; a paused run ends the invocation."""
+  from nlosjax.train import TrainingPaused
+  calls = []
+
+  def pausing_run_one(base, budget, row, seed, stop, workdir, results, log=print, keep_loss=(), state=None,
+                      deadline=None):
+    calls.append((row, seed, state, deadline))
+    raise TrainingPaused("ours", 50, M.state_dir(state, budget, row, seed) / "model")
+
+  monkeypatch.setattr(M.cli, "run_one", pausing_run_one)
+  args = ["--results", str(tmp_path), "--workdir", str(tmp_path / "runs"), "--budgets", "full",
+          "--rows", "lfe", "--seeds", "0", "1"]
+  M.main(args + ["--state", str(tmp_path / "state"), "--hours", "0.5"])
+  assert len(calls) == 1 and calls[0][:3] == ("lfe", 0, tmp_path / "state")   # seed 1 does not start
+  assert 0 < calls[0][3] - time.time() <= 1800
+  assert "full/lfe-seed0 [ours] paused at step 50" in capsys.readouterr().out
+  assert M.state_dir(tmp_path / "state", "full", "lfe", 0) == tmp_path / "state" / "full" / "lfe-seed0"
+  with pytest.raises(SystemExit):
+    M.main(args + ["--hours", "1"])                      # --hours needs --state
 
 
 @pytest.mark.full

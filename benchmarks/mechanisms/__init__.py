@@ -4,7 +4,7 @@
                                     [--extra-rows] [--seeds 0 1 2] [--max-runs N] [--time-limit-s S]
                                     [--workdir runs/mechanisms] [--results benchmarks/results]
                                     [--report-only] [--probe RUN_DIR] [--tiny]
-                                    [--config.section.key=value ...]
+                                    [--state DIR [--hours H]] [--config.section.key=value ...]
 
 Rows (:data:`ROWS`, built with :func:`benchmarks.ablations.row_config`):
 ``full`` (Ours, three frames), ``ours_s`` (Ours-S, the middle frame alone) and
@@ -12,7 +12,7 @@ Rows (:data:`ROWS`, built with :func:`benchmarks.ablations.row_config`):
 ``--extra-rows`` adds ``bidirectional`` (the temporal SSM runs both ways) and
 ``no_pf`` (no phasor-field loss); ``--rows usm`` trains the learned baseline USM
 (``usm.recipe = "ours"``: Ours' data, stopping rule and loss) for Table 1 at the plateau,
-paired with ``full`` and ``ours_s``. Each row is trained from seeds 0, 1 and 2 at
+paired with ``full`` and ``ours_s``, and ``--rows lfe`` LFE likewise. Each row is trained from seeds 0, 1 and 2 at
 two photon budgets (:data:`BUDGETS`): the preset's (``full``) and one tenth of
 its signal and ambient photons (``tenth``: the preset's ``data.photons`` and
 ``data.ambient`` divided by 10 and its own dataset file,
@@ -39,6 +39,11 @@ killed mid-training resumes from its checkpoint in ``WORKDIR/<budget>/<row>-seed
 and no run is trained twice; ``--budgets/--rows/--seeds``, ``--max-runs`` and
 ``--time-limit-s`` (no run starts after that many seconds; a started one
 finishes) run a subset. Runs go seed by seed, so every row has seed 0 first.
+``--state DIR`` also exports each run's resumable state (:mod:`nlosjax.train.run_state`,
+with its data's digest and fingerprint) to ``DIR/<budget>/<row>-seed<k>/model`` at every
+validation: committed, it lets a fresh clone on another machine resume the run
+(``benchmarks/mechanisms/state/`` holds the study's); ``--hours H`` pauses the run in
+progress after H hours, exported, and the same command continues it.
 
 After the full row's seed 0 of a budget, the SSM probe (:func:`probe_model`)
 runs on that model and goes into its JSON: the validation PSNR with each SSM's
@@ -84,6 +89,7 @@ from benchmarks.mechanisms.design import (
     run_config,
     run_dir,
     run_json,
+    state_dir,
     study_stop,
 )
 from benchmarks.mechanisms.records import code_at_start, load_runs, machine, write_json
@@ -101,7 +107,7 @@ __all__ = [
     "BUDGETS", "BUDGET_LOSS", "COLUMNS", "EXTRA_ROWS", "FIGURE", "LOSS_POINTS", "MAIN_ROWS",
     "TABLE1_ROWS", "PAIRS", "PROBE", "REPORT", "ROWS", "SEEDS", "STUDY_STOP", "TINY_DESIGN",
     "TINY_STOP", "VERDICTS", "budget_config", "check_consistent", "check_same_data", "essentials",
-    "run_config", "run_dir", "run_json", "study_stop", "code_at_start", "load_runs", "machine",
+    "run_config", "run_dir", "run_json", "state_dir", "study_stop", "code_at_start", "load_runs", "machine",
     "write_json", "probe_model", "probe_run_dir", "run_one", "run_record", "test_frames",
     "train_and_score", "barely_trained", "empty_output", "plot_curves", "summarise", "write_report",
     "main", "tiny_base"

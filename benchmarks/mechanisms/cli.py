@@ -55,8 +55,16 @@ def main(argv=None) -> int:
   parser.add_argument("--probe", metavar="RUN_DIR", default=None,
                       help="probe the SSMs of a finished run folder, store it in its JSON, rewrite the report")
   parser.add_argument("--tiny", action="store_true", help="the tiny config of tests/tiny_run.py (a smoke run)")
+  parser.add_argument("--state", default=None, metavar="DIR",
+                      help="export each run's resumable state to DIR/<budget>/<row>-seed<k> at every "
+                           "validation (commit it: a fresh clone resumes from it; e.g. "
+                           "benchmarks/mechanisms/state)")
+  parser.add_argument("--hours", type=float, default=None,
+                      help="with --state: pause the run in progress after this many hours, its state exported")
   argv = sys.argv[1:] if argv is None else list(argv)
   args, base, overrides = parse_config(parser, argv)
+  if args.hours is not None and not args.state:
+    parser.error("--hours needs --state DIR (where the paused state goes)")
   from experiments.cli import override_key
   keep_loss = tuple(k[2] for k, _ in map(override_key, overrides) if k[:2] == ("train", "loss") and len(k) == 3)
   command = "python -m benchmarks.mechanisms " + " ".join(argv)
@@ -80,6 +88,8 @@ def main(argv=None) -> int:
     probe_run_dir(pathlib.Path(args.probe), results)
   elif not args.report_only:
     from tqdm import tqdm
+
+    from nlosjax.train import TrainingPaused
     stop = dict(base["train"]["stop"])
     jobs = [(b, r, s) for s in seeds for b in budgets for r in rows]
     todo = [j for j in jobs if not run_json(results, *j).exists()]
@@ -89,6 +99,8 @@ def main(argv=None) -> int:
       check_same_data(results, budget,
                       {**run_config(base, budget, row, seed, stop, keep_loss), "_study_row": row})
     t0, trained = time.perf_counter(), 0
+    deadline = None if args.hours is None else time.time() + 3600 * args.hours
+    state = None if args.state is None else pathlib.Path(args.state)
     for budget, row, seed in tqdm(todo, desc="mechanisms", unit="run"):
       if args.max_runs is not None and trained >= args.max_runs:
         tqdm.write(f"mechanisms: --max-runs {args.max_runs} reached")
@@ -96,7 +108,12 @@ def main(argv=None) -> int:
       if args.time_limit_s is not None and time.perf_counter() - t0 > args.time_limit_s:
         tqdm.write(f"mechanisms: --time-limit-s {args.time_limit_s:g} passed; no new run starts")
         break
-      rec = run_one(base, budget, row, seed, stop, workdir, results, log=tqdm.write, keep_loss=keep_loss)
+      try:
+        rec = run_one(base, budget, row, seed, stop, workdir, results, log=tqdm.write, keep_loss=keep_loss,
+                      state=state, deadline=deadline)
+      except TrainingPaused as e:
+        tqdm.write(f"mechanisms: {budget}/{row}-seed{seed} {e}; the same command continues it")
+        break
       trained += 1
       tqdm.write(f"mechanisms: {budget}/{row}-seed{seed}: {rec['steps_taken']} steps "
                  f"({rec['stop_reason']}), best step {rec['best_step']}, test PSNR "

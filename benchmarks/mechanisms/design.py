@@ -18,13 +18,15 @@ ROWS = {
     "bidirectional": ("bidirectional", "ours", "Ours, bidirectional T-Mamba"),
     "no_pf": ("no_pf", "ours", "Ours without L_pf"),
     "usm": ("full", "usm", "USM"),
+    "lfe": ("full", "lfe", "LFE"),
 }
 MAIN_ROWS = ("full", "ours_s", "no_ssm")
 EXTRA_ROWS = ("bidirectional", "no_pf")
-#: Rows beside the study for Table 1 at the plateau (``--rows usm``): USM on the same data, under
-#: the same stopping rule and recipe (``usm.recipe = "ours"``) as Ours; the report pairs it with
-#: Ours and Ours-S seed by seed.
-TABLE1_ROWS = ("usm",)
+#: Rows beside the study for Table 1 at the plateau (``--rows usm lfe``): the learned baselines USM
+#: and LFE on the same data, under the same stopping rule and recipe as Ours (``usm.recipe =
+#: "ours"``; LFE always trains with Ours' recipe); the report pairs each with Ours and Ours-S
+#: seed by seed.
+TABLE1_ROWS = ("usm", "lfe")
 #: Photon budget -> divisor of the preset's ``data.photons`` and ``data.ambient``.
 BUDGETS = {"full": 1, "tenth": 10}
 #: Loss weights per budget over the config's ``train.loss``, chosen on validation. At a tenth
@@ -45,7 +47,7 @@ TINY_DESIGN = {"budgets": ("full",), "rows": ("full", "no_ssm"), "seeds": (0,)}
 PROBE = ("full", 0)
 #: Paired differences of the report: (a, b) -> a - b.
 PAIRS = (("full", "no_ssm"), ("full", "ours_s"), ("full", "bidirectional"), ("full", "no_pf"),
-         ("full", "usm"), ("ours_s", "usm"))
+         ("full", "usm"), ("ours_s", "usm"), ("full", "lfe"), ("ours_s", "lfe"))
 #: Report columns: metric -> (header, digits).
 COLUMNS = {"psnr": ("PSNR (dB) ↑", 2), "ssim": ("SSIM ↑", 3), "rmse_object": ("object depth RMSE (m) ↓", 3),
            "recall": ("object recall ↑", 3), "temporal_psnr": ("temporal PSNR (dB) ↑", 2)}
@@ -115,8 +117,9 @@ def essentials(cfg: dict) -> dict:
   out = {"data": {k: cfg["data"][k] for k in data_keys if k in cfg["data"]},
          "model": dict(cfg.get("model", {})),
          "train": {k: tr.get(k) for k in ("seed", "batch_size", "eval_batch_size", "optim", "loss", "stop")}}
-  if "usm" in tuple(tr.get("variants", ())):
-    out["usm"] = dict(cfg.get("usm", {}))      # USM's widths and recipe
+  for baseline in ("usm", "lfe"):             # a learned baseline's widths and recipe
+    if baseline in tuple(tr.get("variants", ())):
+      out[baseline] = dict(cfg.get(baseline, {}))
   return out
 
 
@@ -183,6 +186,11 @@ def check_consistent(runs: dict) -> None:
 
 def run_json(results: pathlib.Path, budget: str, row: str, seed: int) -> pathlib.Path:
   return pathlib.Path(results) / "mechanisms" / budget / f"{row}-seed{seed}.json"
+
+
+def state_dir(state: pathlib.Path, budget: str, row: str, seed: int) -> pathlib.Path:
+  """A run's committed resumable state (``--state``): ``STATE/<budget>/<row>-seed<k>``."""
+  return pathlib.Path(state) / budget / f"{row}-seed{seed}"
 
 
 def run_dir(workdir: pathlib.Path, budget: str, row: str, seed: int) -> pathlib.Path:

@@ -10,7 +10,16 @@ from typing import Callable
 
 import numpy as np
 
-from benchmarks.mechanisms.design import LOSS_POINTS, PROBE, ROWS, essentials, run_config, run_dir, run_json
+from benchmarks.mechanisms.design import (
+  LOSS_POINTS,
+  PROBE,
+  ROWS,
+  essentials,
+  run_config,
+  run_dir,
+  run_json,
+  state_dir,
+)
 from benchmarks.mechanisms.records import machine, write_json
 
 
@@ -38,14 +47,19 @@ def test_frames(cfg: dict, data_path) -> tuple[np.ndarray, np.ndarray]:
           np.concatenate([b["frame"] for b in batches]).astype(int))
 
 
-def train_and_score(cfg: dict, folder: pathlib.Path, variant: str, log: Callable[[str], None]):
-  """Train (or resume, or reload) one run to its plateau; returns ``(mcfg, params, test record)``."""
+def train_and_score(cfg: dict, folder: pathlib.Path, variant: str, log: Callable[[str], None], export=None):
+  """Train (or resume, or reload) one run to its plateau; returns ``(mcfg, params, test record)``.
+
+  ``export``: a :class:`nlosjax.train.StateExport` whose folder ``model`` holds the run's
+  committed state (resumed from where it is ahead of ``folder``); raises
+  :class:`nlosjax.train.TrainingPaused` at its deadline.
+  """
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
   data_path = pathlib.Path(cfg["data"]["path"])
   validate = protocol.validation_psnr(cfg, data_path)
   mcfg, state = T.train_model(cfg, data_path, folder, variant, folder="model", validate=validate,
-                              log=log)
+                              log=log, export=export)
   params = T.to_host(state.params)
   t0 = time.perf_counter()
   tuned = protocol.tune_model_thresholds(cfg, data_path, {variant: [(mcfg, params)]}, log=log)[variant]
@@ -77,8 +91,15 @@ def run_record(cfg: dict, budget: str, row: str, seed: int, folder: pathlib.Path
 
 
 def run_one(base: dict, budget: str, row: str, seed: int, stop: dict, workdir: pathlib.Path,
-            results: pathlib.Path, log: Callable[[str], None] = print, keep_loss=()) -> dict:
-  """Train, score and (for :data:`PROBE`) probe one run; writes and returns its JSON record."""
+            results: pathlib.Path, log: Callable[[str], None] = print, keep_loss=(),
+            state: pathlib.Path | None = None, deadline: float | None = None) -> dict:
+  """Train, score and (for :data:`PROBE`) probe one run; writes and returns its JSON record.
+
+  ``state``: the root of the committed run states (:func:`state_dir`); the run's resumable
+  state is exported there at every validation, with its data's digest and fingerprint, so a
+  fresh clone resumes it. ``deadline`` (``time.time()``, with ``state``): pause there,
+  raising :class:`nlosjax.train.TrainingPaused`.
+  """
   from nlosjax import train as T
   cfg = run_config(base, budget, row, seed, stop, keep_loss)
   data_path = pathlib.Path(cfg["data"]["path"])
@@ -86,7 +107,12 @@ def run_one(base: dict, budget: str, row: str, seed: int, stop: dict, workdir: p
   folder = run_dir(workdir, budget, row, seed)
   folder.mkdir(parents=True, exist_ok=True)
   write_json(folder / "run.json", {"budget": budget, "row": row, "seed": seed, "config": cfg})
-  mcfg, params, test = train_and_score(cfg, folder, ROWS[row][1], log)
+  export = None
+  if state is not None:
+    from nlosjax.data.dataset import dataset_digest, dataset_fingerprint
+    export = T.StateExport(state_dir(state, budget, row, seed), data_digest=dataset_digest(data_path),
+                           data_fingerprint=dataset_fingerprint(data_path), deadline=deadline)
+  mcfg, params, test = train_and_score(cfg, folder, ROWS[row][1], log, export=export)
   record = run_record(cfg, budget, row, seed, folder, test)
   if (row, seed) == PROBE:
     record["probe"] = probe_model(cfg, data_path, mcfg, params, log=log)
