@@ -374,7 +374,7 @@ def correctness(ctx) -> None:
   chunk = 5                                          # divides no length: padding exercised
   ref = {rev: scan_loop(*args, reverse=rev) for rev in (False, True)}
   Bt, L, Dch = args[0].shape
-  ctx.data["auto"] = resolve_method("auto")
+  ctx.data["auto"] = resolve_method("auto", size=Bt * L * Dch * args[2].shape[-1])
   for method in SCAN_METHODS:
     try:
       out = _scan_fn(method, chunk)(*args)
@@ -440,7 +440,7 @@ def scan_kernels(ctx) -> None:
       continue
     t = time.perf_counter()
     Bt, L, D, N = shape
-    auto = resolve_method("auto")
+    auto = resolve_method("auto", size=Bt * L * D * N)
     ctx.log(f"scan shape {name} ({origin}), auto -> {auto}")
     try:
       rows = scan_bench.bench_shape(shape, scan_bench.METHODS, sz["scan_repeats"], None, log=ctx.log)

@@ -237,7 +237,7 @@ def main(argv=None):
   results = {}
   for shape in shapes:
     Bt, L, D, N = shape
-    auto_as = resolve_method("auto")
+    auto_as = resolve_method("auto", size=Bt * L * D * N)
     print(f"shape {shape} (auto -> {auto_as})", flush=True)
     rows = bench_shape(shape, args.methods, repeats, args.chunk_size)
     results[shape] = (rows, auto_as)

@@ -443,7 +443,16 @@ def test_bad_input_raises_value_error_naming_the_argument(change, match):
 
 def test_auto_rule():
   assert resolve_method("auto", backend="cpu") == "sequential"
-  assert resolve_method("auto", backend="gpu") == "chunked"
+  assert resolve_method("auto", backend="gpu") == "chunked"          # size unknown
+  # Off the CPU by size (device.md, one H200): associative at the two benchmark shapes,
+  # chunked at the paper model's temporal SSM (4e8 state elements).
+  from nlosjax.ssm.scan import ASSOCIATIVE_MAX_SIZE
+  assert resolve_method("auto", backend="gpu", size=64 * 512 * 32 * 16) == "associative"
+  assert resolve_method("auto", backend="gpu", size=128 * 256 * 32 * 16) == "associative"
+  assert resolve_method("auto", backend="gpu", size=3072 * 128 * 64 * 16) == "chunked"
+  assert resolve_method("auto", backend="gpu", size=ASSOCIATIVE_MAX_SIZE) == "associative"
+  assert resolve_method("auto", backend="gpu", size=ASSOCIATIVE_MAX_SIZE + 1) == "chunked"
+  assert resolve_method("auto", backend="cpu", size=16) == "sequential"
   assert resolve_method("associative", backend="cpu") == "associative"
 
 

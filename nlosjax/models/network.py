@@ -626,7 +626,7 @@ def _analytic_flops(config: ModelConfig, batch: int) -> tuple[float, float]:
   per_block = sum(1 if m == "temporal" and config.temporal_causal else 2 for m in config.mixers)
   n_blocks = config.frames * config.st_depth + 2 * (config.frames - 1) * config.cross_depth
   scan = 9.0 * tokens * d_inner * N * per_block * n_blocks
-  method = resolve_method(config.scan_method)
+  method = resolve_method(config.scan_method, size=tokens * d_inner * N)
   if method == "associative":                                # no lax.scan: XLA counts it
     scan = 0.0
   return fft, scan

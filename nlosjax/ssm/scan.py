@@ -39,8 +39,8 @@ Methods (all exact; they differ in speed and memory):
   associative scan over blocks), then forms each block's cotangents step by
   step, one block at a time, so that one block's ``[K, ..., N, Dch]`` states
   are the largest transient. Block size 64 by default.
-* ``"auto"``: chosen per backend by :func:`resolve_method` from the
-  numbers in ``benchmarks/results/scan.md``.
+* ``"auto"``: chosen per backend and scan size by :func:`resolve_method` from
+  the numbers in ``benchmarks/results/scan.md`` (CPU) and ``device.md`` (GPU).
 
 Gradients of every method come from one custom VJP whose residuals are the
 inputs and, for "sequential" and "chunked", the states entering each chunk
@@ -144,7 +144,16 @@ def _accum_dtype(*arrays) -> jnp.dtype:
 
 
 # --------------------------------------------------------------- auto choice
-def resolve_method(method: str, *, backend: str | None = None) -> str:
+#: Off the CPU, ``"auto"`` takes "associative" up to this many state elements ``Bt * L * Dch * N``
+#: and "chunked" above. Measured on one H200 (``benchmarks/results/device.md``): at 1.7e7
+#: elements ((64, 512, 32, 16) and (128, 256, 32, 16)) "associative" ran forward+backward
+#: 3.3x and 2.0x faster than "chunked"; at 4.0e8 (the paper model's temporal SSM, batch 4)
+#: "chunked" ran 1.2x faster than "associative" with a quarter of its memory. The bound
+#: lies between the two measured sizes (about their geometric mean).
+ASSOCIATIVE_MAX_SIZE = 2 ** 26
+
+
+def resolve_method(method: str, *, backend: str | None = None, size: int | None = None) -> str:
   """The concrete method ``"auto"`` stands for (other methods pass through).
 
   Rule (measured in ``benchmarks/results/scan.md``, 2 cores, XLA:CPU): on CPU
@@ -155,18 +164,22 @@ def resolve_method(method: str, *, backend: str | None = None) -> str:
   and "chunked"), with the least memory; the earlier shapes ``(256, 512, 32, 16)``,
   ``(64, 128, 16, 16)``, ``(512, 256, 32, 16)`` ranked the same. The per-step cost
   of ``lax.scan`` on CPU is a few microseconds, small next to the
-  ``Bt * Dch * N`` exponentials of a step. Elsewhere (GPU/TPU, not measured
-  here) "chunked": parallel inside chunks, memory bounded by one chunk, a short
-  serial loop over chunks.
+  ``Bt * Dch * N`` exponentials of a step. Elsewhere (GPU/TPU) "associative" for scans
+  of at most :data:`ASSOCIATIVE_MAX_SIZE` state elements, where its log-depth tree
+  beats a serial loop, and "chunked" above (parallel inside chunks, memory bounded by
+  one chunk, a short serial loop over chunks) or when the size is not given.
 
   Args:
     method: one of :data:`METHODS`.
     backend: ``jax.default_backend()`` when None.
+    size: the scan's state elements ``Bt * L * Dch * N`` (None: unknown).
   """
   if method != "auto":
     return method
   backend = backend or jax.default_backend()
-  return "sequential" if backend == "cpu" else "chunked"
+  if backend == "cpu":
+    return "sequential"
+  return "associative" if size is not None and size <= ASSOCIATIVE_MAX_SIZE else "chunked"
 
 
 # -------------------------------------------------------------------- kernels
@@ -550,7 +563,7 @@ def selective_scan(x, dt, A, B, C, D=None, *, reverse: bool = False, method: str
   *batch, L, Dch = x.shape
   N = A.shape[1]
   Bt = int(np.prod(batch, dtype=np.int64))
-  method = resolve_method(method)
+  method = resolve_method(method, size=Bt * L * Dch * N)
   chunk = int(chunk_size or DEFAULT_CHUNK.get(method, L))
   chunk = min(chunk, L)
 
