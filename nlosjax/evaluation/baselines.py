@@ -37,6 +37,9 @@ from typing import Callable
 import jax.numpy as jnp
 import numpy as np
 
+# The model's interpolation (sample i at stride // 2 + stride * i, constant beyond the sampled span):
+# the classic methods read the sparse scan as the networks' skip path does.
+from nlosjax.models.blocks import interpolation_matrix
 from nlosjax.physics.reconstruct import METHODS as CLASSIC_METHODS  # one source: the five methods
 
 __all__ = ["CLASSIC_METHODS", "THRESHOLDS", "DEFAULT_THRESHOLD", "interpolation_matrix",
@@ -49,25 +52,6 @@ THRESHOLDS = (0.05, 0.1, 0.2, 0.3, 0.5)
 DEFAULT_THRESHOLD = 0.1
 #: Operator variant of the methods that have one, in every table (see the module docstring).
 TABLE_VARIANT = {"fbp": "refined", "lct": "refined", "fk": "refined", "phasor": "refined"}
-
-
-def interpolation_matrix(full: int, stride: int) -> np.ndarray:
-  """``[full, n]`` linear interpolation from the under-scanned samples to every scan point.
-
-  Sample ``i`` sits at full-grid index ``stride // 2 + stride * i`` (the
-  model's :func:`~nlosjax.models.network.underscan`); points outside the
-  sampled span take the nearest sample.
-  """
-  n = len(range(stride // 2, full, stride))
-  pos = (np.arange(full) - stride // 2) / stride
-  pos = np.clip(pos, 0, n - 1)
-  lo = np.minimum(np.floor(pos).astype(int), max(n - 2, 0))
-  frac = pos - lo
-  m = np.zeros((full, n))
-  m[np.arange(full), lo] += 1 - frac
-  if n > 1:
-    m[np.arange(full), lo + 1] += frac
-  return m
 
 
 def upsample_scan(transient, grid: tuple[int, int], stride: int):
