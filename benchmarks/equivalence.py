@@ -121,7 +121,8 @@ def compare(old: dict, new: dict, tolerance: float = TOLERANCE) -> list[dict]:
 
 def changed_modules(base: str) -> list[str]:
   """Project modules whose code (not comments or docstrings) differs between ``base`` and the working tree."""
-  from benchmarks.index import _GitFiles, _same_code
+  from benchmarks.results_header import GitFiles as _GitFiles
+  from benchmarks.results_header import same_code as _same_code
   files = provenance.project_files()
   listed = subprocess.run(["git", "ls-tree", "-r", "--name-only", base], cwd=provenance.ROOT,
                           capture_output=True, text=True, check=True).stdout.split()
@@ -185,7 +186,7 @@ def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
   """``"carried forward from <base> by <record>.md"`` where the rule above holds for ``entry``
   with one of the :func:`records`, else None.
 
-  ``entry``: a :class:`benchmarks.index.Entry` that is stale today.
+  ``entry``: a :class:`benchmarks.results_header.Entry` that is stale today.
   """
   if entry.name in records(results) or not entry.digest:
     return None
@@ -198,7 +199,9 @@ def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
 
 
 def _carries(entry, results: pathlib.Path, name: str, files) -> bool:
-  from benchmarks.index import _GitFiles, _same_code, read_entry
+  from benchmarks.results_header import GitFiles as _GitFiles
+  from benchmarks.results_header import read_entry
+  from benchmarks.results_header import same_code as _same_code
   record = json.loads((results / f"{name}.json").read_text())
   own = read_entry(results / f"{name}.md")
   if not record.get("passed") or any(m not in files for m in own.modules) \

@@ -19,12 +19,13 @@ files themselves.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import pathlib
 import re
-import subprocess
 import sys
 
+from benchmarks.results_header import Entry, git_output, read_entry
+from benchmarks.results_header import GitFiles as _GitFiles
+from benchmarks.results_header import same_code as _same_code
 from experiments import provenance
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -104,95 +105,6 @@ the command cannot break unnoticed between GPU runs. The procedure: `docs/gpu.md
 """
 
 
-@dataclasses.dataclass(frozen=True)
-class Entry:
-  """One results file's provenance, as its header states it."""
-  name: str           # file stem, e.g. "table1"
-  title: str
-  command: str
-  date: str
-  machine: str
-  commit: str
-  digest: str = ""                  # the "- Code: `...`" digest, or "" where the file has none
-  modules: tuple[str, ...] = ()     # the modules that digest covers
-
-
-def _first(pattern: str, text: str, default: str = "?") -> str:
-  m = re.search(pattern, text, flags=re.MULTILINE)
-  return m.group(1).strip() if m else default
-
-
-def read_entry(path: pathlib.Path) -> Entry:
-  """Parse the header of one results Markdown file.
-
-  Raises:
-    ValueError: the file names no "Produced by `...`" command.
-  """
-  text = path.read_text()
-  body = "\n".join(line for line in text.splitlines() if not line.startswith(">"))
-  command = _first(r"Produced by `([^`]+)`", body, "")
-  if not command:
-    raise ValueError(f"{path.name} does not say which command produced it ('Produced by `...`')")
-  date = _first(r"^- Date: (\S+)", body, "")
-  if not date:
-    date = _first(r"Produced by `[^`]+` on (\S+?)[ .(]", body)
-  machine = _first(r"^- (?:Machine|CPU): ([^;\n]+)", body)
-  commit = _first(r"^- Commit: (.+)$", body)
-  code = provenance.CODE_LINE.search(body)
-  return Entry(path.stem, _first(r"^# (.+)$", body), command, date, machine, commit,
-               code.group(1) if code else "", tuple(code.group(2).split()) if code else ())
-
-
-def _git(*args: str) -> str | None:
-  """``git args`` in the repository; its stripped output, or None where git fails."""
-  try:
-    return subprocess.run(["git", *args], cwd=provenance.ROOT, check=True, capture_output=True,
-                          text=True).stdout.strip()
-  except (OSError, subprocess.CalledProcessError):
-    return None
-
-
-class _GitFiles:
-  """Files at commits, read through one ``git cat-file --batch`` process (None where absent)."""
-
-  def __init__(self):
-    self._proc = None
-    self._cache: dict[str, str | None] = {}
-
-  def __call__(self, commit: str, path: str) -> str | None:
-    key = f"{commit}:{path}"
-    if key not in self._cache:
-      if self._proc is None:
-        self._proc = subprocess.Popen(["git", "cat-file", "--batch"], cwd=provenance.ROOT,
-                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-      self._proc.stdin.write(key.encode() + b"\n")
-      self._proc.stdin.flush()
-      header = self._proc.stdout.readline().split()
-      if len(header) == 3:
-        data = self._proc.stdout.read(int(header[2]))
-        self._proc.stdout.read(1)
-        self._cache[key] = data.decode()
-      else:
-        self._cache[key] = None                    # "<key> missing"
-    return self._cache[key]
-
-  def close(self):
-    if self._proc is not None:
-      self._proc.stdin.close()
-      self._proc.wait()
-      self._proc = None
-
-
-def _same_code(a: str | None, b: str | None, path: str) -> bool:
-  """Whether two versions of a module hold the same code (comments and docstrings aside)."""
-  if a is None or b is None:
-    return a is b
-  try:
-    return provenance._behaviour(a, path) == provenance._behaviour(b, path)
-  except SyntaxError:
-    return a == b
-
-
 def state(entry: Entry, files=None) -> str:
   """``"current"``, ``"stale since <commit> (<modules>)"``, ``"stale: ..."``, or ``"no code digest"``.
 
@@ -208,7 +120,7 @@ def state(entry: Entry, files=None) -> str:
   if not missing and provenance.code_digest(entry.modules) == entry.digest:
     return "current"
   commit = entry.commit.split()[0]
-  log = _git("log", "--reverse", "--format=@%h", "--name-only", f"{commit}..HEAD", "--", *entry.modules)
+  log = git_output("log", "--reverse", "--format=@%h", "--name-only", f"{commit}..HEAD", "--", *entry.modules)
   if log is None:
     return "stale (git cannot say since when)"
   touched: list[tuple[str, list[str]]] = []       # (commit, the modules it touched), oldest first

@@ -7,7 +7,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from benchmarks import equivalence, index
+from benchmarks import equivalence, index, results_header
 from experiments import provenance
 
 #: A landed commit (the last before the carry-forward rule existed); every clone of main has it.
@@ -46,7 +46,7 @@ def _entry(modules, digest):
 
 
 def _digest_at(commit, modules):
-  files = index._GitFiles()
+  files = results_header.GitFiles()
   try:
     return provenance.code_digest(modules, lambda p: files(commit, p))
   finally:
@@ -54,7 +54,7 @@ def _digest_at(commit, modules):
 
 
 def test_a_file_current_at_the_base_whose_changes_the_check_ran_is_carried_forward(tmp_path):
-  if index._git("cat-file", "-e", f"{BASE}^{{commit}}") is None:
+  if results_header.git_output("cat-file", "-e", f"{BASE}^{{commit}}") is None:
     pytest.skip(f"this clone lacks commit {BASE} (a shallow clone)")
   _record(tmp_path)
   inside = ["nlosjax/train/loop.py", "nlosjax/metrics.py"]           # changed since BASE, both probed
@@ -96,8 +96,8 @@ def test_the_base_tree_runs_todays_weights_and_names_those_shipped_since(tmp_pat
 
 
 def test_a_second_record_carries_a_file_current_at_its_own_base(tmp_path):
-  later = index._git("rev-parse", "--short=7", "HEAD~1")
-  if later is None or index._git("cat-file", "-e", f"{BASE}^{{commit}}") is None:
+  later = results_header.git_output("rev-parse", "--short=7", "HEAD~1")
+  if later is None or results_header.git_output("cat-file", "-e", f"{BASE}^{{commit}}") is None:
     pytest.skip("this clone lacks the commits (a shallow clone)")
   later = later.strip()
   inside = ["nlosjax/train/loop.py", "nlosjax/metrics.py"]
