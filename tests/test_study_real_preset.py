@@ -35,6 +35,11 @@ def test_a_study_pauses_reports_hours_left_and_resumes_to_the_plateau(tiny_study
   assert store.data_path("tiny.h5").exists()
   assert rows[0]["step"] == 1 and not rows[0]["done"]
   assert (study.STATE_DIR / TINY.name / "ours_s" / "state.npz").exists()
+  # The export records the data's fingerprint, so another CPU model's regenerated data can resume it.
+  from nlosjax.data.dataset import dataset_fingerprint
+  from nlosjax.train import run_state
+  assert run_state.read_fingerprint(study.STATE_DIR / TINY.name / "ours_s") == \
+      dataset_fingerprint(store.data_path("tiny.h5"))
   # The next stretch, as on a fresh machine: the store is gone, the committed state kept.
   import shutil
   shutil.rmtree(store.home())
