@@ -90,7 +90,9 @@ def main(argv=None):
   parser.add_argument("--hours", type=float, default=None,
                       help="pause training after this many hours (state exported; exit status 75)")
   parser.add_argument("--allow-data-change", action="store_true",
-                      help="with --resume-from: resume even if the regenerated data's digest differs")
+                      help="with --resume-from: resume on data that differ beyond float rounding "
+                           "(data regenerated on another CPU model are taken without it when their "
+                           "fingerprint agrees)")
   parser.add_argument("--coordinator", default=None,
                       help="host:port of process 0 for multi-process training (jax.distributed)")
   parser.add_argument("--num-processes", type=int, default=1, help="processes in all (default 1)")

@@ -108,9 +108,9 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
   if export is not None and export.data_digest is None:
     import dataclasses
 
-    from nlosjax.data.dataset import dataset_digest, dataset_fingerprint
-    export = dataclasses.replace(export, data_digest=dataset_digest(data_path),
-                                 data_fingerprint=dataset_fingerprint(data_path))
+    from nlosjax.data.dataset import dataset_identity
+    digest, fingerprint = dataset_identity(data_path)
+    export = dataclasses.replace(export, data_digest=digest, data_fingerprint=fingerprint)
     log(f"dataset: content digest {export.data_digest}")
   validate = protocol.validation_psnr(config, data_path)
   trained, logs, checkpoints = {}, {}, {}

@@ -95,6 +95,25 @@ def test_rounding_and_a_few_flipped_counts_pass_and_other_data_are_named(tmp_pat
     D.fingerprint_differences(fa, fb, rtol=float("nan"))
 
 
+def test_dataset_identity_is_digest_and_fingerprint_from_one_read_and_cached(tmp_path):
+  path = _write(tmp_path / "a.h5", {**_arrays(), "attrs/scalar": np.float64(3.0), "attrs/name": b"cpu"})
+  # The chunked digest (a row at a time) and the fingerprint read separately are the reference.
+  want = (D.dataset_digest(path, chunk_bytes=1), D.dataset_fingerprint(path))
+  assert D.dataset_identity(path, cache=False) == want
+  assert not (tmp_path / "a.h5.digest.json").exists()
+  assert D.dataset_identity(path) == want
+  cache = tmp_path / "a.h5.digest.json"
+  saved = json.loads(cache.read_text())
+  # An unchanged file is answered from the cache (a marked entry comes back) ...
+  cache.write_text(json.dumps({**saved, "digest": "from-cache"}))
+  assert D.dataset_identity(path)[0] == "from-cache"
+  # ... another file under the same name is read again, and a broken cache is rewritten.
+  _write(path, _arrays(seed=3))
+  assert D.dataset_identity(path)[0] == D.dataset_digest(path) != want[0]
+  cache.write_text("{not json")
+  assert D.dataset_identity(path)[0] == D.dataset_digest(path)
+
+
 def test_check_data_takes_rounding_refuses_other_data_and_old_exports(tmp_path):
   arrays = _arrays()
   recorded = D.dataset_fingerprint(_write(tmp_path / "a.h5", arrays))
@@ -104,14 +123,15 @@ def test_check_data_takes_rounding_refuses_other_data_and_old_exports(tmp_path):
   folder.mkdir()
   meta = {"data_digest": "aaaa"}
   # Nothing recorded yet: only the digest can be compared.
-  assert run_state.check_data(folder, meta, "aaaa", None) == "digest"
+  assert run_state.check_data(folder, meta, "aaaa", None) == ("digest", None)
   with pytest.raises(ValueError, match="digest aaaa.*bbbb.*--allow-data-change.*records no data fingerprint"):
     run_state.check_data(folder, meta, "bbbb", nearby)
-  assert run_state.check_data(folder, meta, "bbbb", nearby, allow_data_change=True) == "allowed change"
+  assert run_state.check_data(folder, meta, "bbbb", nearby, allow_data_change=True).kind == "allowed change"
   (folder / run_state.FINGERPRINT_FILE).write_text(json.dumps(recorded))
   assert run_state.read_fingerprint(folder) == recorded
   check = run_state.check_data(folder, meta, "bbbb", nearby)
-  assert check.startswith("rounding ") and 0 < float(check.split()[1]) < D.FINGERPRINT_RTOL
+  assert check.kind == "rounding" and 0 < check.distance < D.FINGERPRINT_RTOL
+  assert check.describe().startswith("; data regenerated with another rounding (fingerprint within ")
   with pytest.raises(ValueError, match="beyond rounding:\n  sequences/train-00000/"):
     run_state.check_data(folder, meta, "bbbb", far)
   with pytest.raises(ValueError, match="computed no data fingerprint"):

@@ -454,6 +454,10 @@ def test_auto_rule():
   assert resolve_method("auto", backend="gpu", size=ASSOCIATIVE_MAX_SIZE + 1) == "chunked"
   assert resolve_method("auto", backend="cpu", size=16) == "sequential"
   assert resolve_method("associative", backend="cpu") == "associative"
+  with pytest.raises(ValueError, match="must be >= 0, got -1"):
+    resolve_method("auto", backend="gpu", size=-1)
+  with pytest.raises(ValueError, match="unknown scan method 'parallel'"):
+    resolve_method("parallel", backend="cpu")
 
 
 # ----------------------------------------------------------- bidirectional

@@ -109,9 +109,10 @@ def run_one(base: dict, budget: str, row: str, seed: int, stop: dict, workdir: p
   write_json(folder / "run.json", {"budget": budget, "row": row, "seed": seed, "config": cfg})
   export = None
   if state is not None:
-    from nlosjax.data.dataset import dataset_digest, dataset_fingerprint
-    export = T.StateExport(state_dir(state, budget, row, seed), data_digest=dataset_digest(data_path),
-                           data_fingerprint=dataset_fingerprint(data_path), deadline=deadline)
+    from nlosjax.data.dataset import dataset_identity
+    digest, fingerprint = dataset_identity(data_path)     # cached beside the data: one read per file
+    export = T.StateExport(state_dir(state, budget, row, seed), data_digest=digest,
+                           data_fingerprint=fingerprint, deadline=deadline)
   mcfg, params, test = train_and_score(cfg, folder, ROWS[row][1], log, export=export)
   record = run_record(cfg, budget, row, seed, folder, test)
   if (row, seed) == PROBE:

@@ -173,7 +173,12 @@ def resolve_method(method: str, *, backend: str | None = None, size: int | None 
     method: one of :data:`METHODS`.
     backend: ``jax.default_backend()`` when None.
     size: the scan's state elements ``Bt * L * Dch * N`` (None: unknown).
+  Raises ValueError for an unknown method or a negative size.
   """
+  if method not in METHODS:
+    raise ValueError(f"unknown scan method {method!r}; choose one of {METHODS}")
+  if size is not None and int(size) < 0:
+    raise ValueError(f"size (the scan's state elements) must be >= 0, got {size}")
   if method != "auto":
     return method
   backend = backend or jax.default_backend()

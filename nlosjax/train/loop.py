@@ -235,10 +235,8 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     copy_logs(export.folder(name), vdir)
     ckpt.save(state, start, force=True)
     ckpt.wait()
-    data = {"digest": "", "allowed change": "; on other data (--allow-data-change)"}.get(
-        meta["data_check"], f"; data regenerated with another rounding (fingerprint within "
-        f"{meta['data_check'].split()[-1]} of its mass)")
-    log(f"[{variant}] resumed from step {start} of the exported state {export.folder(name)}{data}")
+    log(f"[{variant}] resumed from step {start} of the exported state {export.folder(name)}"
+        f"{meta['data_check'].describe()}")
   elif exported is not None and exported["step"] > start:
     raise ValueError("resuming from an exported state needs a single process; resume once with one, "
                      "then continue with several")

@@ -39,6 +39,7 @@ import os
 import pathlib
 import shutil
 import time
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -204,30 +205,48 @@ def read_fingerprint(folder) -> dict | None:
   return json.loads(path.read_text()) if path.exists() else None
 
 
+class DataCheck(NamedTuple):
+  """How :func:`check_data` accepted a run's data.
+
+  Attributes:
+    kind: ``"digest"`` (same content digest, or nothing to compare), ``"rounding"`` (digests
+      differ, fingerprints within :data:`~nlosjax.data.dataset.FINGERPRINT_RTOL`) or
+      ``"allowed change"`` (other data, taken because ``allow_data_change``).
+    distance: with ``"rounding"``, the largest cell difference relative to its array's L1 mass
+      (:func:`~nlosjax.data.dataset.fingerprint_distance`); None otherwise.
+  """
+  kind: str
+  distance: float | None = None
+
+  def describe(self) -> str:
+    """The clause a resume's log line ends with ("" when the digest matched)."""
+    if self.kind == "rounding":
+      return f"; data regenerated with another rounding (fingerprint within {self.distance:.2g} of its mass)"
+    return "; on other data (--allow-data-change)" if self.kind == "allowed change" else ""
+
+
 def check_data(folder, meta: dict, data_digest: str | None, data_fingerprint: dict | None,
-               allow_data_change: bool = False) -> str:
+               allow_data_change: bool = False) -> DataCheck:
   """Whether this run's data are those an export was trained on; returns how that was decided.
 
-  Returns ``"digest"`` (same content digest, or nothing to compare), ``"rounding <d>"`` (digests
-  differ, fingerprints within :data:`~nlosjax.data.dataset.FINGERPRINT_RTOL`; ``d`` the largest
-  relative cell difference) or ``"allowed change"`` (``allow_data_change``, other data).
-  Raises ValueError naming the digests and the fingerprint's differences otherwise.
+  Returns a :class:`DataCheck`. Raises ValueError naming the digests and the fingerprint's
+  differences when the data differ beyond rounding and ``allow_data_change`` is false.
   """
   recorded = meta.get("data_digest")
   if not recorded or not data_digest or recorded == data_digest:
-    return "digest"
+    return DataCheck("digest")
   fingerprint = read_fingerprint(folder)
   if fingerprint is not None and data_fingerprint is not None:
     differ = fingerprint_differences(fingerprint, data_fingerprint)
     if not differ:
-      return f"rounding {fingerprint_distance(fingerprint, data_fingerprint):.2g}"
+      return DataCheck("rounding", fingerprint_distance(fingerprint, data_fingerprint))
     why = "their fingerprints differ beyond rounding:\n  " + "\n  ".join(differ)
   elif fingerprint is None:
     why = f"the export records no data fingerprint ({FINGERPRINT_FILE}) to tell rounding from other data"
   else:
     why = "this run computed no data fingerprint to compare"
   if allow_data_change:
-    return "allowed change"
+    return DataCheck("allowed change")
   raise ValueError(f"exported state {folder} was trained on data with content digest {recorded}, "
                    f"but this run's data have {data_digest}; pass --allow-data-change to resume on "
                    f"these data anyway. Not taken as a rounding difference: {why}")
@@ -246,7 +265,7 @@ def import_state(folder, template, *, signature: str, model=None, data_digest: s
       refused unless ``data_fingerprint`` is within rounding of the recorded one
       (:func:`check_data`) or ``allow_data_change``.
     data_fingerprint: this run's data fingerprint.
-  Returns the metadata with ``"data_check"`` added: how the data were accepted (:func:`check_data`).
+  Returns the metadata with ``"data_check"`` added: how the data were accepted (a :class:`DataCheck`).
   Raises ValueError naming what differs.
   """
   folder = pathlib.Path(folder)

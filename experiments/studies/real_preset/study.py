@@ -115,12 +115,13 @@ def train_run(run: Run, *, deadline: float | None, allow_data_change: bool = Fal
               log: Callable[[str], None] = print) -> bool:
   """Train ``run`` from its committed state until it stops or ``deadline``; True when it is done."""
   from nlosjax import train
+  from nlosjax.data.dataset import dataset_identity
   from nlosjax.evaluation import protocol
   config = run_config(run)
   data_path = pathlib.Path(config["data"]["path"])
   data_path.parent.mkdir(parents=True, exist_ok=True)
   ensure_data(config, data_path, log=log)
-  digest, fingerprint = _cached_identity(data_path)
+  digest, fingerprint = dataset_identity(data_path)
   log(f"[{run.name}] data {data_path} (content digest {digest})")
   export = train.StateExport(state_folder(run), data_digest=digest, data_fingerprint=fingerprint,
                              deadline=deadline, allow_data_change=allow_data_change)
@@ -165,20 +166,6 @@ def ensure_data(config: dict, path: pathlib.Path, *, log: Callable[[str], None] 
     log(f"dataset: generating {path} ...")
     result = write_dataset(path, spec, workers=workers)
   log(f"dataset: {path} ({result.generated} sequences generated now)")
-
-
-def _cached_identity(path: pathlib.Path) -> tuple[str, dict]:
-  """The dataset's content digest and fingerprint, cached beside it by size and modification time."""
-  from nlosjax.data.dataset import dataset_digest, dataset_fingerprint
-  cache = path.with_name(path.name + ".digest.json")
-  key = {"size": path.stat().st_size, "mtime_ns": path.stat().st_mtime_ns}
-  if cache.exists():
-    saved = json.loads(cache.read_text())
-    if {k: saved.get(k) for k in key} == key and "fingerprint" in saved:
-      return saved["digest"], saved["fingerprint"]
-  digest, fingerprint = dataset_digest(path), dataset_fingerprint(path)
-  cache.write_text(json.dumps({**key, "digest": digest, "fingerprint": fingerprint}) + "\n")
-  return digest, fingerprint
 
 
 def run_study(names=None, *, hours: float | None = None, allow_data_change: bool = False,

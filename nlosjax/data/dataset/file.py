@@ -576,6 +576,48 @@ def fingerprint_differences(recorded: dict, current: dict, *, rtol: float = FING
   return lines[:8] + ([f"... and {len(lines) - 8} more"] if len(lines) > 8 else [])
 
 
+def dataset_identity(path, *, parts: int = 2, cache: bool = True) -> tuple[str, dict[str, dict]]:
+  """``(dataset_digest(path), dataset_fingerprint(path))`` from one read of the file, cached beside it.
+
+  Each array is read once, whole, and both summaries are taken from it (the digest is the same
+  SHA-256 stream :func:`dataset_digest` hashes chunk by chunk). With ``cache``, the pair is kept in
+  ``<file>.digest.json`` keyed by the file's size and modification time, so a run that resumes on
+  an unchanged file pays nothing; a cache that cannot be written (a read-only folder) is skipped.
+  """
+  import hashlib
+  path = pathlib.Path(path)
+  stat = path.stat()
+  key = {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "parts": parts}
+  store = path.with_name(path.name + ".digest.json")
+  if cache and store.exists():
+    try:
+      saved = json.loads(store.read_text())
+    except (OSError, ValueError):
+      saved = {}
+    if {k: saved.get(k, 2 if k == "parts" else None) for k in key} == key and "fingerprint" in saved:
+      return saved["digest"], saved["fingerprint"]
+  h = hashlib.sha256()
+  fingerprint = {}
+  with h5py.File(path, "r") as f:
+    names = []
+    f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+    for name in sorted(names):
+      ds = f[name]
+      x = np.asarray(ds[()])
+      h.update(f"{name}|{ds.dtype.str}|{ds.shape}\n".encode())
+      h.update(x.tobytes())     # C order, as dataset_digest's chunks concatenate
+      if ds.dtype.kind in "biuf":
+        fingerprint[name] = {"shape": list(x.shape), "mass": float(np.abs(x, dtype=np.float64).sum()),
+                             "cells": _cell_sums(x, parts)}
+  digest = h.hexdigest()[:16]
+  if cache:
+    try:
+      store.write_text(json.dumps({**key, "digest": digest, "fingerprint": fingerprint}) + "\n")
+    except OSError:
+      pass
+  return digest, fingerprint
+
+
 def fingerprint_distance(recorded: dict, current: dict) -> float:
   """The largest cell difference over the arrays both fingerprints hold, relative to L1 mass (0: none)."""
   common = [n for n in set(recorded) & set(current) if len(recorded[n]["cells"]) == len(current[n]["cells"])]
