@@ -92,6 +92,11 @@ def test_design_configs_name_their_families_and_files():
   assert transport["retroreflective"] == 0.2 and transport["path"] == "runs/data/cpu-v3-transport.h5"
   assert study.classic_design("family:lct") == "no_lct" and study.classic_design("heldout:far") == "mix"
   assert study.sets_of("no_points", {"family:points": 0, "heldout:far": 0}) == ["family:points"]
+  # wide_base: base's renderer and file stem, wide's scenes; scored on every set.
+  wide_base = study.design_config(base, "wide_base")["data"]
+  assert wide_base["renderer"] == "transport" and "physics" not in wide_base
+  assert wide_base["path"] == "runs/data/cpu-v3-wide.h5" and wide_base["scene"] == scene
+  assert study.sets_of("wide_base", {"val:base": 0, "heldout:far": 0}) == ["val:base", "heldout:far"]
 
 
 def _frames(offset):
@@ -117,3 +122,26 @@ def test_report_differences_and_goal_from_records():
   assert report._goal(report.compare(runs, classic, name, "no_lct")) == "missed"
   text = report.to_markdown(runs, classic, ["header"], ["base"])
   assert "| lct |" in text and "Runs still missing" in text
+
+
+def test_wider_scenes_table_reports_object_error_against_the_best_classic_method():
+  name, seq = "heldout:large", np.repeat(np.arange(4), 3).tolist()
+
+  def frames(psnr, error):
+    return {"sequence": seq, "frame": np.tile([1, 2, 3], 4).tolist(),
+            "scores": {"psnr": [psnr] * 12, "recall": [0.8] * 12, "mad_object": [error] * 12}}
+
+  runs = {("wide_base", "ours"): {"sets": {name: frames(18.0, 0.20)}},
+          ("wide_base", "ours_s"): {"sets": {name: frames(17.5, 0.22)}}}
+  classic = {("mix", name): {"best": "phasor", "sequence": seq,
+                             "methods": {m: frames(16.0 if m == "phasor" else 12.0, 0.25)["scores"]
+                                         for m in ("fbp", "lct", "fk", "phasor", "rsd")}}}
+  lines = report._wider_scenes(runs, classic, ["large"])
+  row = next(x for x in lines if x.startswith("| large | wide_base |"))
+  # Ours 18 dB, +2 over phasor; object error 0.20 against 0.25 (-0.05); Ours - Ours-S +0.5 dB.
+  assert "18.00" in row and "+2.00" in row and "0.200" in row and "phasor 0.250" in row
+  assert "-0.050" in row and "+0.50" in row
+  assert any(x.startswith("| large | base | (not run)") for x in lines)
+  # Records written before the object error was scored: the row says so instead of failing.
+  del runs[("wide_base", "ours")]["sets"][name]["scores"]["mad_object"]
+  assert any(x.startswith("| large | wide_base | (not run)") for x in report._wider_scenes(runs, classic, ["large"]))

@@ -26,14 +26,23 @@ def main(argv=None) -> int:
   parser.add_argument("--workdir", default="runs/physics_shift", help="run folders")
   parser.add_argument("--results", default="benchmarks/results", help="JSON files and report")
   parser.add_argument("--report-only", action="store_true", help="only rewrite the report from the JSON files")
+  parser.add_argument("--state", default=None, metavar="DIR",
+                      help="export each run's resumable state to DIR/<design>-<variant> at every checkpoint "
+                           "and resume from it (commit DIR: a fresh clone continues the run)")
+  parser.add_argument("--hours", type=float, default=None,
+                      help="with --state: pause the run in progress after this many hours, its state exported")
   argv = sys.argv[1:] if argv is None else list(argv)
   args, base, _ = parse_config(parser, argv)
+  if args.hours is not None and args.state is None:
+    parser.error("--hours needs --state DIR (where the paused state goes)")
   preset = args.config
   results, workdir = pathlib.Path(args.results), pathlib.Path(args.workdir)
   stop = {**STUDY_STOP, **base.get("train", {}).get("stop", {})}
   physics = base["data"].get("physics")
   if not args.report_only:
     from tqdm import tqdm
+
+    from nlosjax.train import TrainingPaused
     sets = study.test_sets(base, args.conditions, physics)
     jobs = [("classic", study.classic_design(name), name) for name in study.scored_by_classic(sets)]
     jobs += [("run", d, v) for d in args.designs for v in args.variants]
@@ -43,6 +52,8 @@ def main(argv=None) -> int:
     print(f"physics_shift: {len(done)} of {len(jobs)} records exist in {results / 'physics_shift'}; "
           f"{len(todo)} to do")
     t0, trained = time.perf_counter(), 0
+    deadline = None if args.hours is None else time.time() + 3600 * args.hours
+    state = None if args.state is None else pathlib.Path(args.state)
     for kind, a, b in tqdm(todo, desc="physics_shift", unit="job"):
       if kind == "classic":
         study.run_classic(base, a, b, sets, results, preset, physics, log=tqdm.write)
@@ -54,7 +65,12 @@ def main(argv=None) -> int:
         tqdm.write(f"physics_shift: --time-limit-s {args.time_limit_s:g} passed; no new run starts")
         break
       new = not study.run_path(results, a, b).exists()
-      study.run_design(base, a, b, sets, stop, workdir, results, preset, physics, log=tqdm.write)
+      try:
+        study.run_design(base, a, b, sets, stop, workdir, results, preset, physics, log=tqdm.write,
+                         state=state, deadline=deadline)
+      except TrainingPaused as e:
+        tqdm.write(f"physics_shift: {a}-{b} {e}; the same command continues it")
+        break
       trained += new
   runs, classic = report.load(results)
   command = "python -m benchmarks.physics_shift " + " ".join(argv)

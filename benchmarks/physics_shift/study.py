@@ -5,11 +5,14 @@ scenes rendered by the transport renderer alone, without a physics mix (the
 preset's own data where it has none); ``mix`` on sequences whose forward model
 is drawn from every family of :class:`nlosjax.data.dataset.physics.PhysicsMix`;
 ``wide`` on the mix with wider scenes; ``no_<family>`` on every family but
-one. Each learned run trains to the plateau rule of :mod:`benchmarks.mechanisms`
+one; ``wide_base`` on the preset's renderer with the wider scenes. Each learned
+run trains to the plateau rule of :mod:`benchmarks.mechanisms`
 and writes ``RESULTS/physics_shift/<design>-<variant>.json``; each classic
 method's per-frame scores on a test set, with settings tuned on a design's
 validation split, go to ``RESULTS/physics_shift/classic-<design>-<set>.json``.
-A file that exists is not recomputed, so the command resumes anywhere.
+A file that exists is not recomputed, so the command resumes anywhere; with
+``--state DIR`` a run in progress also exports its resumable state there
+(:mod:`nlosjax.train.run_state`), so a fresh clone continues it.
 """
 
 from __future__ import annotations
@@ -26,10 +29,14 @@ from nlosjax.data.dataset.physics import FAMILIES, PhysicsMix
 
 #: design -> the families its training data draws from (``base``: the preset's own data).
 #: ``wide``: every family, and scenes wider than the preset's (:func:`wide_scene`).
+#: ``wide_base``: the preset's own renderer with those wider scenes (the scene ranges alone changed).
 DESIGNS = {"base": None, "mix": FAMILIES, "wide": FAMILIES,
-           **{f"no_{f}": tuple(g for g in FAMILIES if g != f) for f in FAMILIES}}
+           **{f"no_{f}": tuple(g for g in FAMILIES if g != f) for f in FAMILIES},
+           "wide_base": None}
 #: Designs compared on validation to choose the preset's data.
 CANDIDATES = ("base", "mix", "wide")
+#: Designs scored on every set (the candidates' validation splits, every family, every condition).
+SCORED_ON_ALL = CANDIDATES + ("wide_base",)
 
 
 def wide_scene(scene: dict) -> dict:
@@ -69,13 +76,17 @@ def design_config(base: dict, design: str, physics: dict | None = None) -> dict:
   from nlosjax.train import with_defaults
   cfg = copy.deepcopy(with_defaults(base))
   data = cfg["data"]
-  if design == "base":
+  if design in ("base", "wide_base"):
     if data.get("renderer") == "mix":     # the preset's scenes by transport alone
       retro = PhysicsMix.from_dict(data.get("physics") or {}).retroreflective
       data.update(renderer="transport", retroreflective=retro)
       data.pop("physics")
       data["path"] = str(pathlib.PurePosixPath(data["path"]).with_name(
           f"{data_stem(base).rsplit('-mix-', 1)[0]}-transport.h5"))
+    if design == "wide_base":
+      data["scene"] = wide_scene(data["scene"])
+      path = pathlib.PurePosixPath(data["path"])
+      data["path"] = str(path.with_name(f"{path.stem}-wide{path.suffix}"))
     return cfg
   families = DESIGNS[design]
   data["renderer"] = "mix"
@@ -132,8 +143,8 @@ def test_sets(base: dict, conditions, physics=None) -> dict:
 
 
 def sets_of(design: str, sets: dict) -> list[str]:
-  """The sets a design is scored on: every set (the :data:`CANDIDATES`) or its held-out family."""
-  if design in CANDIDATES:
+  """The sets a design is scored on: every set (:data:`SCORED_ON_ALL`) or its held-out family."""
+  if design in SCORED_ON_ALL:
     return list(sets)
   return [f"family:{design[3:]}"]
 
@@ -183,10 +194,14 @@ def run_meta(cfg: dict, design: str, variant: str, preset: str, results) -> dict
           "study": {"study": "physics_shift", "design": design, "variant": variant}}
 
 
-def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=print, meta=None):
+def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=print, meta=None,
+              state: pathlib.Path | None = None, deadline: float | None = None):
   """Train (or resume) one learned run to its plateau; ``(mcfg, params, curve record)``.
 
   ``meta``: written to ``folder/run.json`` with the run's config (:func:`run_meta`).
+  ``state``: a folder that receives the run's resumable state at every checkpoint (its ``model``
+  sub-folder) and is resumed from when ahead of ``folder``; ``deadline`` (``time.time()``, with
+  ``state``): pause there, raising :class:`nlosjax.train.TrainingPaused`.
   """
   from benchmarks.mechanisms.records import write_json
   from benchmarks.mechanisms.study import _subsample
@@ -200,21 +215,34 @@ def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=pri
   data_path = pathlib.Path(cfg["data"]["path"])
   T.ensure_dataset(cfg, data_path, log=log)
   validate = protocol.validation_psnr(cfg, data_path)
-  mcfg, state = T.train_model(cfg, data_path, folder, variant, folder="model", validate=validate, log=log)
+  export = None
+  if state is not None:
+    from nlosjax.data.dataset import dataset_identity
+    digest, fingerprint = dataset_identity(data_path)
+    export = T.StateExport(state, data_digest=digest, data_fingerprint=fingerprint, deadline=deadline)
+  mcfg, trained = T.train_model(cfg, data_path, folder, variant, folder="model", validate=validate, log=log,
+                                export=export)
   curve = T.read_curve(folder / "model")
   record = {"steps_taken": curve["steps_taken"], "stop_reason": curve["stop_reason"],
             "best_step": curve["best_step"], "best_val_psnr": curve["best_val_psnr"],
             "validation_curve": curve["curve"],
             "loss_curve": _subsample(T.read_metrics(folder / "model" / "metrics.jsonl"))}
-  return mcfg, T.to_host(state.params), record
+  return mcfg, T.to_host(trained.params), record
+
+
+def state_dir(state: pathlib.Path, design: str, variant: str) -> pathlib.Path:
+  """A run's committed resumable state (``--state``): ``STATE/<design>-<variant>``."""
+  return pathlib.Path(state) / f"{design}-{variant}"
 
 
 def run_design(base: dict, design: str, variant: str, sets: dict, stop: dict, workdir: pathlib.Path,
-               results: pathlib.Path, preset: str, physics=None, log=print) -> dict:
+               results: pathlib.Path, preset: str, physics=None, log=print,
+               state: pathlib.Path | None = None, deadline: float | None = None) -> dict:
   """One learned run, trained to its plateau and scored on its sets; writes and returns its record.
 
   A record that exists already is completed: the sets it lacks are scored
-  (the run is restored, not trained again) and added.
+  (the run is restored, not trained again) and added. ``state``, ``deadline``: as
+  :func:`train_run` (the run's folder is :func:`state_dir`).
   """
   from benchmarks.mechanisms import machine, write_json
   t0 = time.perf_counter()
@@ -222,7 +250,9 @@ def run_design(base: dict, design: str, variant: str, sets: dict, stop: dict, wo
   old = json.loads(path.read_text()) if path.exists() else None
   cfg = design_config(base, design, physics)
   mcfg, params, record = train_run(cfg, workdir / f"{design}-{variant}", variant, stop, log,
-                                   meta=run_meta(cfg, design, variant, preset, results))
+                                   meta=run_meta(cfg, design, variant, preset, results),
+                                   state=None if state is None else state_dir(state, design, variant),
+                                   deadline=deadline)
   val_path = pathlib.Path(cfg["data"]["path"])
   names = [n for n in sets_of(design, sets) if old is None or n not in old["sets"]]
   scored = score_model(cfg, val_path, mcfg, params, variant, sets, names, log)
