@@ -104,7 +104,8 @@ def _schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
     from nlosjax.data.scenes import SceneParams
     return _fields(SceneParams) | {"max_tilt_deg"}, set()
   if path == ("data", "loader"):
-    return {"ends", "target", "in_memory", "prefetch"}, set()     # TripletLoader.from_config
+    from nlosjax.data.dataset import LoaderOptions
+    return _fields(LoaderOptions), set()
   if path == ("data", "num_sequences"):
     from nlosjax.data.dataset.spec import SPLITS
     return set(SPLITS), set()

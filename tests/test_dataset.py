@@ -419,6 +419,23 @@ def test_loader_shuffles_by_seed_and_resumes_from_a_step(tiny):
     assert [int(t.batch(i)["frame"][0]) for i in range(len(t))] == [1, 2]
 
 
+def test_loader_options_one_schema_with_clear_errors():
+  assert D.LoaderOptions.from_dict(None) == D.LoaderOptions("valid", "clean", True, 0)
+  assert D.LoaderOptions.from_dict({"prefetch": 3, "in_memory": False}).prefetch == 3
+  with pytest.raises(ValueError, match=r"unknown data.loader key\(s\) \['shuffle'\]; known"):
+    D.LoaderOptions.from_dict({"shuffle": True})
+  for bad, match in [({"ends": "wrap"}, "ends"), ({"target": "noisy"}, "target"),
+                     ({"in_memory": 1}, "in_memory"), ({"prefetch": -1}, "prefetch"),
+                     ({"prefetch": True}, "prefetch")]:
+    with pytest.raises(ValueError, match=f"data.loader.{match}"):
+      D.LoaderOptions.from_dict(bad)
+  # The presets' sections are read by it, and the CLI's schema is its fields.
+  from experiments.cli import _schema
+  for preset in ("cpu", "paper"):
+    D.LoaderOptions.from_dict(configs.get_config(preset)["data"]["loader"])
+  assert _schema(("data", "loader")) == ({"ends", "target", "in_memory", "prefetch"}, set())
+
+
 def test_prefetch_passes_items_and_errors_through():
   assert list(D.prefetch(iter(range(10)), 3)) == list(range(10))
 
@@ -430,6 +447,15 @@ def test_prefetch_passes_items_and_errors_through():
   assert next(it) == 1
   with pytest.raises(RuntimeError, match="boom"):
     next(it)
+
+  # Closed early (a paused run): the producer has stopped when close() returns, so the
+  # loader's file can be closed right after.
+  import itertools
+  import threading
+  it = D.prefetch(itertools.count(), 2)
+  assert [next(it), next(it)] == [0, 1]
+  it.close()
+  assert not [t for t in threading.enumerate() if t.name == "nlosjax-prefetch" and t.is_alive()]
 
 
 # ---------------------------------------------------------------- errors
@@ -561,13 +587,16 @@ def test_cli_writes_the_preset_split_and_the_loader_reads_it_by_config(tmp_path)
     assert len(ds.names("train")) == 2 and len(ds.names("test")) == 1
     assert ds.num_frames("train-00000") == 3
     assert json.loads(ds.attrs["spec"])["grid"] == [data["grid"]] * 2
-  with D.TripletLoader.from_config(data, path=out, split="test", batch_size=1) as loader:
+  from nlosjax import train as T
+  config = configs.get_config("cpu")
+  with T.make_loader(config, out, "test", batch_size=1, shuffle=False, seed=0) as loader:
     assert not loader.shuffle and loader.stride == data["input_stride"]
     assert loader._cache is not None and loader.prefetch_size == data["loader"]["prefetch"]
     batch = next(loader.iterate())
     assert batch["measurement"].shape == (1, 3, data["num_bins"], 8, 8)
   with pytest.raises(ValueError, match="unknown data.loader"):
-    D.TripletLoader.from_config({**data, "loader": {"shuffle": True}}, path=out)
+    T.make_loader({**config, "data": {**data, "loader": {"shuffle": True}}}, out, "test", batch_size=1,
+                  shuffle=False, seed=0)
 
 
 @pytest.mark.parametrize("in_memory", [False, True])

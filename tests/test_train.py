@@ -142,6 +142,18 @@ def test_bad_configs_raise(data_path, tmp_path):
     T.train_model(tiny_config(empty), empty, tmp_path, "ours_s", log=lambda s: None)
 
 
+def test_prefetching_batches_changes_no_trained_parameter(data_path, tmp_path):
+  # data.loader.prefetch reads the next batches in a thread while the step runs: the same
+  # batches in the same order, so the same parameters bit for bit as reading them in turn.
+  params = {}
+  for ahead in (0, 3):
+    cfg = tiny_config(data_path, steps=3, checkpoint_every=3)
+    cfg["data"]["loader"] = {**cfg["data"]["loader"], "prefetch": ahead}
+    _, state = T.train_model(cfg, data_path, tmp_path / f"prefetch{ahead}", "ours_s", log=lambda s: None)
+    params[ahead] = T.to_host(state.params)
+  assert_nested_close(params[3], params[0], rtol=0, atol=0)
+
+
 def test_upsample_scan_interpolates_linearly_between_samples():
   from nlosjax.evaluation.baselines import interpolation_matrix
   m = interpolation_matrix(16, 4)              # samples at 2, 6, 10, 14

@@ -7,6 +7,7 @@ global batch; process 0 writes the log and the selection.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -98,11 +99,13 @@ def make_loader(config: dict, path, split: str, *, batch_size: int, shuffle: boo
                 shard: tuple[int, int] = (0, 1)):
   """The config's :class:`~nlosjax.data.dataset.TripletLoader` of ``split`` (the model's under-scan offset checked).
 
+  ``data.loader`` is read by :meth:`~nlosjax.data.dataset.LoaderOptions.from_dict` (its
+  ``prefetch`` is the training loop's: :func:`train_model`).
   ``shard = (index, count)``: this process's rows of every global batch.
   """
-  from nlosjax.data.dataset import TripletLoader
+  from nlosjax.data.dataset import LoaderOptions, TripletLoader
   data = config["data"]
-  opts = data.get("loader", {})
+  opts = LoaderOptions.from_dict(data.get("loader"))
   stride = int(data["input_stride"])
   offset = int(data.get("input_offset", stride // 2))
   if offset != stride // 2:
@@ -110,8 +113,8 @@ def make_loader(config: dict, path, split: str, *, batch_size: int, shuffle: boo
                      f"stride // 2 + stride * i (offset {stride // 2} for stride {stride})")
   return TripletLoader(path, split=split, batch_size=batch_size, stride=stride, offset=offset,
                        seed=seed, shuffle=shuffle, drop_remainder=shuffle,
-                       ends=opts.get("ends", "valid"), target=opts.get("target", "clean"),
-                       in_memory=opts.get("in_memory", True), shard=shard)
+                       ends=opts.ends, target=opts.target, in_memory=opts.in_memory,
+                       prefetch_size=opts.prefetch, shard=shard)
 
 
 def ensure_dataset(config: dict, path: pathlib.Path, log: Callable[[str], None] = print) -> None:
@@ -276,13 +279,16 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     exported_best["step"] = best_step
 
   t_start = time.perf_counter()
+  # Batches are a function of the step; with data.loader.prefetch they are read that many
+  # steps ahead in a thread while the step runs (the same batches).
   with open(log_path, "a") as f, tqdm(total=steps, initial=start, desc=f"train {variant}",
                                       unit="step", dynamic_ncols=True, mininterval=2.0,
-                                      disable=not primary) as bar:
+                                      disable=not primary) as bar, \
+       contextlib.closing(loader.iterate(start, max(0, steps - start))) as batches:
     for step in range(start, steps):
       if tracker is not None and tracker.reason(step):
         break                           # a stopped run (rerun after its end): no step more
-      host = loader.batch(step)
+      host = next(batches)
       batch = {k: host[k] for k in BATCH_KEYS}
       batch["measurement"] = select_frames(batch["measurement"], mcfg.frames)
       state, metrics = step_fn(state, shard_batch(batch, mesh), jax.random.fold_in(loop_key, step))
@@ -311,12 +317,14 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
           export_now(state)
         bar.update(1)
       if pause and not (tracker is not None and tracker.reason(done)):
+        batches.close()
         ckpt.close()
         if tracker is not None:
           tracker.best.close()
         loader.close()
         log(f"[{variant}] paused at step {done} (deadline); state exported to {export.folder(name)}")
         raise TrainingPaused(variant, done, export.folder(name))
+  batches.close()
   loader.close()
   if tracker is not None:
     chosen = _finish_plateau(tracker, state, ckpt, vdir, variant, primary, log)

@@ -27,7 +27,7 @@ The code, one concern per module; every name is importable from
   :func:`open_dataset`).
 * :mod:`~nlosjax.data.dataset.undersampling` -- :func:`undersample`,
   :func:`undersampled_positions`, :func:`undersampled_setup`.
-* :mod:`~nlosjax.data.dataset.loader` -- :class:`TripletLoader` and :func:`prefetch`.
+* :mod:`~nlosjax.data.dataset.loader` -- :class:`TripletLoader`, :class:`LoaderOptions` and :func:`prefetch`.
 """
 
 from nlosjax.data.dataset.file import (
@@ -47,7 +47,7 @@ from nlosjax.data.dataset.file import (
   write_dataset,
 )
 from nlosjax.data.dataset.file import _partial_path as _partial_path  # private; the tests use it
-from nlosjax.data.dataset.loader import TripletLoader, prefetch
+from nlosjax.data.dataset.loader import LoaderOptions, TripletLoader, prefetch
 from nlosjax.data.dataset.physics import FAMILIES, ForwardModel, PhysicsMix
 from nlosjax.data.dataset.simulate import measurement_rate, render_setup, simulate_sequence
 from nlosjax.data.dataset.spec import RENDERERS, SPLITS, DatasetSpec, sequence_name, sequence_seed
@@ -62,6 +62,7 @@ __all__ = [
     "SPLITS",
     "DatasetSpec",
     "DynamicDataset",
+    "LoaderOptions",
     "ForwardModel",
     "PhysicsMix",
     "dataset_digest",
