@@ -140,16 +140,17 @@ def mixer_ref_np(params, u, *, d_state, bidirectional=False):
   u = np.asarray(u, np.float64)
   xz = u @ p["in_proj"]["kernel"]
   x, z = np.split(np.swapaxes(xz, 1, 2), 2, axis=1)          # [B, d_inner, L]
+  s = p["ssm"]             # the SelectiveSSM: reverse-branch names dt_proj_b_kernel, A_log_b, ...
 
   def branch(x, z, sfx):
-    x = _silu(_torch_causal_conv(x, p["conv_kernel" + sfx], p["conv_bias" + sfx]))
-    x_dbl = np.swapaxes(x, 1, 2) @ p["x_proj" + sfx]["kernel"]
-    R = p["dt_proj_kernel" + sfx].shape[0]
-    delta = np.swapaxes(x_dbl[..., :R] @ p["dt_proj_kernel" + sfx], 1, 2)
+    x = _silu(_torch_causal_conv(x, s["conv_kernel" + sfx], s["conv_bias" + sfx]))
+    x_dbl = np.swapaxes(x, 1, 2) @ s["x_proj" + sfx]["kernel"]
+    R = s[f"dt_proj{sfx}_kernel"].shape[0]
+    delta = np.swapaxes(x_dbl[..., :R] @ s[f"dt_proj{sfx}_kernel"], 1, 2)
     Bm = np.swapaxes(x_dbl[..., R:R + d_state], 1, 2)
     Cm = np.swapaxes(x_dbl[..., R + d_state:], 1, 2)
-    return selective_scan_ref_np(x, delta, -np.exp(p["A_log" + sfx]), Bm, Cm, p["D" + sfx], z,
-                                 delta_bias=p["dt_proj_bias" + sfx], delta_softplus=True)
+    return selective_scan_ref_np(x, delta, -np.exp(s["A_log" + sfx]), Bm, Cm, s["D" + sfx], z,
+                                 delta_bias=s[f"dt_proj{sfx}_bias"], delta_softplus=True)
   y = branch(x, z, "")
   if bidirectional:
     y = (y + branch(x[..., ::-1], z[..., ::-1], "_b")[..., ::-1]) / 2
@@ -503,10 +504,11 @@ def test_mixer_initialisation_follows_mamba():
   d_inner, R, N = 128, 4, 16                               # dt_rank = ceil(64 / 16)
   shapes = jax.tree.map(np.shape, flax.core.unfreeze(p))
   assert shapes == {
-      "in_proj": {"kernel": (64, 2 * d_inner)}, "conv_kernel": (4, d_inner), "conv_bias": (d_inner,),
-      "x_proj": {"kernel": (d_inner, R + 2 * N)}, "dt_proj_kernel": (R, d_inner),
-      "dt_proj_bias": (d_inner,), "A_log": (d_inner, N), "D": (d_inner,),
+      "in_proj": {"kernel": (64, 2 * d_inner)},
+      "ssm": {"conv_kernel": (4, d_inner), "conv_bias": (d_inner,), "x_proj": {"kernel": (d_inner, R + 2 * N)},
+              "dt_proj_kernel": (R, d_inner), "dt_proj_bias": (d_inner,), "A_log": (d_inner, N), "D": (d_inner,)},
       "out_proj": {"kernel": (d_inner, 64)}}
+  p = {**p, **p["ssm"]}                                     # the SSM's names at the top, as below
   for name in ("A_log", "D", "dt_proj_bias"):
     assert p[name].dtype == jnp.float32, name          # fp32 whatever param_dtype is
   assert p["in_proj"]["kernel"].dtype == jnp.bfloat16
@@ -530,7 +532,7 @@ def test_mixer_initialisation_follows_mamba():
     # Uniform(+-bound): never beyond it (lecun_normal would be), and filling it.
     assert v.max() <= bound * 1.01 and v.max() > 0.9 * bound, (path, v.max(), bound)
   _, pc, _, _ = _mixer(d_model=16, d_state=4, dt_init="constant")
-  np.testing.assert_allclose(pc["dt_proj_kernel"], 1.0)   # dt_rank 1 -> 1^-0.5
+  np.testing.assert_allclose(pc["ssm"]["dt_proj_kernel"], 1.0)   # dt_rank 1 -> 1^-0.5
 
 
 @pytest.mark.parametrize("direction", ["causal", "bidirectional"])
@@ -562,19 +564,28 @@ def test_bidirectional_mixer_is_flip_equivariant_with_mirrored_params(conv):
   # The shared centred conv mirrors onto itself with reversed taps when d_conv is odd.
   _, p, u, f = _mixer(d_model=8, d_state=4, d_conv=3 if conv == "centered" else 4,
                       direction="bidirectional", conv=conv)
-  mirrored = dict(p)
-  for k in p:
-    if k.endswith("_b"):
-      mirrored[k], mirrored[k[:-2]] = p[k[:-2]], p[k]
+  # Forward and reverse parameters swapped by hand (mirror_params, which the network's
+  # rotation test uses, is checked against this below).
+  mirrored = {**p, "ssm": dict(p["ssm"])}
+  for k, v in p["ssm"].items():
+    back = k.replace("dt_proj_", "dt_proj_b_") if k.startswith("dt_proj_") else k + "_b"
+    if back in p["ssm"]:
+      mirrored["ssm"][k], mirrored["ssm"][back] = p["ssm"][back], v
   if conv == "centered":
-    mirrored["conv_kernel"] = p["conv_kernel"][::-1]
+    mirrored["ssm"]["conv_kernel"] = p["ssm"]["conv_kernel"][::-1]
+  from nlosjax.ssm.mamba import mirror_params
+  by_function = mirror_params(p)
+  if conv == "centered":
+    by_function["ssm"]["conv_kernel"] = by_function["ssm"]["conv_kernel"][::-1]
+  assert jax.tree.map(lambda a, b: bool(np.array_equal(a, b)), by_function, mirrored) == jax.tree.map(
+      lambda a: True, mirrored)
   y, y_flip = f({"params": p}, u), f({"params": mirrored}, u[:, ::-1])
   assert rel_err(y_flip[:, ::-1], y) < 1e-5
 
 
 def test_mixer_shared_params_bf16_and_gradients():
   _, ps, _, _ = _mixer(d_model=8, d_state=4, direction="bidirectional", share_params=True)
-  assert not any(k.endswith("_b") for k in ps)
+  assert not any(k.endswith("_b") or "_b_" in k for k in ps["ssm"])
   _, p, u, apply32 = _mixer(d_model=8, d_state=4)
   m = MambaMixer(d_model=8, d_state=4, dtype=jnp.bfloat16)
   loss = lambda p: jnp.sum(m.apply({"params": p}, u).astype(jnp.float32) ** 2)

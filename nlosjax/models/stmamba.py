@@ -39,11 +39,9 @@ import math
 from typing import Any
 
 import flax.linen as nn
-import jax
 import jax.numpy as jnp
 
-from nlosjax.ssm import mamba_dt_bias_init, s4d_real_a_log_init, selective_scan
-from nlosjax.ssm.mamba import depthwise_conv, resolve_dt_rank, torch_default_init
+from nlosjax.ssm.mamba import SelectiveSSM, mirror_params, resolve_dt_rank, torch_default_init
 
 MIXERS = ("temporal", "spatial", "identity")
 # The SSMs of each ST-Mamba block, by ``ModelConfig.variant``.
@@ -55,85 +53,6 @@ BLOCK_MIXERS = {
     "ss": ("spatial", "spatial"),    # Table 2 "S-Mamba S-Mamba"
     "none": ("identity",),           # control: every SSM replaced by the identity
 }
-REVERSE_SUFFIX = "_b"
-
-
-def _uniform(bound: float):
-  def init(key, shape, dtype=jnp.float32):
-    return jax.random.uniform(key, shape, dtype, -bound, bound)
-  return init
-
-
-class SelectiveSSM(nn.Module):
-  """The SSM of a Mamba mixer, without its projections and gate: ``[..., L, D] -> [..., L, D]``.
-
-  Per direction: ``x' = SiLU(conv(x))`` (depthwise, ``d_conv`` taps, causal
-  along the scan direction), ``(d, B, C) = x_proj(x')``, ``dt = softplus(d W_dt
-  + b_dt)`` (float32), ``y = selective_scan(x', dt, -exp(A_log), B, C, D)``.
-  ``direction="bidirectional"`` adds a reverse branch (parameters suffixed
-  ``_b``, its conv anti-causal) and returns the mean of the two. Parameter
-  names and initialisation follow :class:`nlosjax.ssm.MambaMixer`.
-
-  Attributes:
-    d_inner: channels ``D``.
-    d_state: ``N``.
-    d_conv: conv taps.
-    dt_rank: rank of the dt projection.
-    direction: "causal" | "bidirectional".
-    scan_method, chunk_size: of :func:`nlosjax.ssm.selective_scan`.
-  """
-
-  d_inner: int
-  d_state: int = 16
-  d_conv: int = 4
-  dt_rank: int = 1
-  direction: str = "causal"
-  scan_method: str = "auto"
-  chunk_size: int | None = None
-  dt_min: float = 1e-3
-  dt_max: float = 0.1
-  dt_init_floor: float = 1e-4
-  dtype: Any = jnp.float32
-  param_dtype: Any = jnp.float32
-
-  def _params(self, suffix: str) -> dict:
-    N, R, D = self.d_state, self.dt_rank, self.d_inner
-    bound = 1.0 / math.sqrt(self.d_conv)
-    return {
-        "conv_kernel": self.param(f"conv_kernel{suffix}", _uniform(bound), (self.d_conv, D),
-                                  self.param_dtype),
-        "conv_bias": self.param(f"conv_bias{suffix}", _uniform(bound), (D,), self.param_dtype),
-        "x_proj": nn.Dense(R + 2 * N, use_bias=False, kernel_init=torch_default_init(),
-                           dtype=self.dtype, param_dtype=self.param_dtype, name=f"x_proj{suffix}"),
-        "w_dt": self.param(f"dt_proj{suffix}_kernel", _uniform(R ** -0.5), (R, D),
-                           self.param_dtype),
-        "b_dt": self.param(f"dt_proj{suffix}_bias",
-                           mamba_dt_bias_init(self.dt_min, self.dt_max, self.dt_init_floor),
-                           (D,), jnp.float32),
-        "A_log": self.param(f"A_log{suffix}", s4d_real_a_log_init, (D, N), jnp.float32),
-        "D": self.param(f"D{suffix}", nn.initializers.ones, (D,), jnp.float32),
-    }
-
-  def _branch(self, x, p, reverse: bool):
-    kernel, bias = nn.dtypes.promote_dtype(p["conv_kernel"], p["conv_bias"], dtype=self.dtype)
-    x = nn.silu(depthwise_conv(x, kernel, bias, mode="anticausal" if reverse else "causal"))
-    N, R = self.d_state, self.dt_rank
-    delta, B, C = jnp.split(p["x_proj"](x), [R, R + N], axis=-1)
-    dt = jax.nn.softplus(delta.astype(jnp.float32) @ p["w_dt"].astype(jnp.float32) + p["b_dt"])
-    return selective_scan(x, dt, -jnp.exp(p["A_log"]), B, C, p["D"], reverse=reverse,
-                          method=self.scan_method, chunk_size=self.chunk_size)
-
-  @nn.compact
-  def __call__(self, x):
-    if self.direction not in ("causal", "bidirectional"):
-      raise ValueError(f"direction must be 'causal' or 'bidirectional', got {self.direction!r}")
-    if x.shape[-1] != self.d_inner:
-      raise ValueError(f"x must be [..., L, {self.d_inner}], got shape {x.shape}")
-    y = self._branch(x, self._params(""), reverse=False)
-    if self.direction == "bidirectional":
-      y_b = self._branch(x, self._params(REVERSE_SUFFIX), reverse=True)
-      y = (0.5 * (y.astype(jnp.float32) + y_b.astype(jnp.float32))).astype(y.dtype)
-    return y
 
 
 def apply_temporal(ssm: SelectiveSSM, x):
@@ -170,9 +89,9 @@ class _SSMChain(nn.Module):
       if kind == "identity":  # the no-SSM control: the block keeps its norm, projections and gate
         continue
       direction = self.temporal_direction if kind == "temporal" else "bidirectional"
-      ssm = SelectiveSSM(self.d_inner, self.d_state, self.d_conv, self.dt_rank, direction,
-                         self.scan_method, self.chunk_size, dtype=self.dtype,
-                         param_dtype=self.param_dtype, name=f"{kind}{i}")
+      ssm = SelectiveSSM(self.d_inner, d_state=self.d_state, d_conv=self.d_conv, dt_rank=self.dt_rank,
+                         direction=direction, scan_method=self.scan_method, chunk_size=self.chunk_size,
+                         dtype=self.dtype, param_dtype=self.param_dtype, name=f"{kind}{i}")
       x = apply_temporal(ssm, x) if kind == "temporal" else apply_spatial(ssm, x)
     return x
 
@@ -275,38 +194,12 @@ class CrossSTMambaBlock(_BlockBase):
     return ref.astype(out.dtype) + out
 
 
-_BRANCH_NAMES = ("conv_kernel", "conv_bias", "x_proj", "dt_proj{}_kernel", "dt_proj{}_bias",
-                 "A_log", "D")
-
-
-def _branch_name(template: str, suffix: str) -> str:
-  return template.format(suffix) if "{}" in template else template + suffix
-
-
 def mirror_spatial_params(params):
   """Swap the forward and reverse parameters of every bidirectional SSM in a param tree.
 
   With the swapped parameters, a block applied to the 180-degree-rotated scan
   grid (``x[:, :, ::-1, ::-1]``) returns the rotated output of the original
-  block and parameters. Causal SSMs are left as they are. Returns plain dicts.
+  block and parameters (:func:`nlosjax.ssm.mamba.mirror_params`). Causal SSMs are
+  left as they are. Returns plain dicts.
   """
-  def visit(tree):
-    if not isinstance(tree, dict):
-      return tree
-    out = {k: visit(v) for k, v in tree.items()}
-    if "A_log" in out and "A_log" + REVERSE_SUFFIX in out:
-      for template in _BRANCH_NAMES:
-        f, b = _branch_name(template, ""), _branch_name(template, REVERSE_SUFFIX)
-        out[f], out[b] = out[b], out[f]
-    return out
-
-  return visit(dict_of(params))
-
-
-def dict_of(tree):
-  """Plain nested dicts of a (possibly frozen) Flax variable tree."""
-  if hasattr(tree, "unfreeze"):
-    tree = tree.unfreeze()
-  if isinstance(tree, dict):
-    return {k: dict_of(v) for k, v in tree.items()}
-  return tree
+  return mirror_params(params)
