@@ -504,14 +504,3 @@ def run_model(model_config, params, frames, *, batch_size: int = 4):
       out[k].append(np.asarray(o[k]))
     out["transient"].append(np.asarray(o["transient"] * o["scale"][:, None, None, None]))
   return {k: np.concatenate(v) for k, v in out.items()}
-
-
-def adapt_params(model_config, params, frames, **kwargs):
-  """Fit a small part of a trained network to one capture: :func:`nlosjax.adaptation.adapt`.
-
-  ``model_config`` moved to the capture (:func:`adapt_to_capture`), ``frames``
-  ``[F, T, h, w]`` its under-scanned counts in the model's bins; returns an
-  :class:`~nlosjax.adaptation.AdaptResult` (``.params`` for :func:`run_model`).
-  """
-  from nlosjax.adaptation import adapt
-  return adapt(model_config, params, frames, **kwargs)

@@ -33,6 +33,8 @@ import zipfile
 
 import numpy as np
 
+from nlosjax.variants import VARIANTS as _VARIANTS
+
 #: The folder of the weights shipped with the package.
 WEIGHTS_ROOT = pathlib.Path(__file__).resolve().parent / "weights"
 FORMAT = "nlosjax-weights"
@@ -40,7 +42,7 @@ FORMAT_VERSION = 1
 PARAMS_FILE = "params.npz"
 PROVENANCE_FILE = "provenance.json"
 #: The trained models a run or weights folder may hold (``nlosjax.inference`` reads them from here).
-VARIANTS = ("ours", "ours_s", "usm", "lfe")
+VARIANTS = tuple(_VARIANTS)
 #: Keys every ``provenance.json`` must hold (:func:`write_weights` sets the first five).
 REQUIRED_KEYS = ("format", "format_version", "name", "variant", "params_sha256", "config",
                  "model_config", "param_fingerprint", "validation")

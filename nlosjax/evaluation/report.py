@@ -17,15 +17,15 @@ import math
 
 from nlosjax import stats
 from nlosjax.evaluation.scores import HIGHER_IS_BETTER, TEMPORAL_METRICS
+from nlosjax.variants import VARIANTS
 
 __all__ = ["METHOD_LABELS", "TABLE_METHODS", "METRIC_LABELS", "label", "format_tables",
            "format_comparisons", "format_choices"]
 
 METHOD_LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "RSD",
-                 "csa": "CSA", "lfe": "LFE", "ours_s": "Ours-S", "ours": "Ours",
-                 "usm": "USM"}
-#: Row order of every table.
-TABLE_METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "lfe", "usm", "ours_s", "ours")
+                 "csa": "CSA", **{name: v.label for name, v in VARIANTS.items()}}
+#: Row order of every table: the classic methods, then the learned ones.
+TABLE_METHODS = ("fbp", "lct", "fk", "phasor", "rsd", *VARIANTS)
 METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2),
                  "psnr_zero": ("all-zero image's PSNR", "dB", 2),
                  "intensity_mae_object": ("object intensity error", "", 3), "ssim": ("intensity SSIM", "", 3),

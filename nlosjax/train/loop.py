@@ -26,8 +26,10 @@ from nlosjax.train.sharding import mesh_for, shard_batch, to_host
 from nlosjax.train.state import TrainState, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_train_step
 from nlosjax.train.stopping import BEST_FOLDER, PlateauTracker, StopRule
+from nlosjax.variants import VARIANTS
 
-VARIANT_FRAMES = {"ours": 3, "ours_s": 1, "usm": 1, "lfe": 1}
+#: Input frames of each variant (:data:`nlosjax.variants.VARIANTS`).
+VARIANT_FRAMES = {name: v.frames for name, v in VARIANTS.items()}
 #: USM's training recipes (``config["usm"]["recipe"]``): "ours" trains it with the config's
 #: ``train.optim`` and ``train.loss`` (Ours' recipe, the like-for-like default); "published"
 #: with USM's own (:data:`nlosjax.models.usm.PUBLISHED_OPTIM`, ``PUBLISHED_LOSS``).

@@ -1,0 +1,43 @@
+"""The learned models by name: the one registry of variants that configs, weights and tables use.
+
+Imports nothing (the weights reader, which never imports JAX, reads it). A variant's name is
+what ``train.variants`` lists, what a weights folder and a run's model folder are called, and
+the row a results table prints under its label.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+  """One learned model.
+
+  Attributes:
+    name: its name in configs, folders and tables (``"ours"``).
+    label: its name in tables and figures (``"Ours"``).
+    frames: under-scanned frames it reads per output frame (3: the frame and its two neighbours).
+    family: the module that builds it: ``"stmamba"`` (:class:`nlosjax.models.STMambaNet`),
+      ``"usm"`` (:mod:`nlosjax.models.usm`) or ``"lfe"`` (:mod:`nlosjax.models.lfe`).
+  """
+  name: str
+  label: str
+  frames: int
+  family: str
+
+
+#: Every variant, in the order tables print them (baselines first).
+VARIANTS = {v.name: v for v in (
+    Variant("lfe", "LFE", 1, "lfe"),
+    Variant("usm", "USM", 1, "usm"),
+    Variant("ours_s", "Ours-S", 1, "stmamba"),   # the paper's single-frame ablation
+    Variant("ours", "Ours", 3, "stmamba"),        # the paper's method
+)}
+
+
+def variant(name: str) -> Variant:
+  """The :class:`Variant` called ``name``; ValueError naming the known ones otherwise."""
+  if name not in VARIANTS:
+    raise ValueError(f"variant must be one of {tuple(VARIANTS)}, got {name!r}")
+  return VARIANTS[name]
