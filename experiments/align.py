@@ -1,8 +1,8 @@
 """The second training stage on unlabelled measured scans, leave one scan out.
 
     python -m experiments.align --checkpoint runs/real [--variants ours ours_s] [--data-dir DIR]
-        [--steps 100] [--lam 1.0 | --lam balanced] [--learning-rate 1e-4] [--workdir runs/align]
-        [--data FILE]
+        [--steps 100] [--lam 1.0 | --lam balanced] [--layer st_mamba0 | --layer auto]
+        [--learning-rate 1e-4] [--workdir runs/align] [--data FILE]
 
 For each measured scan (``--data-dir``, the scans of ``experiments.real_undersampling``)
 and each variant of the trained run ``--checkpoint`` (a workdir of
@@ -24,6 +24,13 @@ gradient as large as the synthetic loss's, in the median over 8 synthetic traini
 batches, at the starting parameters, with that fold's measured inputs
 (:func:`nlosjax.train.align.balanced_lam`); the norms and the ``lam`` are recorded in the
 fold's ``align.json`` (``"lam_rule"``).
+
+``--layer auto`` chooses each fold's aligned layer from the training side too: among the
+network's layers that keep a feature vector per time step and scan point (extraction,
+ST-Mamba and cross blocks), the one whose features of the fold's measured inputs stand the
+most noise widths away from those of 8 synthetic training batches
+(:func:`nlosjax.train.align.layer_separation`); the separations and the choice are recorded
+(``"layer_rule"``), and a balanced ``lam`` is measured at that layer.
 """
 
 from __future__ import annotations
@@ -71,20 +78,51 @@ def lam_arg(text: str) -> float | str:
 
 
 def fold_lam(lam: float | str, config: dict, data_path, model_config, params, measured,
-             log: Callable[[str], None] = print) -> tuple[float, dict | None]:
-  """``(lam, rule record)``: ``lam`` itself, or for ``"balanced"`` the one measured on ``measured``."""
+             log: Callable[[str], None] = print, layer: str = "st_mamba0") -> tuple[float, dict | None]:
+  """``(lam, rule record)``: ``lam`` itself, or for ``"balanced"`` the one measured on ``measured``
+  (the MMD term at ``layer``)."""
   if lam != "balanced":
     return float(lam), None
   from nlosjax.train.align import balanced_lam, term_gradient_norms
-  norms = term_gradient_norms(config, data_path, model_config, params, measured, batches=BALANCED_BATCHES)
+  norms = term_gradient_norms(config, data_path, model_config, params, measured, batches=BALANCED_BATCHES,
+                              layer=layer)
   value = balanced_lam(norms, BALANCED_SHARE)
   log(f"[align] balanced lam {value:.4g} (median gradient norms: synthetic "
       f"{np.median(norms['synthetic']):.4g}, mmd {np.median(norms['mmd']):.4g})")
   return value, {"rule": "balanced", "share": BALANCED_SHARE, "batches": BALANCED_BATCHES, "norms": norms}
 
 
+#: ``--layer auto``: the synthetic training inputs the layer is chosen against (batches of the
+#: training split), and the separation's estimates (:func:`nlosjax.train.align.layer_separation`).
+AUTO_LAYER_BATCHES, AUTO_LAYER_DRAWS = 8, 16
+
+
+def fold_layer(layer: str, config: dict, data_path, model_config, params, measured,
+               log: Callable[[str], None] = print) -> tuple[str, dict | None]:
+  """``(layer, rule record)``: ``layer`` itself, or for ``"auto"`` the one whose features of
+  ``measured`` (the fold's training scans) stand furthest from the synthetic training inputs'."""
+  if layer != "auto":
+    return layer, None
+  from nlosjax.train import make_loader, select_frames
+  from nlosjax.train.align import chosen_layer, layer_separation
+  loader = make_loader(config, data_path, "train", batch_size=int(config["train"]["batch_size"]),
+                       shuffle=True, seed=0)
+  try:
+    synthetic = np.concatenate([select_frames(loader.batch(k)["measurement"], model_config.frames)
+                                for k in range(AUTO_LAYER_BATCHES)])
+  finally:
+    loader.close()
+  separation = layer_separation(model_config, params, synthetic, measured, draws=AUTO_LAYER_DRAWS)
+  value = chosen_layer(separation)
+  log("[align] layer separation (z, noise widths): "
+      + ", ".join(f"{k} {v['z']:.1f}" for k, v in separation.items()) + f"; aligning {value}")
+  return value, {"rule": "auto", "batches": AUTO_LAYER_BATCHES, "draws": AUTO_LAYER_DRAWS,
+                 "separation": separation}
+
+
 def align_folds(config: dict, data_path, model_config, params, inputs: dict, workdir, variant: str, *,
                 steps: int = 100, lam: float | str = 1.0, learning_rate: float = 1e-4, validate=None,
+                layer: str = "st_mamba0",
                 before_fold: Callable[[str], bool] | None = None,
                 after_fold: Callable[[pathlib.Path], None] | None = None,
                 log: Callable[[str], None] = print) -> tuple[bool, bool]:
@@ -93,7 +131,8 @@ def align_folds(config: dict, data_path, model_config, params, inputs: dict, wor
   ``inputs``: ``scene -> [n, F, T, h, w]`` (:func:`measured_inputs`); each fold trains
   :func:`nlosjax.train.align.align` into :func:`fold_folder` ``(workdir, variant, scene)``;
   finished folds (:func:`fold_files`) are skipped. ``lam``: a number, or ``"balanced"``
-  (:func:`fold_lam`, measured per fold). ``before_fold(scene)`` returning False
+  (:func:`fold_lam`, measured per fold). ``layer``: the aligned layer, or ``"auto"``
+  (:func:`fold_layer`, chosen per fold on the fold's training scans). ``before_fold(scene)`` returning False
   stops before that fold (a deadline); ``after_fold(folder)`` runs after each one trained.
   Returns ``(every fold finished, at least one trained now)``.
   """
@@ -108,10 +147,12 @@ def align_folds(config: dict, data_path, model_config, params, inputs: dict, wor
       return False, started
     others = np.concatenate([v for k, v in inputs.items() if k != scene])
     log(f"[align] {variant} without {scene}: {len(others)} measured inputs")
-    value, rule = fold_lam(lam, config, data_path, model_config, params, others, log)
+    chosen, layer_rule = fold_layer(layer, config, data_path, model_config, params, others, log)
+    value, rule = fold_lam(lam, config, data_path, model_config, params, others, log, layer=chosen)
+    extra = {**({} if rule is None else {"lam_rule": rule}),
+             **({} if layer_rule is None else {"layer_rule": layer_rule})}
     align(config, data_path, model_config, params, others, folder, steps=steps, lam=value,
-          learning_rate=learning_rate, validate=validate, log=log,
-          extra=None if rule is None else {"lam_rule": rule})
+          learning_rate=learning_rate, validate=validate, log=log, layer=chosen, extra=extra or None)
     started = True
     if after_fold is not None:
       after_fold(folder)
@@ -149,6 +190,9 @@ def main(argv=None) -> int:
   parser.add_argument("--lam", type=lam_arg, default=1.0,
                       help="the MMD term's weight, or 'balanced' (measured per fold; module docstring)")
   parser.add_argument("--learning-rate", type=float, default=1e-4)
+  parser.add_argument("--layer", default="st_mamba0",
+                      help="the aligned layer (a sub-module of the network), or 'auto': per fold the layer "
+                           "whose features of the fold's training scans stand furthest from the synthetic ones")
   parser.add_argument("--workdir", default="runs/align")
   parser.add_argument("--data", default=None,
                       help="the synthetic dataset file (default: the run config's data.path)")
@@ -164,7 +208,8 @@ def main(argv=None) -> int:
   for variant in args.variants:
     mcfg, params = trained[variant]                # load_run without seeds: (model_config, params)
     align_folds(config, data_path, mcfg, params, measured_inputs(files, mcfg), args.workdir, variant,
-                steps=args.steps, lam=args.lam, learning_rate=args.learning_rate, validate=validate)
+                steps=args.steps, lam=args.lam, learning_rate=args.learning_rate, validate=validate,
+                layer=args.layer)
   return 0
 
 

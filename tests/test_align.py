@@ -105,3 +105,25 @@ def test_balanced_lam_is_the_ratio_of_the_median_norms():
   for bad in ({"synthetic": [1.0], "mmd": [0.0]}, {"synthetic": [np.nan], "mmd": [1.0]}):
     with pytest.raises(ValueError, match="no balanced lam"):
       A.balanced_lam(bad)
+
+
+@pytest.mark.full
+def test_layer_separation_is_noise_on_one_distribution_and_large_on_another(tiny):
+  cfg, path, mcfg, _, params, _, _ = tiny
+  loader = T.make_loader(cfg, path, "train", batch_size=2, shuffle=False, seed=0)
+  x = np.concatenate([loader.batch(k)["measurement"] for k in range(2)])
+  loader.close()
+  # The same inputs on both sides: the measured features are a draw of the synthetic ones, so
+  # MMD² is within the null's noise at every layer (|z| a few widths at most).
+  same = A.layer_separation(mcfg, params, x, x, samples=64, draws=8)
+  assert set(same) == {"extract", "st_mamba0", "cross_prev1_0", "cross_next1_0"}
+  assert all(abs(r["z"]) < 3 for r in same.values()), same
+  assert all(r["channels"] == mcfg.width for r in same.values())
+  # A background of 20 counts a bin on the measured side: every layer sees it, far off the noise
+  # (z 9-48 at these random weights).
+  background = x + np.random.default_rng(0).poisson(20.0, x.shape).astype(np.float32)
+  shifted = A.layer_separation(mcfg, params, x, background, samples=64, draws=8)
+  assert all(r["z"] > 5 for r in shifted.values()), shifted
+  assert A.chosen_layer(shifted) == max(shifted, key=lambda k: shifted[k]["z"])
+  with pytest.raises(ValueError, match="no layer"):
+    A.chosen_layer({})

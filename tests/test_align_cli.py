@@ -87,6 +87,36 @@ def test_lam_balanced_sets_each_folds_lam_from_its_own_training_inputs_and_recor
       cli.main(["--checkpoint", "pretrained:real", "--lam", bad, *argv])
 
 
+def test_layer_auto_chooses_each_folds_layer_on_its_own_training_inputs_and_records_it(recorded, monkeypatch):
+  calls, argv = recorded
+  seen = []
+
+  class Loader:                        # the synthetic training batches: 7s, [B, 3 frames, ...]
+    def batch(self, k):
+      return {"measurement": np.full((2, 3, 1, 1, 1), 7.0, np.float32)}
+
+    def close(self):
+      pass
+
+  def fake_separation(mcfg, params, synthetic, measured, **kw):
+    seen.append((float(np.unique(synthetic)[0]), synthetic.shape[1], float(np.unique(measured)[0])))
+    # The fold without scan a (it trains on scan b's 1s) finds its inputs furthest off at st_mamba0.
+    far = "st_mamba0" if np.all(measured == 1.0) else "cross_prev1_0"
+    return {name: {"z": 9.0 if name == far else 1.0} for name in ("extract", "st_mamba0", "cross_prev1_0")}
+
+  monkeypatch.setattr(T, "make_loader", lambda *a, **kw: Loader())
+  monkeypatch.setattr(stage, "layer_separation", fake_separation)
+  assert cli.main(["--checkpoint", "pretrained:real", "--variants", "ours_s", "--layer", "auto", *argv]) == 0
+  frames = inference.load_pretrained("real", "ours_s")[0].frames
+  assert seen == [(7.0, frames, 1.0), (7.0, frames, 0.0)]   # synthetic cut to the model's frames; the other scan
+  assert [c["layer"] for c in calls] == ["st_mamba0", "cross_prev1_0"]
+  assert [c["extra"]["layer_rule"]["separation"]["st_mamba0"]["z"] for c in calls] == [9.0, 1.0]
+  calls.clear()
+  assert cli.main(["--checkpoint", "pretrained:real", "--variants", "ours_s", "--layer", "extract", *argv[:2],
+                   *argv[2:4], "--workdir", str(argv[-1]) + "-fixed"]) == 0
+  assert [c["layer"] for c in calls] == ["extract", "extract"] and all(c["extra"] is None for c in calls)
+
+
 def test_a_fold_without_its_record_is_not_finished(recorded, tmp_path):
   calls, argv = recorded
   half = cli.fold_folder(tmp_path / "w", "ours_s", "a")

@@ -37,7 +37,8 @@ import optax
 from nlosjax import losses
 from nlosjax.train.step import make_targets
 
-__all__ = ["DEFAULT_LAYER", "layer_features", "align_loss", "align", "term_gradient_norms", "balanced_lam"]
+__all__ = ["DEFAULT_LAYER", "layer_features", "all_layer_features", "layer_separation", "chosen_layer",
+           "align_loss", "align", "term_gradient_norms", "balanced_lam"]
 
 #: The layer whose output is aligned.
 DEFAULT_LAYER = "st_mamba0"
@@ -52,6 +53,84 @@ def layer_features(model, params, frames, layer: str = DEFAULT_LAYER):
     raise ValueError(f"layer {layer!r} is not a module of this network; it has {sorted(inter)}")
   feat = inter[layer]["__call__"][0]
   return out, jnp.reshape(feat.astype(jnp.float32), (-1, feat.shape[-1]))
+
+
+def all_layer_features(model, params, frames) -> dict[str, np.ndarray]:
+  """``layer -> features [N, C]`` of every direct sub-module whose output is ``[B, T, h, w, C]``.
+
+  The layers whose outputs keep a feature vector per frame, time step and scan point (the
+  network's extraction, ST-Mamba and cross blocks), in the order the network runs them.
+  """
+  return {k: np.asarray(v) for k, v in _layer_outputs(model, params, frames).items()}
+
+
+def _layer_outputs(model, params, frames) -> dict:
+  """:func:`all_layer_features` as device arrays (jittable)."""
+  _, state = model.apply({"params": params}, frames, mutable=["intermediates"],
+                         capture_intermediates=lambda mdl, method: method == "__call__"
+                         and len(mdl.scope.path) == 1)
+  out = {}
+  for name, value in state.get("intermediates", {}).items():
+    feat = value.get("__call__", (None,))[0] if isinstance(value, dict) else None
+    if isinstance(feat, jax.Array) and feat.ndim == 5:
+      out[name] = jnp.reshape(feat.astype(jnp.float32), (-1, feat.shape[-1]))
+  return out
+
+
+def layer_separation(model_config, params, synthetic: np.ndarray, measured: np.ndarray, *, samples: int = 512,
+                     draws: int = 16, batch_size: int = 4, seed: int = 0) -> dict[str, dict]:
+  """How far each layer's features of ``measured`` inputs stand from those of ``synthetic`` ones.
+
+  For every layer of :func:`all_layer_features`, ``draws`` times: ``samples`` feature vectors drawn
+  from the synthetic inputs twice (``a``, ``a'``) and from the measured ones once (``b``), all
+  standardised by ``a``'s mean and spread (as :func:`align_loss`); ``mmd`` is MMD²(a, b) and
+  ``null`` MMD²(a, a'), what the estimate gives between two samples of one distribution. ``z``
+  = (mean mmd − mean null) / spread of null: how many noise widths the measured features stand
+  off. A layer with a large ``z`` is one where the alignment term has something to align.
+
+  Args:
+    model_config, params: the network (:class:`~nlosjax.models.ModelConfig` and parameters).
+    synthetic: ``[S, F, T, h, w]`` inputs of the training distribution; measured: ``[M, F, T, h, w]``
+      unlabelled measured inputs at the same Setup (never a scan that is then scored).
+    samples, draws: per estimate, and estimates per layer.
+  Returns:
+    ``layer -> {"channels", "mmd", "mmd_sd", "null", "null_sd", "z"}`` (floats), in network order.
+  """
+  if not (samples >= 2 and draws >= 2 and batch_size >= 1):
+    raise ValueError(f"samples >= 2, draws >= 2 and batch_size >= 1 are needed, got {samples}, {draws}, {batch_size}")
+  from nlosjax.physics import operator_args
+  apply = operator_args.bind(functools.partial(_layer_outputs, model_config.module()),
+                             model_config.physics_operators())
+
+  def features(x):
+    parts = [apply(params, jnp.asarray(x[i:i + batch_size])) for i in range(0, len(x), batch_size)]
+    return {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in parts[0]}
+
+  syn, meas = features(np.asarray(synthetic, np.float32)), features(np.asarray(measured, np.float32))
+  rng = np.random.default_rng(seed)
+  mmd = jax.jit(losses.mmd2)
+  out = {}
+  for name, fs in syn.items():
+    fm = meas[name]
+    between, null = [], []
+    for _ in range(draws):
+      a, a2 = fs[rng.integers(0, len(fs), samples)], fs[rng.integers(0, len(fs), samples)]
+      b = fm[rng.integers(0, len(fm), samples)]
+      mu, sd = a.mean(0), a.std(0) + 1e-6
+      between.append(float(mmd((a - mu) / sd, (b - mu) / sd)))
+      null.append(float(mmd((a - mu) / sd, (a2 - mu) / sd)))
+    spread = float(np.std(null, ddof=1))
+    out[name] = {"channels": int(fs.shape[1]), "mmd": float(np.mean(between)),
+                 "mmd_sd": float(np.std(between, ddof=1)), "null": float(np.mean(null)), "null_sd": spread,
+                 "z": (float(np.mean(between)) - float(np.mean(null))) / max(spread, 1e-12)}
+  return out
+
+
+def chosen_layer(separation: dict[str, dict]) -> str:
+  """The layer of :func:`layer_separation` whose measured features stand furthest off (largest ``z``)."""
+  if not separation:
+    raise ValueError("no layer to choose from")
+  return max(separation, key=lambda name: separation[name]["z"])
 
 
 def _sample(x, key, n):

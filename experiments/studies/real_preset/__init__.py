@@ -42,5 +42,8 @@ the hours left::
 
 The ``*-balanced`` alignments (``lam`` set per fold from the training side: the MMD
 term's gradient as large as the synthetic loss's; ``experiments.align --lam balanced``)
-keep their folds in ``align-balanced/`` (store and ``state/``), one table each.
+keep their folds in ``align-balanced/`` (store and ``state/``), one table each. The
+``*-layer`` alignments also choose, per fold, the layer they align (``--layer auto``: where the
+fold's training scans' features stand furthest from the synthetic ones, a choice recorded in
+each fold's ``align.json``); their folds are in ``align-layer/``.
 """
