@@ -27,12 +27,13 @@ class Variant:
   family: str
 
 
-#: Every variant, in the order tables print them (baselines first).
+#: Every variant, in order of preference: a run or weights folder read without naming a
+#: variant gives the first it holds. Tables print them in the reverse order (baselines first).
 VARIANTS = {v.name: v for v in (
-    Variant("lfe", "LFE", 1, "lfe"),
-    Variant("usm", "USM", 1, "usm"),
-    Variant("ours_s", "Ours-S", 1, "stmamba"),   # the paper's single-frame ablation
     Variant("ours", "Ours", 3, "stmamba"),        # the paper's method
+    Variant("ours_s", "Ours-S", 1, "stmamba"),   # the paper's single-frame ablation
+    Variant("usm", "USM", 1, "usm"),
+    Variant("lfe", "LFE", 1, "lfe"),
 )}
 
 

@@ -452,10 +452,16 @@ def test_prefetch_passes_items_and_errors_through():
   # loader's file can be closed right after.
   import itertools
   import threading
+  def running():
+    return [t for t in threading.enumerate() if t.name == "nlosjax-prefetch" and t.is_alive()]
+
   it = D.prefetch(itertools.count(), 2)
   assert [next(it), next(it)] == [0, 1]
   it.close()
-  assert not [t for t in threading.enumerate() if t.name == "nlosjax-prefetch" and t.is_alive()]
+  assert not running()
+  # Closed before its first item (a finished run rerun: the loop stops before reading): no thread.
+  D.prefetch(itertools.count(), 2).close()
+  assert not running()
 
 
 # ---------------------------------------------------------------- errors

@@ -145,12 +145,23 @@ def test_bad_configs_raise(data_path, tmp_path):
 def test_prefetching_batches_changes_no_trained_parameter(data_path, tmp_path):
   # data.loader.prefetch reads the next batches in a thread while the step runs: the same
   # batches in the same order, so the same parameters bit for bit as reading them in turn.
+  from nlosjax.data.dataset import loader as loader_module
+  asked = []
+  real_prefetch = loader_module.prefetch
+
+  def recording(iterator, size):
+    asked.append(size)
+    return real_prefetch(iterator, size)
+
   params = {}
   for ahead in (0, 3):
     cfg = tiny_config(data_path, steps=3, checkpoint_every=3)
     cfg["data"]["loader"] = {**cfg["data"]["loader"], "prefetch": ahead}
-    _, state = T.train_model(cfg, data_path, tmp_path / f"prefetch{ahead}", "ours_s", log=lambda s: None)
+    with pytest.MonkeyPatch.context() as mp:
+      mp.setattr(loader_module, "prefetch", recording)
+      _, state = T.train_model(cfg, data_path, tmp_path / f"prefetch{ahead}", "ours_s", log=lambda s: None)
     params[ahead] = T.to_host(state.params)
+  assert asked == [3]                      # the training loop read ahead only when asked to
   assert_nested_close(params[3], params[0], rtol=0, atol=0)
 
 

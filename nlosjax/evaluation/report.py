@@ -24,8 +24,8 @@ __all__ = ["METHOD_LABELS", "TABLE_METHODS", "METRIC_LABELS", "label", "format_t
 
 METHOD_LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "rsd": "RSD",
                  "csa": "CSA", **{name: v.label for name, v in VARIANTS.items()}}
-#: Row order of every table: the classic methods, then the learned ones.
-TABLE_METHODS = ("fbp", "lct", "fk", "phasor", "rsd", *VARIANTS)
+#: Row order of every table: the classic methods, then the learned ones (baselines first).
+TABLE_METHODS = ("fbp", "lct", "fk", "phasor", "rsd", *reversed(VARIANTS))
 METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2),
                  "psnr_zero": ("all-zero image's PSNR", "dB", 2),
                  "intensity_mae_object": ("object intensity error", "", 3), "ssim": ("intensity SSIM", "", 3),

@@ -265,8 +265,9 @@ class Alignment:
   ``source``: ``pretrained:NAME``, the weights shipped as ``NAME-<variant>`` (so a fresh
   clone has them); their training data are made in the store from the provenance's config.
   ``lam``: ``experiments.align``'s ``--lam`` (a number or ``"balanced"``); ``folder``: the
-  workdir's name in the store and in ``state/`` (alignments of one ``lam`` share one, so one
-  ``--aligned`` scores them together); ``layer``: its ``--layer`` (a layer or ``"auto"``).
+  workdir's name in the store and in ``state/`` (the alignments of one ``lam`` and layer rule
+  share one, so one ``--aligned`` scores them together); ``layer``: its ``--layer`` (a layer or
+  ``"auto"``).
   """
 
   name: str
@@ -300,7 +301,8 @@ ALIGNMENTS = (
 def alignment_workdir(a: Alignment) -> pathlib.Path:
   """``<store>/runs/real_preset/<a.folder>``: ``experiments.align``'s ``--workdir``, one folder a fold.
 
-  One folder for the alignments of one ``lam`` (the folds are named by variant and scan),
+  One folder for the alignments of one ``folder`` (one ``lam`` and layer rule; the folds are named
+  by variant and scan),
   so one ``python -m experiments.real_undersampling --aligned`` scores them together.
   """
   return store.run_path(STUDY, a.folder)

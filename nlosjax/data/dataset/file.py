@@ -594,7 +594,8 @@ def dataset_identity(path, *, parts: int = 2, cache: bool = True) -> tuple[str, 
       saved = json.loads(store.read_text())
     except (OSError, ValueError):
       saved = {}
-    if {k: saved.get(k, 2 if k == "parts" else None) for k in key} == key and "fingerprint" in saved:
+    if (isinstance(saved, dict) and {k: saved.get(k, 2 if k == "parts" else None) for k in key} == key
+        and isinstance(saved.get("digest"), str) and isinstance(saved.get("fingerprint"), dict)):
       return saved["digest"], saved["fingerprint"]
   h = hashlib.sha256()
   fingerprint = {}
@@ -605,16 +606,18 @@ def dataset_identity(path, *, parts: int = 2, cache: bool = True) -> tuple[str, 
       ds = f[name]
       x = np.asarray(ds[()])
       h.update(f"{name}|{ds.dtype.str}|{ds.shape}\n".encode())
-      h.update(x.tobytes())     # C order, as dataset_digest's chunks concatenate
+      h.update(np.ascontiguousarray(x))     # its bytes in C order (no copy), as dataset_digest's chunks
       if ds.dtype.kind in "biuf":
         fingerprint[name] = {"shape": list(x.shape), "mass": float(np.abs(x, dtype=np.float64).sum()),
                              "cells": _cell_sums(x, parts)}
   digest = h.hexdigest()[:16]
-  if cache:
+  if cache:                      # written whole, then renamed: processes sharing the file never read half
+    tmp = store.with_name(f"{store.name}.{os.getpid()}.tmp")
     try:
-      store.write_text(json.dumps({**key, "digest": digest, "fingerprint": fingerprint}) + "\n")
+      tmp.write_text(json.dumps({**key, "digest": digest, "fingerprint": fingerprint}) + "\n")
+      os.replace(tmp, store)
     except OSError:
-      pass
+      tmp.unlink(missing_ok=True)
   return digest, fingerprint
 
 

@@ -19,8 +19,9 @@ from nlosjax.physics.setup import Setup
 def prefetch(iterator, size: int = 2) -> Iterator:
   """Run ``iterator`` in a background thread, ``size`` items ahead.
 
-  Exceptions in the producer are re-raised in the consumer; closing the
-  returned generator (or dropping it) stops the producer.
+  The thread starts at the first item asked for. Exceptions in the producer are
+  re-raised in the consumer; closing the returned generator stops the producer and
+  waits for it (a generator never started has no thread to stop).
   """
   if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
     raise ValueError(f"size must be an integer >= 1, got {size!r}")
@@ -47,9 +48,9 @@ def prefetch(iterator, size: int = 2) -> Iterator:
       put((e, None))
 
   thread = threading.Thread(target=produce, daemon=True, name="nlosjax-prefetch")
-  thread.start()
 
   def consume():
+    thread.start()
     try:
       while True:
         tag, item = q.get()
