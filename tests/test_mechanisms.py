@@ -300,3 +300,48 @@ def test_a_run_with_another_recipe_than_its_rows_finished_runs_is_refused(tmp_pa
   M.check_same_data(tmp_path, "tenth", {**cfg, "_study_row": "no_pf"})   # another row: data only
   with pytest.raises(SystemExit, match="train.loss"):
     M.check_same_data(tmp_path, "tenth", {**cfg, "_study_row": "full"})
+
+
+def test_methods_without_training_are_paired_with_each_seed_of_the_learned_rows(tmp_path):
+  """Each learned seed minus the one deterministic score of the method, frame by frame: the
+  mean difference is the plain mean of those differences (equal frames per sequence)."""
+  from benchmarks.mechanisms.untrained import untrained_json
+  rng = np.random.default_rng(1)
+  seq, frames = np.repeat(np.arange(6), 4), np.tile(np.arange(1, 5), 6)
+  full = {s: 20 + rng.normal(0, 1, 24) for s in M.SEEDS}
+  for s in M.SEEDS:
+    M.write_json(M.run_json(tmp_path, "full", "full", s), fake_record("full", "full", s, full[s], seq, frames))
+  lct = 18 + rng.normal(0, 1, 24)
+  csa = full[0] + 3.0                                           # 3 dB above seed 0 on every frame
+  test = lambda psnr: {"sequence": list(seq), "frame": list(frames),   # noqa: E731
+                       "scores": fake_record("full", "full", 0, psnr, seq, frames)["test"]["scores"]}
+  M.write_json(untrained_json(tmp_path, "full"), {"budget": "full", "methods": {
+      "lct": {"settings": {"options": {"snr": 0.1}, "threshold": 0.3}, "test": test(lct)},
+      "csa": {"settings": {"options": {"tau_rel": 0.3, "falloff": "diffuse"}, "threshold": 0.5}, "test": test(csa)}}})
+  assert M.main(["--report-only", "--results", str(tmp_path)]) == 0
+  text = (tmp_path / M.REPORT).read_text()
+  assert "### Methods without training, `full` budget" in text
+  assert "| LCT | snr 0.1; threshold 0.3 |" in text and "| CSA | tau_rel 0.3, falloff diffuse; threshold 0.5 |" in text
+  want = np.mean([full[s] - lct for s in M.SEEDS])
+  line = next(x for x in text.splitlines() if x.startswith("- **full - lct**"))
+  assert f"{want:+.2f} dB" in line and "called: Ours is better" in line
+  row = next(x for x in text.splitlines() if x.startswith("| full - csa | 0, 1, 2 |"))
+  assert f"{np.mean([full[s] - csa for s in M.SEEDS]):+.2f}" in row
+  assert not any(x.startswith("| ours_s - ") for x in text.splitlines())    # no Ours-S run: no pair
+  # Scored on other frames than the learned runs: refused, not paired.
+  bad = {"budget": "full", "methods": {"lct": {"settings": {}, "test": {**test(lct), "frame": list(frames[::-1])}}}}
+  M.write_json(untrained_json(tmp_path, "full"), bad)
+  with pytest.raises(ValueError, match="other test frames"):
+    M.main(["--report-only", "--results", str(tmp_path)])
+
+
+@pytest.mark.full
+def test_csa_volumes_place_the_sparse_scan_on_its_points_of_the_full_grid():
+  from benchmarks.mechanisms.untrained import csa_volumes
+  from nlosjax.physics.methods import csa
+  from tests.small_capture import three_patch_capture
+  setup, full, _ = three_patch_capture()
+  mask = csa.interval_mask(*setup.grid, 3)
+  got = csa_volumes(full[..., 1::3, 1::3], setup, 3, {"tau_rel": 0.1, "falloff": "diffuse"}, batch_size=2)
+  want = np.asarray(csa.csa(full * mask, setup, mask=mask, tau_rel=0.1, falloff="diffuse"))
+  np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6 * float(np.max(want)))

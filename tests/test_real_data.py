@@ -362,12 +362,12 @@ def test_adapted_models_and_their_table():
   assert "| Ours | 16 × 16 | 17.00 → 17.75 | 11.00 → 11.00 | – | – | – |" in lines
   assert "| Ours | 8 × 8 | 14.50 → 14.00 | – | – | – | – |" in lines
   assert R_ablation.adaptation_lines(results, None) == []
-  # The aligned tables name their workdir and lam per fold in the heading.
+  # The aligned tables name their workdir and lam and layer per fold in the heading.
   aligned = {**adaptation, "methods": ["ours|aligned"], "workdir": "w/align", "lam": ["ours 1.0"],
              "scenes": {sc: {"scores": {(k[0].replace("adapted", "aligned"), k[1]): v
                                         for k, v in d["scores"].items()}} for sc, d in adaptation["scenes"].items()}}
   heading = R_ablation.aligned_lines(results, aligned)[0]
-  assert "(workdir `w/align`, lam per fold: ours 1.0)" in heading and "{detail}" not in heading
+  assert "(workdir `w/align`, lam and layer per fold: ours 1.0)" in heading and "{detail}" not in heading
   assert "{detail}" not in R_ablation.adaptation_lines(results, adaptation)[0]
 
 
@@ -431,11 +431,12 @@ def test_aligned_run_scores_each_scan_only_with_its_finished_fold_and_names_the_
   from experiments.real_undersampling import ablation as R_ablation
   from nlosjax.pretrained import flatten_params
   params = {"dense": {"kernel": np.arange(4, dtype=np.float32).reshape(2, 2)}}
-  for scene, lam, rule in (("a", 12.5, {"rule": "balanced"}), ("b", 1.0, None)):
+  for scene, lam, rule, layer in (("a", 12.5, {"rule": "balanced"}, "extract"), ("b", 1.0, None, None)):
     f = fold_folder(tmp_path, "ours_s", scene)
     f.mkdir(parents=True)
     np.savez(f / "params.npz", **flatten_params(jax_tree_plus(params, lam)))
-    (f / "align.json").write_text(json.dumps({"lam": lam, **({"lam_rule": rule} if rule else {})}))
+    (f / "align.json").write_text(json.dumps({"lam": lam, **({"lam_rule": rule} if rule else {}),
+                                              **({"layer": layer} if layer else {})}))
   half = fold_folder(tmp_path, "ours_s", "c")                    # params without the record: unfinished
   half.mkdir(parents=True)
   np.savez(half / "params.npz", **flatten_params(params))
@@ -453,7 +454,9 @@ def test_aligned_run_scores_each_scan_only_with_its_finished_fold_and_names_the_
   merged = R_ablation.aligned_run(files, [4], results, tmp_path)
   assert seen == {"a": {"ours_s|aligned": 12.5}, "b": {"ours_s|aligned": 1.0}}    # never scene c
   assert set(merged["scenes"]) == {"a", "b"} and merged["methods"] == ["ours_s|aligned"]
-  assert merged["lam"] == ["Ours-S 1", "Ours-S 12.5 (balanced)"] and merged["workdir"] == tmp_path.name
+  # The layer each fold aligned; a record without one predates the choice: the first block.
+  assert merged["lam"] == ["Ours-S 1 at st_mamba0", "Ours-S 12.5 (balanced) at extract"]
+  assert merged["workdir"] == tmp_path.name
 
 
 def jax_tree_plus(tree, value):

@@ -232,3 +232,29 @@ def test_end_to_end_classic_configuration(tmp_path):
   assert "more accurate than every faster classic one: Ours." in md
   tradeoff.plot(res, tmp_path / "p.png")
   assert (tmp_path / "p.png").stat().st_size > 1000
+
+
+@pytest.mark.full
+def test_csa_pipeline_reads_only_the_sparse_scan_points():
+  """The timed CSA pipeline on the ``[h, w]`` input equals the library's CSA on the full grid
+  masked to those points (where the full grid holds anything else, it is never read)."""
+  from nlosjax.physics import intensity_depth
+  from nlosjax.physics.methods import csa
+  from tests.small_capture import three_patch_capture
+  setup, full, _ = three_patch_capture()
+  mask = csa.interval_mask(*setup.grid, 3)
+  m = tradeoff.evaluate(tradeoff.csa_pipeline(setup, 3, tau_rel=0.1, falloff="diffuse"),
+                        full[..., 1::3, 1::3], batch=3, cache={}, key="csa")
+  garbage = full + 7.0 * (1.0 - mask)                # unscanned points: anything
+  inten, depth = intensity_depth(csa.csa(garbage, setup, mask=mask, tau_rel=0.1,
+                                         falloff="diffuse"), setup)
+  np.testing.assert_allclose(m["outputs"]["intensity"], np.asarray(inten), atol=1e-5)
+  np.testing.assert_allclose(m["outputs"]["depth"], np.asarray(depth), atol=1e-5)
+
+
+def test_csa_choice_table_bolds_the_chosen_setting():
+  choice = {"frames": 4, "chosen": ["retroreflective", 0.3],
+            "psnr": [["diffuse", 0.1, 15.0], ["diffuse", 0.3, 16.0],
+                     ["retroreflective", 0.1, 17.0], ["retroreflective", 0.3, 18.25]]}
+  md = "\n".join(tradeoff.csa_choice_markdown(choice))
+  assert "| retroreflective | 17.00 | **18.25** |" in md and "| diffuse | 15.00 | 16.00 |" in md

@@ -3,7 +3,7 @@
     python -m benchmarks.mechanisms [--config cpu] [--budgets full tenth] [--rows full ours_s no_ssm]
                                     [--extra-rows] [--seeds 0 1 2] [--max-runs N] [--time-limit-s S]
                                     [--workdir runs/mechanisms] [--results benchmarks/results]
-                                    [--report-only] [--probe RUN_DIR] [--tiny]
+                                    [--report-only] [--untrained] [--probe RUN_DIR] [--tiny]
                                     [--state DIR [--hours H]] [--config.section.key=value ...]
 
 Rows (:data:`ROWS`, built with :func:`benchmarks.ablations.row_config`):
@@ -51,6 +51,12 @@ output replaced by its input at inference (no retraining), with all of them
 replaced, and the mean SiLU gate of every block
 (:mod:`nlosjax.models.probe`). ``--probe RUN_DIR`` probes any finished run
 folder (``WORKDIR/<budget>/<row>-seed<k>``) and stores it in that run's JSON.
+
+``--untrained`` scores Table 1's methods without training on each budget's test frames
+(:mod:`benchmarks.mechanisms.untrained`: the classic five tuned on validation as in the main
+job, CSA with its l1 weight and falloff chosen on validation frames) into
+``RESULTS/mechanisms/untrained-<budget>.json``; the report pairs each with every seed of
+``full`` and ``ours_s``.
 
 The report, ``RESULTS/mechanisms.md`` with ``RESULTS/mechanisms_curves.png``, is
 rewritten from the JSON files alone after every invocation (``--report-only``:

@@ -16,6 +16,7 @@ from benchmarks.mechanisms.design import (
   SEEDS,
   TINY_DESIGN,
   TINY_STOP,
+  budget_config,
   check_same_data,
   run_config,
   run_json,
@@ -36,6 +37,20 @@ def tiny_base(workdir: pathlib.Path) -> dict:
   return tiny_config(pathlib.Path(workdir) / "data" / "tiny.h5", stop=dict(TINY_STOP))
 
 
+def score_untrained_budgets(base: dict, budgets, results: pathlib.Path) -> None:
+  """``--untrained``: each budget's JSON of :mod:`benchmarks.mechanisms.untrained` (kept where present)."""
+  from benchmarks.mechanisms.records import machine, write_json
+  from benchmarks.mechanisms.untrained import score_untrained, untrained_json
+  for budget in budgets:
+    path = untrained_json(results, budget)
+    if path.exists():
+      print(f"mechanisms: {path} exists; delete it to score again")
+      continue
+    record = score_untrained(budget_config(base, budget))
+    write_json(path, {"budget": budget, "machine": machine(), **record})
+    print(f"mechanisms: wrote {path} ({record['wall_s']:.0f} s)")
+
+
 def main(argv=None) -> int:
   from experiments.cli import config_parser, parse_config
   code_at_start()                          # before any run: the code this process loads
@@ -52,6 +67,9 @@ def main(argv=None) -> int:
   parser.add_argument("--workdir", default=None, help="run folders (default: runs/mechanisms)")
   parser.add_argument("--results", default=None, help="JSON files and report (default: benchmarks/results)")
   parser.add_argument("--report-only", action="store_true", help="only rewrite the report from the JSON files")
+  parser.add_argument("--untrained", action="store_true",
+                      help="score Table 1's methods without training (the classic five and CSA, tuned on "
+                           "validation) on each budget's test frames, then rewrite the report")
   parser.add_argument("--probe", metavar="RUN_DIR", default=None,
                       help="probe the SSMs of a finished run folder, store it in its JSON, rewrite the report")
   parser.add_argument("--tiny", action="store_true", help="the tiny config of tests/tiny_run.py (a smoke run)")
@@ -86,6 +104,8 @@ def main(argv=None) -> int:
   seeds = tuple(args.seeds if args.seeds is not None else design["seeds"])
   if args.probe:
     probe_run_dir(pathlib.Path(args.probe), results)
+  elif args.untrained:
+    score_untrained_budgets(base, budgets, results)
   elif not args.report_only:
     from tqdm import tqdm
 

@@ -19,6 +19,7 @@ from benchmarks.mechanisms.design import (
   check_consistent,
 )
 from benchmarks.mechanisms.records import _array, load_runs
+from benchmarks.mechanisms.untrained import load_untrained, untrained_lines
 from nlosjax import stats
 from nlosjax.stats import format_interval as cell
 
@@ -191,8 +192,12 @@ def plot_curves(runs: dict, budgets, rows, path: pathlib.Path) -> None:
   plt.close(fig)
 
 
-def report(runs: dict, design: dict, command: str) -> str:
-  """The Markdown report of the runs present, against the ``design`` (budgets, rows, seeds)."""
+def report(runs: dict, design: dict, command: str, untrained: dict | None = None) -> str:
+  """The Markdown report of the runs present, against the ``design`` (budgets, rows, seeds).
+
+  ``untrained``: ``budget -> record`` of :mod:`benchmarks.mechanisms.untrained` (a section per budget).
+  """
+  untrained = untrained or {}
   from experiments.provenance import provenance
   budgets, seeds = list(design["budgets"]), list(design["seeds"])
   rows = list(design["rows"]) + [r for r in ROWS if r not in design["rows"] and any(k[1] == r for k in runs)]
@@ -284,6 +289,9 @@ def report(runs: dict, design: dict, command: str) -> str:
         for p in sub:
           lines.append(f"| {p['a']} - {p['b']} | {', '.join(map(str, p['seeds']))} | "
                        + " | ".join(cell(p["diff"][m], d, True) for m, (_, d) in COLUMNS.items()) + " |")
+    if budget in untrained:
+      learned = {row: [r for k, r in sorted(runs.items()) if k[0] == budget and k[1] == row] for row in rows}
+      lines += [""] + untrained_lines(untrained[budget], learned, budget)
     lines += _probe_lines(runs, budget)
     lines.append("")
   lines += [f"Validation curves: `{FIGURE}` (one panel per budget; a dot marks each run's best step).", ""]
@@ -295,7 +303,7 @@ def write_report(results: pathlib.Path, design: dict, command: str) -> str:
   results = pathlib.Path(results)
   runs = load_runs(results)
   check_consistent(runs)
-  text = report(runs, design, command)
+  text = report(runs, design, command, load_untrained(results))
   results.mkdir(parents=True, exist_ok=True)
   (results / REPORT).write_text(text)
   rows = list(design["rows"]) + [r for r in ROWS if r not in design["rows"] and any(k[1] == r for k in runs)]

@@ -4,7 +4,7 @@
                                   [--workdir runs/tradeoff] [--out-dir benchmarks/results]
 
 For each configuration, on the test split of the CPU preset's dataset
-(``runs/data/cpu.h5``, made if absent; 8 sequences x 6 middle frames = 48
+(``runs/data/cpu-v3.h5``, made if absent; 8 sequences x 6 middle frames = 48
 frames, 32 x 32 x 128 bins of 132 ps, 2 m wall):
 
 * time per reconstructed frame: the pipeline ``input -> (intensity, depth)``
@@ -27,7 +27,9 @@ scan point, the stored exposure, 3 frames, the CPU preset's model, the
 
 * method: FBP, LCT, f-k, phasor, RSD (input interpolated bilinearly to the
   full grid, the paper's protocol), USM (the learned baseline, the preset's
-  ``usm`` section and recipe), Ours-S, Ours;
+  ``usm`` section and recipe), Ours-S, Ours; CSA (the iterative method made
+  for under-scanned scans, on the sparse scan itself; its l1 weight and falloff
+  chosen in the run on validation frames, ``CSA_TAUS`` x ``CSA_FALLOFFS``);
 * scan density: every 8th / 4th / 2nd / every scan point (4 x 4 ... 32 x 32)
   of the same scenes, classic methods (the networks are trained for 8 x 8);
 * exposure: the stored noise-free transients re-noised with
@@ -85,6 +87,9 @@ from benchmarks.tradeoff.accuracy import in_range_accuracy, scores
 from benchmarks.tradeoff.configs import (
   APERTURE,
   CLASSIC,
+  CSA_CHOICE_FRAMES,
+  CSA_FALLOFFS,
+  CSA_TAUS,
   DEFAULT_OUT_DIR,
   DEFAULT_WORKDIR,
   DENSITY_STRIDES,
@@ -106,20 +111,21 @@ from benchmarks.tradeoff.data import TestSplit
 from benchmarks.tradeoff.figure import plot
 from benchmarks.tradeoff.machine import load_average, machine_line
 from benchmarks.tradeoff.pareto import learned_beats_classic, pareto_front, pareto_points, recommend
-from benchmarks.tradeoff.pipelines import classic_pipeline, learned_pipeline
-from benchmarks.tradeoff.report import gating_markdown, knob_table, to_markdown
+from benchmarks.tradeoff.pipelines import classic_pipeline, csa_pipeline, learned_pipeline
+from benchmarks.tradeoff.report import csa_choice_markdown, gating_markdown, knob_table, to_markdown
 from benchmarks.tradeoff.runners import MIB, evaluate, interleaved_times
 from benchmarks.tradeoff.stages import lct_stage_executables, lct_stages, network_volume_executable
 from benchmarks.tradeoff.study import run
 from benchmarks.tradeoff.training import train_learned, window_frames, window_loader
 
 __all__ = [
-    "APERTURE", "CLASSIC", "DEFAULT_OUT_DIR", "DEFAULT_WORKDIR", "DENSITY_STRIDES", "EXPOSURES",
-    "FULL_REPEATS", "FULL_STEPS", "GOAL_HALVING", "KNOBS", "LABELS", "LEARNED", "Learned", "MIB",
-    "QUICK_REPEATS", "QUICK_STEPS", "TestSplit", "classic_pipeline", "depth_ranges", "evaluate",
-    "gated_setup", "gating_markdown", "in_range_accuracy", "interleaved_times", "knob_table",
-    "lct_stage_executables", "lct_stages", "learned_beats_classic", "learned_config",
-    "learned_pipeline", "load_average", "machine_line", "network_volume_executable",
-    "pareto_front", "pareto_points", "plot", "recommend", "run", "scores", "to_markdown",
-    "train_learned", "window_frames", "window_loader",
+    "APERTURE", "CLASSIC", "CSA_CHOICE_FRAMES", "CSA_FALLOFFS", "CSA_TAUS", "DEFAULT_OUT_DIR",
+    "DEFAULT_WORKDIR", "DENSITY_STRIDES", "EXPOSURES", "FULL_REPEATS", "FULL_STEPS",
+    "GOAL_HALVING", "KNOBS", "LABELS", "LEARNED", "Learned", "MIB", "QUICK_REPEATS",
+    "QUICK_STEPS", "TestSplit", "classic_pipeline", "csa_choice_markdown", "csa_pipeline",
+    "depth_ranges", "evaluate", "gated_setup", "gating_markdown", "in_range_accuracy",
+    "interleaved_times", "knob_table", "lct_stage_executables", "lct_stages",
+    "learned_beats_classic", "learned_config", "learned_pipeline", "load_average", "machine_line",
+    "network_volume_executable", "pareto_front", "pareto_points", "plot", "recommend", "run",
+    "scores", "to_markdown", "train_learned", "window_frames", "window_loader",
 ]

@@ -15,6 +15,9 @@ import numpy as np
 from benchmarks.tradeoff.accuracy import in_range_accuracy, scores
 from benchmarks.tradeoff.configs import (
   CLASSIC,
+  CSA_CHOICE_FRAMES,
+  CSA_FALLOFFS,
+  CSA_TAUS,
   DENSITY_STRIDES,
   EXPOSURES,
   LABELS,
@@ -23,7 +26,7 @@ from benchmarks.tradeoff.configs import (
   gated_setup,
 )
 from benchmarks.tradeoff.data import TestSplit
-from benchmarks.tradeoff.pipelines import classic_pipeline, learned_pipeline
+from benchmarks.tradeoff.pipelines import classic_pipeline, csa_pipeline, learned_pipeline
 from benchmarks.tradeoff.runners import evaluate, interleaved_times
 from benchmarks.tradeoff.stages import lct_stage_executables, network_volume_executable
 from benchmarks.tradeoff.training import train_learned, window_loader
@@ -109,6 +112,29 @@ def run(args) -> dict:
 
   for method in CLASSIC + ("usm", "ours_s", "ours"):
     jobs.append(("method", f"method {method}", lambda method=method: job_method(method)))
+
+  def job_csa():
+    """CSA: l1 weight and falloff chosen on validation frames, then the test split."""
+    val = TestSplit.load(data_path, "val")
+    n = min(CSA_CHOICE_FRAMES, len(val))
+    pick = np.linspace(0, len(val) - 1, n).round().astype(int)   # spread over the sequences
+    xv = val.windows(stride, 1)[pick, 0]
+    gv_i, gv_d = (g[pick] for g in val.gt())
+    table = {}
+    for falloff in CSA_FALLOFFS:
+      for tau in CSA_TAUS:
+        o = evaluate(csa_pipeline(setup, stride, tau_rel=tau, falloff=falloff), xv, batch=B,
+                     cache={}, key=None)["outputs"]
+        table[(falloff, tau)] = scores(o["intensity"], o["depth"], gv_i, gv_d)["psnr"][0]
+    falloff, tau = max(table, key=lambda k: (table[k], -k[1]))
+    res["csa_choice"] = {"frames": n, "chosen": [falloff, tau],
+                         "psnr": [[f, t, v] for (f, t), v in table.items()]}
+    m = evaluate(csa_pipeline(setup, stride, tau_rel=tau, falloff=falloff), inputs[1][:, 0],
+                 batch=B, cache=cache, key=("csa", tau, falloff))
+    default["csa"] = m
+    add("method", "csa", labels["csa"], "classic", m, setting=f"tau_rel {tau:g}, {falloff}")
+
+  jobs.append(("method", "method csa (chosen on validation)", job_csa))
 
   def job_density(method, s):
     n = len(range(s // 2, setup.grid[0], s))

@@ -63,7 +63,7 @@ def aligned_run(files, strides, results, workdir) -> dict:
 
   Returns the :func:`run` results of ``"<variant>|aligned"`` (scenes without such a network are
   absent), with ``"workdir"`` (its folder's name) and ``"lam"`` (the sorted distinct ``lam`` of
-  the folds' ``align.json``, with ``"lam_rule"`` names where a rule set it).
+  the folds' ``align.json``, with ``"lam_rule"`` names where a rule set it and the layer aligned).
   """
   import json
   import pathlib
@@ -82,7 +82,8 @@ def aligned_run(files, strides, results, workdir) -> dict:
           models[f"{v}|aligned"] = (mcfg, unflatten_params({k: z[k] for k in z.files}))
         record = json.loads(finished[1].read_text())
         rule = record.get("lam_rule", {}).get("rule")
-        lams.add(f"{LABELS[v]} {record['lam']:.4g}" + (f" ({rule})" if rule else ""))
+        layer = record.get("layer", "st_mamba0")      # records before the layer choice: the first block
+        lams.add(f"{LABELS[v]} {record['lam']:.4g}" + (f" ({rule})" if rule else "") + f" at {layer}")
     if not models:
       continue
     part = run([path], strides, None, trained=models, classic=False,
@@ -103,8 +104,8 @@ ADAPTATION_TEXT = ("Each network fitted to each scan before reconstructing it (`
                    " intensity PSNR (dB), mean over the references, as trained → fitted, per scan and mean{detail};"
                    " last column the seconds per scan the fitted network took, fitting included:")
 ALIGNED_TEXT = ("Each network after the second training stage on unlabelled measured inputs"
-                " (`python -m experiments.align`: the synthetic loss plus the MMD² of the first ST-Mamba"
-                " block's features to measured inputs), one network per scan, trained on the *other*"
+                " (`python -m experiments.align`: the synthetic loss plus the MMD² of one layer's features to"
+                " measured inputs, the layer named per fold below), one network per scan, trained on the *other*"
                 " scans' inputs only: intensity PSNR (dB), mean over the references, as trained → aligned"
                 " without that scan, per scan and mean{detail}; last column the seconds per scan:")
 
@@ -113,7 +114,7 @@ def aligned_lines(results, aligned: dict) -> list[str]:
   """:func:`adaptation_lines` for one :func:`aligned_run`, its workdir and lam per fold in the text."""
   lams = "; ".join(aligned.get("lam", [])) or "not recorded"
   return adaptation_lines(results, aligned, "aligned", ALIGNED_TEXT,
-                          detail=f" (workdir `{aligned.get('workdir', '?')}`, lam per fold: {lams})")
+                          detail=f" (workdir `{aligned.get('workdir', '?')}`, lam and layer per fold: {lams})")
 
 
 def adaptation_lines(results, adaptation, suffix: str = "adapted", text: str = ADAPTATION_TEXT,
