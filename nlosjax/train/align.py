@@ -38,21 +38,37 @@ from nlosjax import losses
 from nlosjax.train.step import make_targets
 
 __all__ = ["DEFAULT_LAYER", "layer_features", "all_layer_features", "layer_separation", "chosen_layer",
-           "align_loss", "align", "term_gradient_norms", "balanced_lam"]
+           "standardised_mmd2", "align_loss", "align", "term_gradient_norms", "balanced_lam"]
 
 #: The layer whose output is aligned.
 DEFAULT_LAYER = "st_mamba0"
 
 
+def _sublayer_outputs(model, params, frames, keep) -> tuple:
+  """``(outputs, {name: output})`` of the model and of its direct sub-modules ``keep(name)`` selects."""
+  out, state = model.apply({"params": params}, frames, mutable=["intermediates"],
+                           capture_intermediates=lambda mdl, method: method == "__call__"
+                           and len(mdl.scope.path) == 1 and keep(mdl.name))
+  found = {}
+  for name, value in state.get("intermediates", {}).items():
+    feat = value.get("__call__", (None,))[0] if isinstance(value, dict) else None
+    if isinstance(feat, jax.Array):
+      found[name] = feat
+  return out, found
+
+
+def _as_rows(feat: jax.Array) -> jax.Array:
+  """``[..., C] -> [N, C]`` float32: one row per position."""
+  return jnp.reshape(feat.astype(jnp.float32), (-1, feat.shape[-1]))
+
+
 def layer_features(model, params, frames, layer: str = DEFAULT_LAYER):
   """``(outputs, features [N, C])``: the model's outputs and ``layer``'s output, one row per position."""
-  out, state = model.apply({"params": params}, frames, mutable=["intermediates"],
-                           capture_intermediates=lambda mdl, method: mdl.name == layer and method == "__call__")
-  inter = state.get("intermediates", {})
-  if layer not in inter:
-    raise ValueError(f"layer {layer!r} is not a module of this network; it has {sorted(inter)}")
-  feat = inter[layer]["__call__"][0]
-  return out, jnp.reshape(feat.astype(jnp.float32), (-1, feat.shape[-1]))
+  out, found = _sublayer_outputs(model, params, frames, lambda name: name == layer)
+  if layer not in found:
+    _, every = _sublayer_outputs(model, params, frames, lambda name: True)
+    raise ValueError(f"layer {layer!r} is not a module of this network; it has {sorted(every)}")
+  return out, _as_rows(found[layer])
 
 
 def all_layer_features(model, params, frames) -> dict[str, np.ndarray]:
@@ -66,15 +82,20 @@ def all_layer_features(model, params, frames) -> dict[str, np.ndarray]:
 
 def _layer_outputs(model, params, frames) -> dict:
   """:func:`all_layer_features` as device arrays (jittable)."""
-  _, state = model.apply({"params": params}, frames, mutable=["intermediates"],
-                         capture_intermediates=lambda mdl, method: method == "__call__"
-                         and len(mdl.scope.path) == 1)
-  out = {}
-  for name, value in state.get("intermediates", {}).items():
-    feat = value.get("__call__", (None,))[0] if isinstance(value, dict) else None
-    if isinstance(feat, jax.Array) and feat.ndim == 5:
-      out[name] = jnp.reshape(feat.astype(jnp.float32), (-1, feat.shape[-1]))
-  return out
+  _, found = _sublayer_outputs(model, params, frames, lambda name: True)
+  return {name: _as_rows(feat) for name, feat in found.items() if feat.ndim == 5}
+
+
+def standardised_mmd2(reference, *others):
+  """MMD² (:func:`nlosjax.losses.mmd2`) of ``reference [n, C]`` to each of ``others [m, C]``.
+
+  Every sample is standardised by ``reference``'s mean and spread per channel (``+ 1e-6``),
+  through which no gradient flows, so the term compares shapes, not scales. Returns a tuple.
+  """
+  mu = jax.lax.stop_gradient(jnp.mean(reference, 0))
+  sd = jax.lax.stop_gradient(jnp.std(reference, 0)) + 1e-6
+  ref = (reference - mu) / sd
+  return tuple(losses.mmd2(ref, (b - mu) / sd) for b in others)
 
 
 def layer_separation(model_config, params, synthetic: np.ndarray, measured: np.ndarray, *, samples: int = 512,
@@ -108,7 +129,7 @@ def layer_separation(model_config, params, synthetic: np.ndarray, measured: np.n
 
   syn, meas = features(np.asarray(synthetic, np.float32)), features(np.asarray(measured, np.float32))
   rng = np.random.default_rng(seed)
-  mmd = jax.jit(losses.mmd2)
+  mmd = jax.jit(standardised_mmd2)
   out = {}
   for name, fs in syn.items():
     fm = meas[name]
@@ -116,9 +137,9 @@ def layer_separation(model_config, params, synthetic: np.ndarray, measured: np.n
     for _ in range(draws):
       a, a2 = fs[rng.integers(0, len(fs), samples)], fs[rng.integers(0, len(fs), samples)]
       b = fm[rng.integers(0, len(fm), samples)]
-      mu, sd = a.mean(0), a.std(0) + 1e-6
-      between.append(float(mmd((a - mu) / sd, (b - mu) / sd)))
-      null.append(float(mmd((a - mu) / sd, (a2 - mu) / sd)))
+      to_b, to_a2 = mmd(a, b, a2)
+      between.append(float(to_b))
+      null.append(float(to_a2))
     spread = float(np.std(null, ddof=1))
     out[name] = {"channels": int(fs.shape[1]), "mmd": float(np.mean(between)),
                  "mmd_sd": float(np.std(between, ddof=1)), "null": float(np.mean(null)), "null_sd": spread,
@@ -147,10 +168,7 @@ def align_loss(params, batch, measured, key, *, model, weights, wavelet, time_wi
   _, f_meas = layer_features(model, params, measured, layer)
   loss, terms = losses.total_loss(out, make_targets(batch, time_window), weights, wavelet)
   k1, k2 = jax.random.split(key)
-  a, b = _sample(f_syn, k1, samples), _sample(f_meas, k2, samples)
-  mu = jax.lax.stop_gradient(jnp.mean(a, 0))
-  sd = jax.lax.stop_gradient(jnp.std(a, 0)) + 1e-6
-  mmd = losses.mmd2((a - mu) / sd, (b - mu) / sd)
+  (mmd,) = standardised_mmd2(_sample(f_syn, k1, samples), _sample(f_meas, k2, samples))
   total = loss + lam * mmd
   return total, {**terms, "mmd": mmd, "synthetic": loss, "loss": total}
 

@@ -471,6 +471,13 @@ def open_dataset(path, setup: Setup | None = None) -> DynamicDataset:
   return DynamicDataset(path, setup)
 
 
+def _array_names(f: h5py.File) -> list[str]:
+  """Every array's path in an open file, sorted (the order both summaries read them in)."""
+  names = []
+  f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+  return sorted(names)
+
+
 def dataset_digest(path, *, chunk_bytes: int = 1 << 24) -> str:
   """SHA-256 (hex, 16 characters) of a dataset file's content: every array, by name, dtype, shape and value.
 
@@ -482,10 +489,8 @@ def dataset_digest(path, *, chunk_bytes: int = 1 << 24) -> str:
   """
   import hashlib
   h = hashlib.sha256()
-  names = []
   with h5py.File(pathlib.Path(path), "r") as f:
-    f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
-    for name in sorted(names):
+    for name in _array_names(f):
       ds = f[name]
       h.update(f"{name}|{ds.dtype.str}|{ds.shape}\n".encode())
       if ds.shape == () or ds.size == 0:
@@ -518,6 +523,12 @@ def _cell_sums(x: np.ndarray, parts: int) -> list[float]:
   return [float(v) for v in x.ravel()]
 
 
+def _array_fingerprint(x: np.ndarray, parts: int) -> dict:
+  """One array's entry of :func:`dataset_fingerprint`: shape, L1 mass, cell sums (float64)."""
+  return {"shape": list(x.shape), "mass": float(np.abs(x, dtype=np.float64).sum()),
+          "cells": _cell_sums(x, parts)}
+
+
 def dataset_fingerprint(path, *, parts: int = 2) -> dict[str, dict]:
   """A dataset file's content summarised so that float rounding does not change it beyond tolerance.
 
@@ -534,15 +545,11 @@ def dataset_fingerprint(path, *, parts: int = 2) -> dict[str, dict]:
   """
   out = {}
   with h5py.File(pathlib.Path(path), "r") as f:
-    names = []
-    f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
-    for name in sorted(names):
+    for name in _array_names(f):
       ds = f[name]
       if ds.dtype.kind not in "biuf":
         continue
-      x = np.asarray(ds[()])
-      out[name] = {"shape": list(x.shape), "mass": float(np.abs(x, dtype=np.float64).sum()),
-                   "cells": _cell_sums(x, parts)}
+      out[name] = _array_fingerprint(np.asarray(ds[()]), parts)
   return out
 
 
@@ -600,16 +607,13 @@ def dataset_identity(path, *, parts: int = 2, cache: bool = True) -> tuple[str, 
   h = hashlib.sha256()
   fingerprint = {}
   with h5py.File(path, "r") as f:
-    names = []
-    f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
-    for name in sorted(names):
+    for name in _array_names(f):
       ds = f[name]
       x = np.asarray(ds[()])
       h.update(f"{name}|{ds.dtype.str}|{ds.shape}\n".encode())
       h.update(np.ascontiguousarray(x))     # its bytes in C order (no copy), as dataset_digest's chunks
       if ds.dtype.kind in "biuf":
-        fingerprint[name] = {"shape": list(x.shape), "mass": float(np.abs(x, dtype=np.float64).sum()),
-                             "cells": _cell_sums(x, parts)}
+        fingerprint[name] = _array_fingerprint(x, parts)
   digest = h.hexdigest()[:16]
   if cache:                      # written whole, then renamed: processes sharing the file never read half
     tmp = store.with_name(f"{store.name}.{os.getpid()}.tmp")
