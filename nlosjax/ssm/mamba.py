@@ -38,6 +38,7 @@ computed in float32, as Mamba keeps them (bf16/AMP NaNs: state-spaces/mamba READ
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -286,6 +287,13 @@ class SelectiveSSM(nn.Module):
     return y
 
 
+#: The :class:`SelectiveSSM` fields a :class:`MambaMixer` passes on unchanged, by name (its
+#: ``d_inner`` and ``dt_rank`` it derives): a field added to the SSM and not to the mixer fails
+#: at the mixer's first call instead of silently keeping its default.
+SHARED_SSM_FIELDS = tuple(f.name for f in dataclasses.fields(SelectiveSSM)
+                          if f.name not in ("parent", "name", "d_inner", "dt_rank"))
+
+
 class MambaMixer(nn.Module):
   """Mamba v1 mixer: ``[..., L, d_model] -> [..., L, d_model]`` (see module docstring).
 
@@ -363,10 +371,8 @@ class MambaMixer(nn.Module):
     xz = nn.Dense(2 * self.d_inner, use_bias=self.bias, kernel_init=torch_default_init(),
                   dtype=self.dtype, param_dtype=self.param_dtype, name="in_proj")(x)
     xs, z = jnp.split(xz, 2, axis=-1)
-    y = SelectiveSSM(self.d_inner, self.d_state, self.d_conv, self.rank, self.direction, self.conv,
-                     self.share_params, self.scan_method, self.chunk_size, self.dt_min, self.dt_max,
-                     self.dt_init, self.dt_scale, self.dt_init_floor, self.conv_bias, self.dtype,
-                     self.param_dtype, name="ssm")(xs)
+    y = SelectiveSSM(d_inner=self.d_inner, dt_rank=self.rank,
+                     **{f: getattr(self, f) for f in SHARED_SSM_FIELDS}, name="ssm")(xs)
     y = y * nn.silu(z)
     return nn.Dense(self.d_model, use_bias=self.bias,
                     kernel_init=torch_default_init(1.0 / math.sqrt(self.n_residuals)),
