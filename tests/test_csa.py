@@ -149,3 +149,20 @@ def test_batches_and_bad_options():
   with pytest.raises(ValueError, match="stride"):
     C.interval_mask(4, 4, 0)
   np.testing.assert_array_equal(np.nonzero(C.interval_mask(8, 8, 4)[:, 2])[0], [2, 6])
+
+
+def test_sparse_on_grid_puts_each_sample_on_its_scan_point():
+  """Against a plain loop over the samples: sample (i, j) at (s//2 + s i, s//2 + s j), zeros elsewhere."""
+  rng = np.random.default_rng(0)
+  for (H, W), s in [((8, 8), 4), ((9, 7), 3), ((5, 5), 1)]:
+    h, w = len(range(s // 2, H, s)), len(range(s // 2, W, s))
+    x = rng.random((2, 3, h, w)).astype(np.float32)
+    want = np.zeros((2, 3, H, W), np.float32)
+    for i in range(h):
+      for j in range(w):
+        want[..., s // 2 + s * i, s // 2 + s * j] = x[..., i, j]
+    got = np.asarray(C.sparse_on_grid(x, (H, W), s))
+    np.testing.assert_array_equal(got, want)
+    assert np.all(got[..., C.interval_mask(H, W, s) == 0] == 0)
+  with pytest.raises(ValueError, match="does not match grid"):
+    C.sparse_on_grid(np.zeros((3, 2, 2)), (8, 8), 2)

@@ -244,3 +244,31 @@ def test_evaluate_pairs_the_consecutive_middle_frames_of_each_test_sequence(tmp_
     for k, v in want.items():
       assert got[k][cur] == pytest.approx(float(v[0]), rel=1e-6, nan_ok=True), (k, cur)
   assert np.isfinite(got["temporal_rmse"][[1, 3]]).all()
+
+
+def test_spread_frames_spans_the_split():
+  from nlosjax.evaluation.baselines import spread_frames
+  np.testing.assert_array_equal(spread_frames(5, 16), np.arange(5))
+  np.testing.assert_array_equal(spread_frames(9, 3), [0, 4, 8])
+  with pytest.raises(ValueError, match="n >= 1"):
+    spread_frames(0, 3)
+
+
+@pytest.mark.full
+def test_tune_csa_keeps_the_option_whose_masked_csa_scores_best():
+  """Its choice against CSA run by hand on the masked full grid and scored with the metrics."""
+  from nlosjax import metrics
+  from nlosjax.evaluation.baselines import tune_csa
+  from nlosjax.physics import intensity_depth
+  from nlosjax.physics.methods import csa
+  from tests.small_capture import three_patch_capture
+  setup, full, albedo = three_patch_capture()
+  mask = csa.interval_mask(*setup.grid, 3)
+  grid = ({"tau_rel": 0.05, "falloff": "diffuse"}, {"tau_rel": 0.9, "falloff": "diffuse"})
+  gt_i, gt_d = (np.asarray(a) for a in intensity_depth(albedo, setup))
+  out = tune_csa(full[..., 1::3, 1::3], gt_i, gt_d, setup, 3, grid=grid, thresholds=(0.1, 0.3), log=lambda _: None)
+  psnr = [float(np.mean(np.asarray(metrics.psnr(np.asarray(intensity_depth(
+      csa.csa(full * mask, setup, mask=mask, **g), setup)[0]), gt_i)))) for g in grid]
+  assert out["options"] == grid[int(np.argmax(psnr))]
+  np.testing.assert_allclose([r["psnr"] for r in out["grid"]], psnr, rtol=1e-4)
+  assert out["threshold"] in (0.1, 0.3)

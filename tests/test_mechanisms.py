@@ -336,12 +336,12 @@ def test_methods_without_training_are_paired_with_each_seed_of_the_learned_rows(
 
 
 @pytest.mark.full
-def test_csa_volumes_place_the_sparse_scan_on_its_points_of_the_full_grid():
-  from benchmarks.mechanisms.untrained import csa_volumes
+def test_csa_volume_places_the_sparse_scan_on_its_points_of_the_full_grid():
+  from nlosjax.evaluation.baselines import csa_volume
   from nlosjax.physics.methods import csa
   from tests.small_capture import three_patch_capture
   setup, full, _ = three_patch_capture()
   mask = csa.interval_mask(*setup.grid, 3)
-  got = csa_volumes(full[..., 1::3, 1::3], setup, 3, {"tau_rel": 0.1, "falloff": "diffuse"}, batch_size=2)
+  got = np.asarray(csa_volume(full[..., 1::3, 1::3], setup, 3, {"tau_rel": 0.1, "falloff": "diffuse"}))
   want = np.asarray(csa.csa(full * mask, setup, mask=mask, tau_rel=0.1, falloff="diffuse"))
   np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6 * float(np.max(want)))

@@ -9,9 +9,8 @@ with each of them, seed by seed, frame by frame:
   to the full grid, their options and surface threshold tuned on the validation split
   (:func:`nlosjax.evaluation.baselines.tune`, as the main job's Table 1);
 * CSA (:mod:`nlosjax.physics.methods.csa`) on the sparse scan itself, a masked full grid; its
-  l1 weight and falloff chosen on :data:`CSA_VAL_FRAMES` validation frames spread over the
-  sequences (CSA costs seconds a frame), its threshold by surface F1 on them, the rule of
-  ``baselines.tune``.
+  l1 weight and falloff chosen on ``baselines.CSA_VAL_FRAMES`` validation frames spread over
+  the sequences, its threshold by surface F1 on them (:func:`nlosjax.evaluation.baselines.tune_csa`).
 
 Nothing here reads the test split before the settings are fixed. Each budget's scores go to
 ``RESULTS/mechanisms/untrained-<budget>.json``: ``{"budget", "data", "machine", "methods": {method:
@@ -28,61 +27,13 @@ import numpy as np
 
 #: The methods scored: the classic five and CSA, in the paper's Table 1 order where it has them.
 UNTRAINED = ("lct", "rsd", "fk", "csa", "fbp", "phasor")
-#: CSA's settings tried on validation: l1 weight (share of max(A^T b)) x falloff.
-CSA_GRID = tuple({"tau_rel": t, "falloff": f} for f in ("diffuse", "retroreflective")
-                 for t in (0.03, 0.1, 0.3, 0.5))
-CSA_VAL_FRAMES = 16
 
 
 def untrained_json(results: pathlib.Path, budget: str) -> pathlib.Path:
   return pathlib.Path(results) / "mechanisms" / f"untrained-{budget}.json"
 
 
-def csa_volumes(measurement: np.ndarray, setup, stride: int, options: dict, batch_size: int = 8) -> np.ndarray:
-  """``[N, T, h, w]`` under-scanned counts -> ``[N, Z, H, W]`` CSA volumes of the masked full grid.
-
-  The counts go to their scan points ``stride // 2 + stride i`` of the full grid; the other
-  points are zeros CSA never reads (its mask).
-  """
-  from nlosjax.physics.methods import csa
-  H, W = setup.grid
-  o = stride // 2
-  mask = csa.interval_mask(H, W, stride)
-  out = []
-  for s in range(0, len(measurement), batch_size):
-    x = np.asarray(measurement[s:s + batch_size], np.float32)
-    full = np.zeros(x.shape[:-2] + (H, W), np.float32)
-    full[..., o::stride, o::stride] = x
-    out.append(np.asarray(csa.csa(full, setup, mask=mask, **options)))
-  return np.concatenate(out)
-
-
-def tune_csa(measurement, gt_intensity, gt_depth, setup, stride: int, *, grid=CSA_GRID,
-             thresholds=None, log: Callable[[str], None] = print) -> dict:
-  """CSA's best setting on validation frames, by ``baselines.tune``'s rule.
-
-  The options with the best mean intensity PSNR; at them, the surface threshold with the best
-  mean surface F1. Returns ``{"options", "threshold", "psnr", "f1", "grid": [{"options", "psnr"}]}``.
-  """
-  from nlosjax import metrics
-  from nlosjax.evaluation import baselines
-  from nlosjax.physics import intensity_depth
-  thresholds = baselines.THRESHOLDS if thresholds is None else thresholds
-  rows, best, best_vol = [], None, None
-  for options in grid:
-    vol = csa_volumes(measurement, setup, stride, options)
-    psnr = float(np.mean(np.asarray(metrics.psnr(np.asarray(intensity_depth(vol, setup)[0]), gt_intensity))))
-    rows.append({"options": dict(options), "psnr": psnr})
-    log(f"[tune] csa {options}: validation intensity PSNR {psnr:.2f} dB")
-    if best is None or psnr > best["psnr"]:
-      best, best_vol = rows[-1], vol
-  f1 = {float(th): float(np.nanmean(np.asarray(metrics.surface_scores(
-      np.asarray(intensity_depth(best_vol, setup, threshold=th)[1]), gt_depth)["f1"]))) for th in thresholds}
-  th = max(f1, key=lambda t: (f1[t], -list(f1).index(t)))
-  return {"options": best["options"], "threshold": th, "psnr": best["psnr"], "f1": f1[th], "grid": rows}
-
-
-def score_untrained(cfg: dict, *, methods=UNTRAINED, csa_frames: int = CSA_VAL_FRAMES,
+def score_untrained(cfg: dict, *, methods=UNTRAINED, csa_frames: int | None = None,
                     log: Callable[[str], None] = print) -> dict:
   """Every method of ``methods`` tuned on ``cfg``'s validation split and scored on its test split.
 
@@ -101,10 +52,10 @@ def score_untrained(cfg: dict, *, methods=UNTRAINED, csa_frames: int = CSA_VAL_F
   settings = baselines.tune(val["measurement"], val["intensity"], val["depth"], val["setup"], val["stride"],
                             methods=classic, log=log) if classic else {}
   if "csa" in methods:
-    pick = np.unique(np.linspace(0, len(val["measurement"]) - 1, min(csa_frames, len(val["measurement"])))
-                     .round().astype(int))
-    settings["csa"] = {**tune_csa(val["measurement"][pick], val["intensity"][pick], val["depth"][pick],
-                                  val["setup"], val["stride"], log=log), "val_frames": [int(i) for i in pick]}
+    pick = baselines.spread_frames(len(val["measurement"]), csa_frames or baselines.CSA_VAL_FRAMES)
+    settings["csa"] = {**baselines.tune_csa(val["measurement"][pick], val["intensity"][pick],
+                                            val["depth"][pick], val["setup"], val["stride"], log=log),
+                       "val_frames": [int(i) for i in pick]}
   out = {"data": str(data_path), "methods": {}}
   ev = protocol.evaluate(cfg, data_path, {}, split="test", methods=classic, classic_settings=settings, log=log)
   for m in classic:
@@ -115,7 +66,9 @@ def score_untrained(cfg: dict, *, methods=UNTRAINED, csa_frames: int = CSA_VAL_F
     test = protocol.load_split(cfg, data_path, "test", batch_size=bs)
     test["loader"].close()
     s = settings["csa"]
-    vol = csa_volumes(test["measurement"], test["setup"], test["stride"], s["options"])
+    vol = np.concatenate([np.asarray(baselines.csa_volume(test["measurement"][i:i + bs], test["setup"],
+                                                          test["stride"], s["options"]))
+                          for i in range(0, len(test["measurement"]), bs)])
     inten, depth = (np.asarray(a) for a in intensity_depth(vol, test["setup"], threshold=s["threshold"]))
     per_frame = scores.frame_scores(inten, depth, test["intensity"], test["depth"],
                                     sequence=test["sequence"], frame=test["frame"])
@@ -165,7 +118,7 @@ def untrained_lines(record: dict, learned: dict, budget: str) -> list[str]:
            "Table 1's other rows on the same test frames: the classic methods on the input interpolated to"
            " the full grid, options and surface threshold tuned on the validation split"
            " (`nlosjax.evaluation.baselines.tune`); CSA on the sparse scan itself, its l1 weight and falloff"
-           " chosen on validation frames (`benchmarks/mechanisms/untrained.py`). Deterministic: one score"
+           " chosen on validation frames (`nlosjax.evaluation.baselines.tune_csa`). Deterministic: one score"
            " per frame, paired with each seed of the learned row.", "",
            "| method | chosen on validation | " + " | ".join(h for h, _ in COLUMNS.values()) + " |",
            "|---|---|" + "---|" * len(COLUMNS)]

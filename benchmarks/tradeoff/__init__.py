@@ -29,7 +29,8 @@ scan point, the stored exposure, 3 frames, the CPU preset's model, the
   full grid, the paper's protocol), USM (the learned baseline, the preset's
   ``usm`` section and recipe), Ours-S, Ours; CSA (the iterative method made
   for under-scanned scans, on the sparse scan itself; its l1 weight and falloff
-  chosen in the run on validation frames, ``CSA_TAUS`` x ``CSA_FALLOFFS``);
+  chosen in the run on validation frames by
+  ``nlosjax.evaluation.baselines.tune_csa`` from ``baselines.CSA_GRID``);
 * scan density: every 8th / 4th / 2nd / every scan point (4 x 4 ... 32 x 32)
   of the same scenes, classic methods (the networks are trained for 8 x 8);
 * exposure: the stored noise-free transients re-noised with
@@ -87,9 +88,6 @@ from benchmarks.tradeoff.accuracy import in_range_accuracy, scores
 from benchmarks.tradeoff.configs import (
   APERTURE,
   CLASSIC,
-  CSA_CHOICE_FRAMES,
-  CSA_FALLOFFS,
-  CSA_TAUS,
   DEFAULT_OUT_DIR,
   DEFAULT_WORKDIR,
   DENSITY_STRIDES,
@@ -119,7 +117,7 @@ from benchmarks.tradeoff.study import run
 from benchmarks.tradeoff.training import train_learned, window_frames, window_loader
 
 __all__ = [
-    "APERTURE", "CLASSIC", "CSA_CHOICE_FRAMES", "CSA_FALLOFFS", "CSA_TAUS", "DEFAULT_OUT_DIR",
+    "APERTURE", "CLASSIC", "DEFAULT_OUT_DIR",
     "DEFAULT_WORKDIR", "DENSITY_STRIDES", "EXPOSURES", "FULL_REPEATS", "FULL_STEPS",
     "GOAL_HALVING", "KNOBS", "LABELS", "LEARNED", "Learned", "MIB", "QUICK_REPEATS",
     "QUICK_STEPS", "TestSplit", "classic_pipeline", "csa_choice_markdown", "csa_pipeline",

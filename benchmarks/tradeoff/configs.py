@@ -21,12 +21,6 @@ QUICK_REPEATS, FULL_REPEATS = 9, 15
 
 CLASSIC = CLASSIC_METHODS
 LABELS = {m: METHOD_LABELS[m] for m in CLASSIC}
-#: CSA (the iterative method for under-scanned scans) reads the sparse scan itself; its l1
-#: weight (a share of max(A^T b)) and falloff are chosen in the run, on the first
-#: ``CSA_CHOICE_FRAMES`` validation frames, never on the test split.
-CSA_TAUS = (0.03, 0.1, 0.3, 0.5)
-CSA_FALLOFFS = ("diffuse", "retroreflective")
-CSA_CHOICE_FRAMES = 16
 DENSITY_STRIDES = (8, 4, 2, 1)
 EXPOSURES = (0.1, 0.3, 1.0, 3.0)
 KNOBS = ("method", "density", "exposure", "frames", "model", "kernel", "gating")

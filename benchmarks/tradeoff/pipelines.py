@@ -45,23 +45,21 @@ def classic_pipeline(method: str, setup, stride: int, *, volume: bool = False) -
 def csa_pipeline(setup, stride: int, *, tau_rel: float, falloff: str) -> Callable:
   """``x [B, T, h, w] -> {"intensity", "depth" [B, H, W]}`` of CSA on the sparse scan.
 
-  The under-scanned counts are placed at their scan points ``stride // 2 + stride * i``
-  of ``setup``'s grid (zeros elsewhere, never read: the sampling mask,
-  :func:`nlosjax.physics.methods.csa.interval_mask`), then
+  The under-scanned counts are placed at their scan points of ``setup``'s grid
+  (:func:`nlosjax.physics.methods.csa.sparse_on_grid`; zeros elsewhere, never read: the
+  sampling mask :func:`~nlosjax.physics.methods.csa.interval_mask`), then
   :func:`nlosjax.physics.methods.csa.csa` (at most 200 FISTA steps, tol 1e-4) and
   :func:`nlosjax.physics.intensity_depth`. Jittable.
   """
   import jax
-  import jax.numpy as jnp
 
   from nlosjax.physics import intensity_depth
   from nlosjax.physics.methods import csa
   H, W = setup.grid
   mask = csa.interval_mask(H, W, stride)
-  o = stride // 2
 
   def fn(x):
-    full = jnp.zeros(x.shape[:-2] + (H, W), x.dtype).at[..., o::stride, o::stride].set(x)
+    full = csa.sparse_on_grid(x, (H, W), stride)
     with jax.ensure_compile_time_eval():   # operators concrete, as in classic_pipeline
       vol = csa.csa(full, setup, mask=mask, tau_rel=tau_rel, falloff=falloff)
     inten, depth = intensity_depth(vol, setup)

@@ -15,9 +15,6 @@ import numpy as np
 from benchmarks.tradeoff.accuracy import in_range_accuracy, scores
 from benchmarks.tradeoff.configs import (
   CLASSIC,
-  CSA_CHOICE_FRAMES,
-  CSA_FALLOFFS,
-  CSA_TAUS,
   DENSITY_STRIDES,
   EXPOSURES,
   LABELS,
@@ -30,6 +27,7 @@ from benchmarks.tradeoff.pipelines import classic_pipeline, csa_pipeline, learne
 from benchmarks.tradeoff.runners import evaluate, interleaved_times
 from benchmarks.tradeoff.stages import lct_stage_executables, network_volume_executable
 from benchmarks.tradeoff.training import train_learned, window_loader
+from nlosjax.evaluation import baselines
 
 
 def run(args) -> dict:
@@ -114,21 +112,16 @@ def run(args) -> dict:
     jobs.append(("method", f"method {method}", lambda method=method: job_method(method)))
 
   def job_csa():
-    """CSA: l1 weight and falloff chosen on validation frames, then the test split."""
+    """CSA: l1 weight and falloff chosen on validation frames (``baselines.tune_csa``), then the test split."""
     val = TestSplit.load(data_path, "val")
-    n = min(CSA_CHOICE_FRAMES, len(val))
-    pick = np.linspace(0, len(val) - 1, n).round().astype(int)   # spread over the sequences
-    xv = val.windows(stride, 1)[pick, 0]
+    pick = baselines.spread_frames(len(val), baselines.CSA_VAL_FRAMES)
     gv_i, gv_d = (g[pick] for g in val.gt())
-    table = {}
-    for falloff in CSA_FALLOFFS:
-      for tau in CSA_TAUS:
-        o = evaluate(csa_pipeline(setup, stride, tau_rel=tau, falloff=falloff), xv, batch=B,
-                     cache={}, key=None)["outputs"]
-        table[(falloff, tau)] = scores(o["intensity"], o["depth"], gv_i, gv_d)["psnr"][0]
-    falloff, tau = max(table, key=lambda k: (table[k], -k[1]))
-    res["csa_choice"] = {"frames": n, "chosen": [falloff, tau],
-                         "psnr": [[f, t, v] for (f, t), v in table.items()]}
+    choice = baselines.tune_csa(val.windows(stride, 1)[pick, 0], gv_i, gv_d, setup, stride,
+                                thresholds=(baselines.DEFAULT_THRESHOLD,), batch_size=B, log=lambda _: None)
+    tau, falloff = choice["options"]["tau_rel"], choice["options"]["falloff"]
+    res["csa_choice"] = {"frames": len(pick), "chosen": [falloff, tau],
+                         "psnr": [[g["options"]["falloff"], g["options"]["tau_rel"], g["psnr"]]
+                                  for g in choice["grid"]]}
     m = evaluate(csa_pipeline(setup, stride, tau_rel=tau, falloff=falloff), inputs[1][:, 0],
                  batch=B, cache=cache, key=("csa", tau, falloff))
     default["csa"] = m

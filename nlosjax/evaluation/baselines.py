@@ -22,6 +22,11 @@ thresholds :data:`THRESHOLDS`:
 Ties keep the earlier grid entry. ``tune`` returns every grid row's scores
 too, so a report can show what the choice was made from.
 
+CSA (:mod:`nlosjax.physics.methods.csa`) is no classic method in this sense: it reads the
+sparse scan itself (:func:`csa_volume`), costs seconds a frame, and is chosen by the same rule
+from :data:`CSA_GRID` on :data:`CSA_VAL_FRAMES` validation frames spread over the sequences
+(:func:`tune_csa`, :func:`spread_frames`).
+
 Operator variant: the tables' classic rows use ``variant="refined"`` for
 FBP, LCT, f-k and phasor (:data:`TABLE_VARIANT`; the setting every table was
 tuned and measured with), where the library default is the public algorithm
@@ -44,7 +49,8 @@ from nlosjax.physics.reconstruct import METHODS as CLASSIC_METHODS  # one source
 
 __all__ = ["CLASSIC_METHODS", "THRESHOLDS", "DEFAULT_THRESHOLD", "interpolation_matrix",
            "upsample_scan", "default_options", "option_grid", "classic_volume",
-           "classic_images", "tune"]
+           "classic_images", "tune", "CSA_GRID", "CSA_VAL_FRAMES", "spread_frames", "csa_volume",
+           "tune_csa"]
 
 #: Surface thresholds (fraction of the image's peak intensity) tried on validation.
 THRESHOLDS = (0.05, 0.1, 0.2, 0.3, 0.5)
@@ -52,6 +58,12 @@ THRESHOLDS = (0.05, 0.1, 0.2, 0.3, 0.5)
 DEFAULT_THRESHOLD = 0.1
 #: Operator variant of the methods that have one, in every table (see the module docstring).
 TABLE_VARIANT = {"fbp": "refined", "lct": "refined", "fk": "refined", "phasor": "refined"}
+#: CSA's settings tried on validation: l1 weight (share of max(A^T b); >= 1 empties the
+#: volume) x falloff. 0.7 and 0.9 joined when 0.5, the old edge, won on the `tenth` budget.
+CSA_GRID = tuple({"tau_rel": t, "falloff": f} for f in ("diffuse", "retroreflective")
+                 for t in (0.03, 0.1, 0.3, 0.5, 0.7, 0.9))
+#: Validation frames CSA is chosen on (it costs seconds a frame).
+CSA_VAL_FRAMES = 16
 
 
 def upsample_scan(transient, grid: tuple[int, int], stride: int):
@@ -187,3 +199,58 @@ def tune(measurement, gt_intensity, gt_depth, setup, stride: int, *,
     log(f"[tune] {method}: {best['options'] or 'no options'}, threshold {th} "
         f"(validation intensity PSNR {best['psnr']:.2f} dB, surface F1 {f1[th]:.3f})")
   return out
+
+
+def spread_frames(n: int, k: int) -> np.ndarray:
+  """Indices of ``min(k, n)`` of ``n`` frames spread evenly over them (first and last included)."""
+  if n < 1 or k < 1:
+    raise ValueError(f"need n >= 1 frames and k >= 1 picks, got n={n}, k={k}")
+  return np.unique(np.linspace(0, n - 1, min(k, n)).round().astype(int))
+
+
+def csa_volume(measurement, setup, stride: int, options: dict):
+  """``[N, T, h, w]`` under-scanned counts -> ``[N, Z, H, W]`` CSA volume of the sparse scan.
+
+  The counts go to their scan points of the full grid
+  (:func:`nlosjax.physics.methods.csa.sparse_on_grid`); CSA reads only those (its mask).
+  """
+  from nlosjax.physics.methods import csa
+  H, W = setup.grid
+  return csa.csa(csa.sparse_on_grid(jnp.asarray(measurement, jnp.float32), (H, W), stride), setup,
+                 mask=csa.interval_mask(H, W, stride), **options)
+
+
+def tune_csa(measurement, gt_intensity, gt_depth, setup, stride: int, *, grid=CSA_GRID,
+             thresholds=THRESHOLDS, batch_size: int = 8, log: Callable[[str], None] = print) -> dict:
+  """CSA's best setting on validation frames, by :func:`tune`'s rule.
+
+  Args:
+    measurement: ``[N, T, h, w]`` under-scanned counts (a few frames: :func:`spread_frames`).
+    gt_intensity, gt_depth: ``[N, H, W]`` their ground truth.
+    grid: option dicts of :func:`csa_volume` to try; thresholds: surface thresholds to try.
+  Returns:
+    ``{"options", "threshold", "psnr", "f1", "grid": [{"options", "psnr"}, ...]}`` (validation
+    means): the options with the best mean intensity PSNR (ties: the earlier), at them the
+    threshold with the best mean surface F1.
+  """
+  from nlosjax import metrics
+  from nlosjax.physics import intensity_depth
+  gt_i = np.asarray(gt_intensity)
+  rows, best, best_vols = [], None, None
+  for options in grid:
+    vols = [np.asarray(csa_volume(measurement[s:s + batch_size], setup, stride, options))
+            for s in range(0, len(measurement), batch_size)]
+    inten = np.concatenate([np.asarray(intensity_depth(v, setup)[0]) for v in vols])
+    psnr = float(np.mean(np.asarray(metrics.psnr(inten, gt_i))))
+    rows.append({"options": dict(options), "psnr": psnr})
+    log(f"[tune] csa {options}: validation intensity PSNR {psnr:.2f} dB")
+    if best is None or psnr > best["psnr"]:
+      best, best_vols = rows[-1], vols
+  f1 = {}
+  for th in thresholds:
+    depth = np.concatenate([np.asarray(intensity_depth(v, setup, threshold=th)[1]) for v in best_vols])
+    f1[float(th)] = float(np.nanmean(np.asarray(metrics.surface_scores(depth, np.asarray(gt_depth))["f1"])))
+  th = max(f1, key=lambda t: (f1[t], -list(f1).index(t)))
+  log(f"[tune] csa: {best['options']}, threshold {th} "
+      f"(validation intensity PSNR {best['psnr']:.2f} dB, surface F1 {f1[th]:.3f})")
+  return {"options": best["options"], "threshold": th, "psnr": best["psnr"], "f1": f1[th], "grid": rows}

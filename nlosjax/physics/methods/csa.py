@@ -101,6 +101,22 @@ def interval_mask(height: int, width: int, stride: int) -> np.ndarray:
   return mask
 
 
+def sparse_on_grid(transient, grid: tuple[int, int], stride: int) -> jax.Array:
+  """``[..., T, h, w]`` under-scanned counts -> ``[..., T, H, W]`` zeros but at their scan points.
+
+  Sample ``i`` goes to ``stride // 2 + stride * i`` (:func:`interval_mask`'s points); CSA never
+  reads the zeros between them. Jittable.
+  """
+  mask = interval_mask(grid[0], grid[1], stride)       # validates stride
+  o = stride // 2
+  h, w = mask[o::stride, 0].size, mask[0, o::stride].size
+  if tuple(transient.shape[-2:]) != (h, w):
+    raise ValueError(f"under-scanned grid {tuple(transient.shape[-2:])} does not match grid {tuple(grid)} "
+                     f"at stride {stride} ({h}, {w})")
+  x = jnp.asarray(transient)
+  return jnp.zeros(x.shape[:-2] + tuple(grid), x.dtype).at[..., o::stride, o::stride].set(x)
+
+
 def _solve_one(x, mask, ops, tau_rel, iterations, tol, power_iterations):
   """One capture ``[Nt, H, W]``: ``(u [Nu, H, W], iterations run, objective)``."""
   t0, t1 = ops.domain.t
