@@ -2,7 +2,7 @@
 
 Usage::
 
-  python -m experiments.evaluate --checkpoint runs/default --data runs/data/cpu.h5
+  python -m experiments.evaluate --checkpoint runs/default --data runs/data/cpu-v3.h5
   python -m experiments.evaluate --checkpoint runs/default/ours --data other.h5 --out runs/eval
 
 ``--checkpoint`` is a main-job workdir (every trained variant in it is
