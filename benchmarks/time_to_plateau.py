@@ -30,6 +30,7 @@ import numpy as np
 
 from benchmarks.mechanisms.design import COLUMNS, ROWS, STUDY_STOP, run_config, run_dir
 from benchmarks.mechanisms.records import _array, load_runs, write_json
+from benchmarks.mechanisms.report import same_frames, stack_scores
 
 #: The short schedule: peak learning rate and cosine horizon (= the most steps); all else the study's.
 SHORT = {"learning_rate": 3e-3, "max_steps": 400}
@@ -108,11 +109,10 @@ def report(study: dict, short: dict, command: str) -> str:
       continue
     a = [study[(row, s)] for s in seeds]
     b = [short[(row, s)] for s in seeds]
-    seq = a[0]["test"]["sequence"]
-    if any(r["test"]["sequence"] != seq or r["test"]["frame"] != a[0]["test"]["frame"] for r in a + b):
+    if not same_frames(a + b):
       raise ValueError(f"{row}: the runs were scored on different test frames")
-    diff = scores.compare_scores({m: np.stack([_array(r["test"]["scores"][m]) for r in b]) for m in COLUMNS},
-                                 {m: np.stack([_array(r["test"]["scores"][m]) for r in a]) for m in COLUMNS}, seq)
+    diff = scores.compare_scores({m: stack_scores(b, m) for m in COLUMNS},
+                                 {m: stack_scores(a, m) for m in COLUMNS}, a[0]["test"]["sequence"])
     ratio = sum(r["steps_taken"] for r in b) / sum(r["steps_taken"] for r in a)
     lines.append(f"| {row} | {', '.join(map(str, seeds))} | {ratio:.2f} | "
                  + " | ".join(cell(diff[m], d, signed=True) for m, (_, d) in COLUMNS.items()) + " |")

@@ -24,12 +24,13 @@ from nlosjax import stats
 from nlosjax.stats import format_interval as cell
 
 
-def _stack(runs: list[dict], metric: str) -> np.ndarray:
+def stack_scores(runs: list[dict], metric: str) -> np.ndarray:
   """``[K, N]`` test scores of ``metric`` over a row's runs (seeds)."""
   return np.stack([_array(r["test"]["scores"][metric]) for r in runs])
 
 
-def _same_frames(runs: list[dict]) -> bool:
+def same_frames(runs: list[dict]) -> bool:
+  """Whether every run was scored on the same test sequences and frames, in the same order."""
   ref = runs[0]["test"]
   return all(r["test"]["sequence"] == ref["sequence"] and r["test"]["frame"] == ref["frame"] for r in runs)
 
@@ -48,12 +49,12 @@ def summarise(runs: dict, budgets, rows) -> dict:
     by_row = {row: [runs[k] for k in sorted(runs) if k[0] == budget and k[1] == row] for row in rows}
     by_row = {row: rs for row, rs in by_row.items() if rs}
     present = [r for rs in by_row.values() for r in rs]
-    if present and not _same_frames(present):
+    if present and not same_frames(present):
       raise ValueError(f"budget {budget}: the runs were scored on different test frames")
     entry = {"rows": {}, "pairs": []}
     for row, rs in by_row.items():
       seq = rs[0]["test"]["sequence"]
-      summary = scores.summarize_scores({m: _stack(rs, m) for m in COLUMNS}, seq)
+      summary = scores.summarize_scores({m: stack_scores(rs, m) for m in COLUMNS}, seq)
       entry["rows"][row] = {"seeds": [r["seed"] for r in rs], **summary}
     for a, b in PAIRS:
       if a not in rows or b not in rows:
@@ -64,8 +65,8 @@ def summarise(runs: dict, budgets, rows) -> dict:
       pair = {"a": a, "b": b, "seeds": common, "diff": None}
       if common:
         seq = ra[common[0]]["test"]["sequence"]
-        pair["diff"] = scores.compare_scores({m: _stack([ra[s] for s in common], m) for m in COLUMNS},
-                                             {m: _stack([rb[s] for s in common], m) for m in COLUMNS}, seq)
+        pair["diff"] = scores.compare_scores({m: stack_scores([ra[s] for s in common], m) for m in COLUMNS},
+                                             {m: stack_scores([rb[s] for s in common], m) for m in COLUMNS}, seq)
       entry["pairs"].append(pair)
     out[budget] = entry
   return out
