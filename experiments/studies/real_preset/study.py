@@ -17,12 +17,23 @@ STATE_DIR = pathlib.Path(__file__).resolve().parent / "state"
 
 @dataclasses.dataclass(frozen=True)
 class Run:
-  """One long run: a candidate's data config (a preset name or a ``.py`` file) and a variant."""
+  """One long run: a candidate's data config (a preset name or a ``.py`` file) and a variant.
+
+  ``learning_rate`` and ``max_steps``, when set, replace the config's peak learning rate and
+  its plateau rule's ``max_steps`` (the cosine schedule's horizon): a schedule probe of the
+  same candidate, never a candidate itself (:func:`candidate_workdir` skips it).
+  """
 
   name: str
   config: str
   variant: str
   seed: int = 0
+  learning_rate: float | None = None
+  max_steps: int | None = None
+
+  @property
+  def schedule_probe(self) -> bool:
+    return self.learning_rate is not None or self.max_steps is not None
 
 
 #: The runs, in the order they are trained. ``real_v5``: the candidate whose simulated inputs
@@ -34,6 +45,10 @@ RUNS = (
     # A second seed of the candidate preset_choice_real.md preferred for Ours-S, so its lead
     # over the shipped weights can carry an interval over seeds too.
     Run("v5-ours_s-seed1", "experiments/configs/real_v5.py", "ours_s", seed=1),
+    # The cpu preset's short schedule (benchmarks/time_to_plateau.py, SHORT: peak 3e-3, cosine
+    # over 400 steps), unchanged, on the v5 candidate: does it reach the plateau sooner here too?
+    Run("v5-ours_s-short", "experiments/configs/real_v5.py", "ours_s", learning_rate=3e-3, max_steps=400),
+    Run("v5-ours-short", "experiments/configs/real_v5.py", "ours", learning_rate=3e-3, max_steps=400),
 )
 
 
@@ -44,6 +59,10 @@ def run_config(run: Run) -> dict:
   config = load_config(run.config)
   config["data"]["path"] = str(store.data_path(pathlib.Path(config["data"]["path"]).name))
   config["train"] = {**config["train"], "seed": run.seed, "variants": (run.variant,)}
+  if run.learning_rate is not None:
+    config["train"]["optim"] = {**config["train"]["optim"], "learning_rate": run.learning_rate}
+  if run.max_steps is not None:
+    config["train"]["stop"] = {**config["train"]["stop"], "max_steps": run.max_steps}
   return train.with_defaults(config)
 
 
@@ -201,7 +220,8 @@ def candidate_workdir(config: str) -> pathlib.Path:
     FileNotFoundError: a run of the candidate has no folder in this store (train it first).
   """
   import json
-  runs = [r for r in RUNS if r.config == config and r.seed == 0]      # seed 0: one model a variant
+  # seed 0 and the preset's schedule: one model a variant
+  runs = [r for r in RUNS if r.config == config and r.seed == 0 and not r.schedule_probe]
   if not runs:
     raise ValueError(f"no run of {config!r}; the runs: {[r.name for r in RUNS]}")
   for r in runs:
