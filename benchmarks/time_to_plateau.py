@@ -28,7 +28,7 @@ import sys
 
 import numpy as np
 
-from benchmarks.mechanisms.design import COLUMNS, ROWS, STUDY_STOP, run_config, run_dir
+from benchmarks.mechanisms.design import COLUMNS, ROWS, STUDY_OPTIM, STUDY_STOP, run_config, run_dir, study_optim
 from benchmarks.mechanisms.records import _array, load_runs, write_json
 from benchmarks.mechanisms.report import same_frames, stack_scores
 
@@ -78,7 +78,8 @@ def report(study: dict, short: dict, command: str) -> str:
   lines += provenance.provenance(command) + [""]
   lines += [f"`cpu` preset at its photons, each row trained until learning stops (plateau rule every "
             f"{STUDY_STOP['every']} steps, patience {STUDY_STOP['patience']}, {STUDY_STOP['min_delta_db']} dB) or "
-            f"at the schedule's horizon. **study**: peak learning rate 1e-3, cosine over {STUDY_STOP['max_steps']} "
+            f"at the schedule's horizon. **study**: peak learning rate {STUDY_OPTIM['learning_rate']:g}, "
+            f"cosine over {STUDY_STOP['max_steps']} "
             f"steps (`RESULTS/mechanisms/full/`). **short**: peak {SHORT['learning_rate']:g}, cosine over "
             f"{SHORT['max_steps']} steps. Same data, model, loss, seed, stopping rule and evaluation; both sides run "
             "the same step and validation, so the ratio of steps taken is the ratio of time on any machine.", "",
@@ -142,11 +143,12 @@ def main(argv=None) -> int:
   parser.add_argument("--workdir", default=f"runs/{NAME}")
   parser.add_argument("--results", default=str(pathlib.Path(__file__).resolve().parent / "results"))
   parser.add_argument("--report-only", action="store_true")
-  args, base, _ = parse_config(parser, argv)
+  args, base, overrides = parse_config(parser, argv)
   from benchmarks.mechanisms.records import code_at_start
   from nlosjax.train import with_defaults
   code_at_start()                          # the commit and code this process loads, for the records
   base = with_defaults(base)
+  base["train"]["optim"] = study_optim(base, overrides)   # the study side's, as benchmarks.mechanisms runs it
   results = pathlib.Path(args.results)
   if not args.report_only:
     for row in args.rows:

@@ -20,6 +20,7 @@ from benchmarks.mechanisms.design import (
   check_same_data,
   run_config,
   run_json,
+  study_optim,
   study_stop,
 )
 from benchmarks.mechanisms.records import _array, code_at_start
@@ -96,6 +97,7 @@ def main(argv=None) -> int:
     stop = study_stop(base)
     base = with_defaults(base)
     base["train"]["stop"] = stop
+    base["train"]["optim"] = study_optim(base, overrides)
     design = {"budgets": tuple(BUDGETS), "rows": MAIN_ROWS, "seeds": SEEDS}
   if args.extra_rows:
     design["rows"] = tuple(design["rows"]) + EXTRA_ROWS

@@ -40,6 +40,10 @@ BUDGET_LOSS = {"full": {}, "tenth": {"object_intensity": 1.0}}
 SEEDS = (0, 1, 2)
 #: The stopping rule of every run (``train.stop``; :class:`nlosjax.train.StopRule`).
 STUDY_STOP = {"rule": "plateau", "every": 50, "patience": 4, "min_delta_db": 0.05, "max_steps": 3000}
+#: The optimiser entries of every run over the config's ``train.optim``: the peak learning rate
+#: (AdamW, cosine over ``max_steps``) the study's runs were trained with. It was the cpu preset's
+#: until the preset's main job took the short schedule of ``benchmarks/time_to_plateau.py``.
+STUDY_OPTIM = {"learning_rate": 1e-3}
 #: ``--tiny``: a few steps, validating every 2.
 TINY_STOP = {"rule": "plateau", "every": 2, "patience": 1, "min_delta_db": 0.05, "max_steps": 6}
 TINY_DESIGN = {"budgets": ("full",), "rows": ("full", "no_ssm"), "seeds": (0,)}
@@ -94,6 +98,14 @@ def study_stop(base: dict) -> dict:
     raise SystemExit(f"benchmarks.mechanisms trains to the validation plateau; train.stop.rule "
                      f"{stop['rule']!r} is not allowed")
   return stop
+
+
+def study_optim(base: dict, overrides=()) -> dict:
+  """The runs' ``train.optim``: the config's, with :data:`STUDY_OPTIM` over it except the keys
+  set on the command line (``overrides``: the ``--config.train.optim.KEY=VALUE`` arguments)."""
+  from experiments.cli import override_key
+  mine = {k[2] for k, _ in map(override_key, overrides) if k[:2] == ("train", "optim") and len(k) == 3}
+  return {**base.get("train", {}).get("optim", {}), **{k: v for k, v in STUDY_OPTIM.items() if k not in mine}}
 
 
 def run_config(base: dict, budget: str, row: str, seed: int, stop: dict, keep_loss=()) -> dict:

@@ -11,7 +11,7 @@ from benchmarks.physics_shift import heldout, report, study
 
 
 def main(argv=None) -> int:
-  from benchmarks.mechanisms import STUDY_STOP, code_at_start
+  from benchmarks.mechanisms import STUDY_STOP, code_at_start, study_optim
   from experiments.cli import config_parser, parse_config
   from experiments.provenance import provenance
   code_at_start()
@@ -32,7 +32,8 @@ def main(argv=None) -> int:
   parser.add_argument("--hours", type=float, default=None,
                       help="with --state: pause the run in progress after this many hours, its state exported")
   argv = sys.argv[1:] if argv is None else list(argv)
-  args, base, _ = parse_config(parser, argv)
+  args, base, overrides = parse_config(parser, argv)
+  base.setdefault("train", {})["optim"] = study_optim(base, overrides)   # the mechanism study's runs' schedule
   if args.hours is not None and args.state is None:
     parser.error("--hours needs --state DIR (where the paused state goes)")
   preset = args.config

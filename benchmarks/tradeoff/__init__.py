@@ -52,7 +52,7 @@ minutes on 2 shared cores once the checkpoints exist) is what
 
 Every learned configuration is trained by this benchmark with one shared
 budget (``--steps``; 150 with ``--quick``) and the CPU preset's optimiser
-and seed, into ``WORKDIR/s<steps>/<name>``; a rerun restores the
+at peak learning rate 1e-3 (``configs.LEARNING_RATE``) and seed, into ``WORKDIR/s<steps>/<name>``; a rerun restores the
 checkpoints (an interrupted training resumes). Writes ``OUT/tradeoff.md``,
 ``OUT/tradeoff.json`` and ``OUT/tradeoff.png`` (time per frame against
 intensity PSNR, every configuration a point, the Pareto front of the

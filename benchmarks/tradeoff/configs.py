@@ -18,6 +18,9 @@ DEFAULT_OUT_DIR = pathlib.Path(__file__).resolve().parent.parent / "results"
 DEFAULT_WORKDIR = pathlib.Path("runs/tradeoff")
 QUICK_STEPS, FULL_STEPS = 150, 300
 QUICK_REPEATS, FULL_REPEATS = 9, 15
+#: The peak learning rate of every learned configuration (the CPU preset's optimiser otherwise):
+#: the preset's when the checkpoints were trained, kept when its main job took the short schedule.
+LEARNING_RATE = 1e-3
 
 CLASSIC = CLASSIC_METHODS
 LABELS = {m: METHOD_LABELS[m] for m in CLASSIC}

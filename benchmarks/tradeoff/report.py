@@ -7,7 +7,7 @@ from __future__ import annotations
 import datetime
 import math
 
-from benchmarks.tradeoff.configs import CLASSIC, GOAL_HALVING, LABELS
+from benchmarks.tradeoff.configs import CLASSIC, GOAL_HALVING, LABELS, LEARNING_RATE
 from benchmarks.tradeoff.pareto import learned_beats_classic, pareto_front, pareto_points, recommend
 from experiments.configs import get_config
 
@@ -68,7 +68,8 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
       f" {res['bin_width'] * 1e12:.0f} ps, {res['wall_size']:g} m wall; objects at"
       f" {res['depth_range'][0]:g}-{res['depth_range'][1]:g} m.",
       f"- Learned configurations: trained by this benchmark, {res['steps']} AdamW steps of batch 4"
-      " each (the CPU preset's optimiser with the cosine schedule over those steps, seed 0, the"
+      f" each (the CPU preset's optimiser at peak learning rate {LEARNING_RATE:g}, with the cosine schedule"
+      " over those steps, seed 0, the"
       f" main job's batches; the main job trains {_main_job_steps()} steps, so `Ours` here is not"
       " Table 1's unless the budgets match).",
       f"- Time: jitted pipeline `input -> (intensity, depth)`, batch {res['batch']}, per frame ="

@@ -19,6 +19,7 @@ from benchmarks.tradeoff.configs import (
   EXPOSURES,
   LABELS,
   LEARNED,
+  LEARNING_RATE,
   depth_ranges,
   gated_setup,
 )
@@ -41,6 +42,7 @@ def run(args) -> dict:
   t_start = time.perf_counter()
   config = with_defaults(get_config("cpu"))
   config["train"]["steps"] = args.steps
+  config["train"]["optim"]["learning_rate"] = LEARNING_RATE
   data_path = pathlib.Path(config["data"]["path"])
   ensure_dataset(config, data_path)
   test = TestSplit.load(data_path)

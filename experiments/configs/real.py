@@ -2,7 +2,8 @@
 
 For reconstructing measured confocal captures: the shipped ``real`` weights, which
 ``experiments.reconstruct`` and ``experiments.real_undersampling`` load by default,
-were trained with it. It keeps the cpu model and schedule and moves the data to the
+were trained with it. It keeps the cpu model and batch (with the peak learning rate of 1e-3 the
+cpu preset had when these weights were trained) and moves the data to the
 measured regime: a 0.6 m wall scanned at 64 x 64 points (16 x 16 input), 128 bins of
 64 ps (1.23 m of depth), mostly planar, mostly retroreflective targets 0.35-1.1 m
 away, trained until validation stops improving.
@@ -61,6 +62,10 @@ def get_config() -> dict:
   # (docs/decisions.md, "The real preset's geometry").
   config["model"]["volume_time_stride"] = 1
   config["model"]["wavelet_sampling"] = 3.0
+  # The peak learning rate every real weight was trained with (the cpu preset's before its main
+  # job took the short schedule, 3e-3; whether that schedule serves here is
+  # experiments/studies/real_preset's v5-*-short runs).
+  config["train"]["optim"]["learning_rate"] = 1e-3
   # Trained until validation stops improving (the rule of benchmarks.mechanisms; the values
   # are repeated here because experiments may not import benchmarks).
   config["train"]["stop"] = {"rule": "plateau", "every": 50, "patience": 4, "min_delta_db": 0.05,
