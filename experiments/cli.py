@@ -89,7 +89,7 @@ def _schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
   """
   if path == ():
     # "independent" (experiments.train) is replaced whole or edited where present: it needs a path.
-    return {"independent"}, {"data", "model", "train", "usm", "lfe"}
+    return {"independent"}, {"data", "model", "train", "usm", "lfe", "ik"}
   if path == ("data",):
     from nlosjax.data.dataset.spec import DatasetSpec
     # DatasetSpec.from_config: the Setup's keys, the spec's fields (counts as num_sequences)
@@ -118,7 +118,7 @@ def _schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
   if path == ("train", "stop"):
     from nlosjax.train import StopRule
     return _fields(StopRule), set()
-  if path in (("train", "optim"), ("usm", "optim"), ("lfe", "optim")):
+  if path in (("train", "optim"), ("usm", "optim"), ("lfe", "optim"), ("ik", "optim")):
     from nlosjax.train import OptimConfig
     return _fields(OptimConfig), set()
   if path == ("train", "loss"):
@@ -129,11 +129,14 @@ def _schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
   if path == ("usm", "model"):
     from nlosjax.models.usm import USMConfig
     return _fields(USMConfig, ("setup", "stride")), set()
-  if path == ("lfe",):
+  if path in (("lfe",), ("ik",)):
     return set(), {"model", "optim"}                             # nlosjax.train.training_recipe
   if path == ("lfe", "model"):
     from nlosjax.models.lfe import LFEConfig
     return _fields(LFEConfig, ("setup", "stride")), set()
+  if path == ("ik", "model"):
+    from nlosjax.models.ik import IKConfig
+    return _fields(IKConfig, ("setup", "stride")), set()
   if path == ("independent",):
     return {"path", "sequences", "frames", "seed"}, set()        # experiments.train
   return set(), set()

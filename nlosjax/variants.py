@@ -19,7 +19,8 @@ class Variant:
     label: its name in tables and figures (``"Ours"``).
     frames: under-scanned frames it reads per output frame (3: the frame and its two neighbours).
     family: the module that builds it: ``"stmamba"`` (:class:`nlosjax.models.STMambaNet`),
-      ``"usm"`` (:mod:`nlosjax.models.usm`) or ``"lfe"`` (:mod:`nlosjax.models.lfe`).
+      ``"usm"`` (:mod:`nlosjax.models.usm`), ``"lfe"`` (:mod:`nlosjax.models.lfe`) or ``"ik"``
+      (:mod:`nlosjax.models.ik`, an approximation of I-K).
   """
   name: str
   label: str
@@ -34,6 +35,7 @@ VARIANTS = {v.name: v for v in (
     Variant("ours_s", "Ours-S", 1, "stmamba"),   # the paper's single-frame ablation
     Variant("usm", "USM", 1, "usm"),
     Variant("lfe", "LFE", 1, "lfe"),
+    Variant("ik", "I-K", 1, "ik"),
 )}
 
 

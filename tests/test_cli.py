@@ -95,8 +95,8 @@ def test_make_dataset_flags_are_shorthands_of_config_keys(record, tmp_path, caps
     (["--config.data.renderr=lct"],
      r"--config\.data\.renderr: section data has no key 'renderr' \(did you mean 'renderer'\?\); "
      r"known: ambient, .*grid, .*renderer, retroreflective, scene"),
-    (["--config.nosuch.x=1"], r"no section 'nosuch'; known: data, independent, lfe, model, train, usm"),
-    (["--config.nosuch=1"], r"no section 'nosuch'; known: data, independent, lfe, model, train, usm"),
+    (["--config.nosuch.x=1"], r"no section 'nosuch'; known: data, ik, independent, lfe, model, train, usm"),
+    (["--config.nosuch=1"], r"no section 'nosuch'; known: data, ik, independent, lfe, model, train, usm"),
     (["--config.train.stpes=5"], r"section train has no key 'stpes' \(did you mean 'steps'\?\); known: .*data_workers"),
     (["--config.model.widht=5"], r"section model has no key 'widht' \(did you mean 'width'\?\)"),
     (["--config.data.scene.colour=1"], r"section data.scene has no key 'colour'; known: .*max_tilt_deg"),

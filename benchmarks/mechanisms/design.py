@@ -19,14 +19,15 @@ ROWS = {
     "no_pf": ("no_pf", "ours", "Ours without L_pf"),
     "usm": ("full", "usm", "USM"),
     "lfe": ("full", "lfe", "LFE"),
+    "ik": ("full", "ik", "I-K (approximation)"),
 }
 MAIN_ROWS = ("full", "ours_s", "no_ssm")
 EXTRA_ROWS = ("bidirectional", "no_pf")
-#: Rows beside the study for Table 1 at the plateau (``--rows usm lfe``): the learned baselines USM
-#: and LFE on the same data, under the same stopping rule and recipe as Ours (``usm.recipe =
-#: "ours"``; LFE always trains with Ours' recipe); the report pairs each with Ours and Ours-S
-#: seed by seed.
-TABLE1_ROWS = ("usm", "lfe")
+#: Rows beside the study for Table 1 at the plateau (``--rows usm lfe ik``): the learned baselines
+#: USM, LFE and I-K (:mod:`nlosjax.models.ik`, an approximation from its public summary) on the
+#: same data, under the same stopping rule and recipe as Ours (``usm.recipe = "ours"``; LFE and
+#: I-K always train with Ours' recipe); the report pairs each with Ours and Ours-S seed by seed.
+TABLE1_ROWS = ("usm", "lfe", "ik")
 #: Photon budget -> divisor of the preset's ``data.photons`` and ``data.ambient``.
 BUDGETS = {"full": 1, "tenth": 10}
 #: Loss weights per budget over the config's ``train.loss``, chosen on validation. At a tenth
@@ -51,7 +52,7 @@ TINY_DESIGN = {"budgets": ("full",), "rows": ("full", "no_ssm"), "seeds": (0,)}
 PROBE = ("full", 0)
 #: Paired differences of the report: (a, b) -> a - b.
 PAIRS = (("full", "no_ssm"), ("full", "ours_s"), ("full", "bidirectional"), ("full", "no_pf"),
-         ("full", "usm"), ("ours_s", "usm"), ("full", "lfe"), ("ours_s", "lfe"))
+         ("full", "usm"), ("ours_s", "usm"), ("full", "lfe"), ("ours_s", "lfe"), ("full", "ik"), ("ours_s", "ik"))
 #: Report columns: metric -> (header, digits).
 COLUMNS = {"psnr": ("PSNR (dB) ↑", 2), "ssim": ("SSIM ↑", 3), "rmse_object": ("object depth RMSE (m) ↓", 3),
            "recall": ("object recall ↑", 3), "temporal_psnr": ("temporal PSNR (dB) ↑", 2)}
@@ -129,7 +130,7 @@ def essentials(cfg: dict) -> dict:
   out = {"data": {k: cfg["data"][k] for k in data_keys if k in cfg["data"]},
          "model": dict(cfg.get("model", {})),
          "train": {k: tr.get(k) for k in ("seed", "batch_size", "eval_batch_size", "optim", "loss", "stop")}}
-  for baseline in ("usm", "lfe"):             # a learned baseline's widths and recipe
+  for baseline in ("usm", "lfe", "ik"):       # a learned baseline's widths and recipe
     if baseline in tuple(tr.get("variants", ())):
       out[baseline] = dict(cfg.get(baseline, {}))
   return out

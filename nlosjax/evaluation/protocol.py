@@ -266,9 +266,9 @@ def tabulate(evaluation: dict, *, best_classic_method: str | None = None, n_boot
   kw = {} if n_boot is None else {"n_boot": n_boot}
   per_frame, seq = evaluation["scores"], evaluation["sequence"]
   table = {m: scores.summarize_scores(s, seq, **kw) for m, s in per_frame.items()}
-  pairs = [("ours", "ours_s"), ("ours", "usm"), ("ours_s", "usm"), ("ours", "lfe")]
+  pairs = [("ours", "ours_s"), ("ours", "usm"), ("ours_s", "usm"), ("ours", "lfe"), ("ours", "ik")]
   if best_classic_method is not None:
-    pairs += [(v, best_classic_method) for v in ("ours", "ours_s", "usm", "lfe")]
+    pairs += [(v, best_classic_method) for v in ("ours", "ours_s", "usm", "lfe", "ik")]
   comparisons = [{"a": a, "b": b, "label": f"{report.label(a)} - {report.label(b)}",
                   "diff": scores.compare_scores(per_frame[a], per_frame[b], seq, **kw)}
                  for a, b in pairs if a in per_frame and b in per_frame]

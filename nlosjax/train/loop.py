@@ -68,7 +68,8 @@ def model_config_for(config: dict, setup, variant: str):
   ``"ours"`` / ``"ours_s"``: a :class:`~nlosjax.models.network.ModelConfig` from
   ``config["model"]``; ``"usm"``: a :class:`~nlosjax.models.usm.USMConfig`
   from ``config["usm"]["model"]`` (USM's published widths where absent); ``"lfe"``:
-  a :class:`~nlosjax.models.lfe.LFEConfig` from ``config["lfe"]["model"]``. The
+  a :class:`~nlosjax.models.lfe.LFEConfig` from ``config["lfe"]["model"]``; ``"ik"``: a
+  :class:`~nlosjax.models.ik.IKConfig` from ``config["ik"]["model"]``. The
   baselines' phasor-field loss wavelet (``wavelet_cycles``, ``wavelet_sampling``) is Ours'
   from ``config["model"]`` unless their own ``model`` section sets it, so all
   train with the same loss (and a preset that needs a longer wavelet for its
@@ -77,14 +78,15 @@ def model_config_for(config: dict, setup, variant: str):
   from nlosjax.models.network import ModelConfig
   if variant not in VARIANT_FRAMES:
     raise ValueError(f"variant must be one of {tuple(VARIANT_FRAMES)}, got {variant!r}")
-  if variant in ("usm", "lfe"):
+  if variant in ("usm", "lfe", "ik"):
+    from nlosjax.models.ik import IKConfig
     from nlosjax.models.lfe import LFEConfig
     from nlosjax.models.usm import USMConfig
     baseline = dict(config.get(variant, {}).get("model", {}))
     for key in ("wavelet_cycles", "wavelet_sampling"):
       if key in config.get("model", {}):
         baseline.setdefault(key, config["model"][key])
-    cls = USMConfig if variant == "usm" else LFEConfig
+    cls = {"usm": USMConfig, "lfe": LFEConfig, "ik": IKConfig}[variant]
     return cls(setup=setup, stride=int(config["data"]["input_stride"]), **baseline)
   overrides = dict(config.get("model", {}))
   overrides["frames"] = VARIANT_FRAMES[variant]
@@ -397,8 +399,8 @@ def training_recipe(config: dict, variant: str) -> tuple[OptimConfig, losses.Los
       from nlosjax.models.usm import PUBLISHED_LOSS, PUBLISHED_OPTIM
       return OptimConfig(**PUBLISHED_OPTIM), losses.LossWeights(**PUBLISHED_LOSS)
     optim.update(usm.get("optim", {}))
-  if variant == "lfe":     # Ours' recipe; LFE's "transient" is its input: those terms are constant
-    optim.update(config.get("lfe", {}).get("optim", {}))
+  if variant in ("lfe", "ik"):   # Ours' recipe; their "transient" is their input: those terms are constant
+    optim.update(config.get(variant, {}).get("optim", {}))
   return OptimConfig(**optim), losses.LossWeights(**tr.get("loss", {}))
 
 
