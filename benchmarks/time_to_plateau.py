@@ -19,6 +19,11 @@ on any machine, and their ratio is the time ratio. Each record's wall time is sh
 machine, not compared across machines. Accuracy: each seed's test scores paired with the same
 seed's study run on the same frames, ``short - study``, with the bootstrap interval over
 sequences and seeds (:func:`nlosjax.evaluation.scores.compare_scores`).
+
+The ``real`` preset: the long-run study :mod:`experiments.studies.real_preset` trains the same
+short schedule, unchanged, on its v5 candidate beside the candidate's own runs at 1e-3 (its schedule
+probes, ``Run.schedule_probe``); the report's last section reads their committed states (validation
+only: those runs are not scored on a test split, one seed each).
 """
 
 from __future__ import annotations
@@ -69,8 +74,8 @@ def _mean(r: dict, metric: str) -> float:
   return float(np.nanmean(_array(r["test"]["scores"][metric])))
 
 
-def report(study: dict, short: dict, command: str) -> str:
-  """The markdown report of ``(row, seed) -> record`` of both sides."""
+def report(study: dict, short: dict, command: str, real: list | None = None) -> str:
+  """The markdown report of ``(row, seed) -> record`` of both sides; ``real``: :func:`real_preset_pairs`."""
   from experiments import provenance
   from nlosjax.evaluation import scores
   from nlosjax.stats import format_interval as cell
@@ -123,7 +128,75 @@ def report(study: dict, short: dict, command: str) -> str:
                     + ("not called (the interval holds 0)." if lo <= 0 <= hi else
                        ("higher (called)." if lo > 0 else "lower (called).")))
   lines += ["", *verdicts]
+  lines += real_section(real or [])
   return "\n".join(lines) + "\n"
+
+
+def real_preset_pairs() -> list[tuple[dict, dict]]:
+  """``(study, short)`` curves of the ``real`` preset: each schedule probe of the long-run study
+  whose candidate, variant and seed also have a run at the candidate's own schedule, both finished.
+
+  Each curve: ``{"run", "variant", "lr", "max_steps", "steps", "best_step", "best", "curve", "rule"}``
+  (``curve``: ``[(step, validation PSNR in dB)]``, read from the committed state)."""
+  import json
+
+  from experiments.studies.real_preset import study as real_study
+
+  def curve(run):
+    path = real_study.state_folder(run) / run.variant / "validation_curve.json"
+    if not path.exists():
+      return None
+    c = json.loads(path.read_text())
+    if c.get("stop_reason") is None:
+      return None
+    points = [(int(p["step"]), float(p["val_psnr"])) for p in c["curve"]]
+    config = real_study.run_config(run)
+    return {"run": run.name, "variant": run.variant, "lr": config["train"]["optim"]["learning_rate"],
+            "max_steps": config["train"]["stop"]["max_steps"], "steps": points[-1][0],
+            "best_step": int(c["best_step"]), "best": float(c["best_val_psnr"]), "curve": points,
+            "rule": dict(config["train"]["stop"])}
+
+  pairs = []
+  for probe in (r for r in real_study.RUNS if r.schedule_probe):
+    base = next((r for r in real_study.RUNS if not r.schedule_probe and (r.config, r.variant, r.seed)
+                 == (probe.config, probe.variant, probe.seed)), None)
+    a, b = (curve(base) if base else None), curve(probe)
+    if a and b:
+      pairs.append((a, b))
+  return pairs
+
+
+def real_section(pairs: list[tuple[dict, dict]]) -> list[str]:
+  """The report's lines on the ``real`` preset's pairs (:func:`real_preset_pairs`)."""
+  if not pairs:
+    return []
+  lines = ["", "## The `real` preset (v5 candidate, `experiments.studies.real_preset`)", "",
+           "The same short schedule on the `real` preset's v5 candidate (`experiments/configs/real_v5.py`) beside "
+           "that candidate's runs at its own schedule, one seed each, from the committed states under "
+           "`experiments/studies/real_preset/state/`. Validation PSNR only (these runs are not scored on a test "
+           "split); one seed, so no interval: a difference here is not called.", "",
+           "| variant | schedule: study → short | steps: study → short (ratio) | best step | "
+           "best validation PSNR (dB): study → short | validation PSNR at step 50 (dB): study → short |",
+           "|---|---|---|---|---|---|"]
+  notes = []
+  for a, b in pairs:
+    at50 = [dict(x["curve"]).get(50) for x in (a, b)]
+    lines.append(f"| {a['variant']} | {a['lr']:g}/{a['max_steps']} → {b['lr']:g}/{b['max_steps']} "
+                 f"| {a['steps']} → {b['steps']} ({b['steps'] / a['steps']:.2f}) | {a['best_step']} → {b['best_step']} "
+                 f"| {a['best']:.2f} → {b['best']:.2f} | {at50[0]:.2f} → {at50[1]:.2f} |")
+    notes.append(f"{a['variant']} {at50[0] - a['best']:+.2f} dB")
+  rule = pairs[0][0]["rule"]
+  floor = rule["every"] * (rule["patience"] + 1)
+  same = all(a["steps"] == b["steps"] and a["best_step"] == b["best_step"] for a, b in pairs)
+  ratio = sum(b["steps"] for _, b in pairs) / sum(a["steps"] for a, _ in pairs)
+  first = ("At this preset both schedules peak at the same step and the plateau rule stops both at the same "
+           "step: the short schedule takes no fewer steps." if same else
+           f"At this preset the short schedule takes {ratio:.2f}x the steps (sum over the variants).")
+  lines += ["", f"{first} Learning here is nearly done by the first "
+            f"validation (step 50, against each study run's best: {', '.join(notes)}), so the time to the "
+            f"plateau is set by the rule itself (it stops no earlier than {floor} steps: one validation per "
+            f"{rule['every']} steps and {rule['patience']} without gain), not by the schedule."]
+  return lines
 
 
 def load_short(results: pathlib.Path) -> dict:
@@ -162,7 +235,7 @@ def main(argv=None) -> int:
   if not short:
     raise SystemExit(f"{NAME}: no short-schedule record under {results / NAME}")
   command = "python -m benchmarks.time_to_plateau " + " ".join(sys.argv[1:] if argv is None else argv)
-  text = report(study, short, command.strip())
+  text = report(study, short, command.strip(), real_preset_pairs())
   (results / f"{NAME}.md").write_text(text)
   print(text)
   return 0
