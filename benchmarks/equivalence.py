@@ -19,6 +19,11 @@ ones measured, with their commit; the index names this check beside them. A chan
 moves a probe beyond the tolerance carries nothing: those files are regenerated, or a
 study's seed is retrained at the new code and shown to land inside its interval.
 
+Blind spot: the probes shrink each preset to tiny sizes and fix its training settings, so
+a change to a preset's own values (a learning rate, a step count) moves no probe; whoever
+changes a preset regenerates the files that run it rather than relying on this check
+(``main_job.md`` after the ``cpu`` preset's schedule changed in 7e438ba).
+
 Records against several bases may stand side by side (``equivalence.md`` for the first
 base named, ``equivalence_<COMMIT>.md`` for the others; :func:`records`): a file is carried
 when one of them carries it, so files current at different commits can all be carried.
