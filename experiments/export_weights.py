@@ -3,6 +3,7 @@
     python -m experiments.export_weights runs/mechanisms/full/full-seed0 --name cpu --variant ours
     python -m experiments.export_weights runs/mechanisms/full/ours_s-seed0 --name cpu --variant ours_s
     python -m experiments.export_weights runs/default --name cpu --variant ours --command "python -m experiments.train"
+    python -m experiments.export_weights benchmarks/mechanisms/state/full/lfe-seed0 --name cpu --variant lfe
 
 RUN is one of
 
@@ -14,6 +15,18 @@ RUN is one of
   its record ``RESULTS/mechanisms/<budget>/<row>-seed<k>.json`` (``--results``,
   default ``benchmarks/results``); the default command is ``python -m
   benchmarks.mechanisms --budgets <budget> --rows <row> --seeds <k>``;
+* a run state committed by a study (``--state``, e.g.
+  ``benchmarks/mechanisms/state/<budget>/<row>-seed<k>``: ``model/best.npz``,
+  ``model/selection.json`` and ``model/run_state.json`` of
+  :mod:`nlosjax.train.run_state`), with its record
+  ``RESULTS/mechanisms/<budget>/<row>-seed<k>.json`` for the machine, the
+  commit and the parts of the config the run's numbers depend on. The config is
+  rebuilt as the study built it: the preset (``--preset``, default ``cpu``, the
+  study's default base) with those parts over it, and the run trains the one
+  variant. The parameters are those of ``best.npz`` (the plateau rule's best
+  state, whose step must be the selected one); the model config rebuilt from the
+  config must be the one the state's signature recorded, and the dataset file
+  must have the content digest the run trained on;
 * a main-job workdir (``python -m experiments.train``: ``config.json`` and
   ``<variant>/checkpoints``, ``<variant>/selection.json``), or one of its
   variant folders. The command, commit and machine come from the workdir's
@@ -53,6 +66,8 @@ import tempfile
 import time
 
 import numpy as np
+
+from nlosjax.variants import VARIANTS
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 TOLERANCE_DB = 1e-3
@@ -123,6 +138,82 @@ def study_run(folder, results) -> dict:
           "command": command, "study": study}
 
 
+def state_run(folder, results, preset: str = "cpu") -> dict:
+  """What a study's committed run state says about its model (module docstring); ValueError naming the file."""
+  from experiments import configs
+  from nlosjax import train
+  from nlosjax.train import read_selection
+  from nlosjax.train.run_state import BEST_FILE, read_meta
+  folder = pathlib.Path(folder)
+  model = folder / "model"
+  budget, name = folder.parent.name, folder.name
+  row, sep, seed = name.rpartition("-seed")
+  record_path = pathlib.Path(results) / "mechanisms" / budget / f"{name}.json"
+  if not sep or not seed.isdigit():
+    raise ValueError(f"{folder}: a committed run state is named <row>-seed<k>")
+  try:
+    record = json.loads(record_path.read_text())
+    parts, variant = record["config"], record["variant"]
+  except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+    raise ValueError(f"{record_path}: not the run's record ({e})") from None
+  # The record keeps the parts of the run's config its numbers depend on; the rest is the preset's.
+  config = train.with_defaults(configs.get_config(preset))
+  for section, values in parts.items():
+    config[section] = {**config.get(section, {}), **values}
+  config["train"]["variants"] = [variant]
+  selection = read_selection(model)
+  meta = read_meta(model)
+  if not selection or "stop_reason" not in selection or meta is None:
+    raise ValueError(f"{model}: selection.json with a stop reason and run_state.json needed: the run has not"
+                     " finished")
+  step = int(selection["step"])
+  if step not in selection["val_psnr"] or meta.get("best_step") != step:
+    raise ValueError(f"{model}: the selected step {step} is not the best state's ({meta.get('best_step')}) or has"
+                     " no validation score")
+  machine = dict(record.get("machine") or {})
+  return {"kind": "committed run state", "source": folder, "config": config, "variant": variant,
+          "params_file": model / BEST_FILE, "signature": meta.get("signature", {}),
+          "data_digest": meta.get("data_digest"), "step": step,
+          "recorded_val_psnr": float(selection["val_psnr"][step]),
+          "steps_taken": int(selection["steps_taken"]), "stop_reason": selection["stop_reason"],
+          "best_step": step, "machine": machine, "machine_source": _shown(record_path),
+          "commit": machine.get("commit", "unknown"), "date": machine.get("date") or meta.get("written"),
+          "command": f"python -m benchmarks.mechanisms --budgets {budget} --rows {row} --seeds {seed}"
+                     f" --state {_shown(folder.parent.parent)}",
+          "study": {"budget": budget, "row": row, "seed": int(seed)}}
+
+
+def state_params(run: dict, mcfg) -> tuple[dict, dict]:
+  """The parameters of a :func:`state_run`'s ``best.npz`` and a :func:`restore_params`-like record.
+
+  Raises ValueError when the file's step is not the selected one or the model config
+  rebuilt from the record is not the one the state's signature recorded.
+  """
+  import re
+
+  from nlosjax import train
+  recorded = run["signature"].get("model")
+  if recorded is not None and json.loads(json.dumps(train.model_record(mcfg))) != recorded:
+    raise ValueError(f"{run['source']}: the model config rebuilt from its record is not the one its run state"
+                     " recorded")
+  params: dict = {}
+  with np.load(run["params_file"], allow_pickle=False) as f:
+    step = int(f["['step']"])
+    for key in f.files:
+      if not key.startswith("['params']"):
+        continue
+      names = re.findall(r"\['([^']*)'\]", key)[1:]
+      if "".join(f"['{n}']" for n in ["params", *names]) != key or not names:
+        raise ValueError(f"{run['params_file']}: unexpected parameter key {key}")
+      node = params
+      for n in names[:-1]:
+        node = node.setdefault(n, {})
+      node[names[-1]] = np.asarray(f[key])
+  if step != run["step"]:
+    raise ValueError(f"{run['params_file']}: holds step {step}, the selected step is {run['step']}")
+  return params, {"step": step, "checkpoint": run["params_file"], "added_fields": []}
+
+
 def main_job_run(path, variant: str | None) -> dict:
   """What a main-job workdir (or a variant's folder) says about one variant's model."""
   from nlosjax.inference import find_checkpoints
@@ -177,15 +268,15 @@ def _invocations(workdir: pathlib.Path) -> dict:
           "command": first.get("command", "python -m experiments.train")}
 
 
-def find_run(path, variant: str, results) -> dict:
+def find_run(path, variant: str, results, preset: str = "cpu") -> dict:
   """:func:`study_run` where ``path`` holds ``run.json``, else :func:`main_job_run`; checks ``variant``."""
   path = pathlib.Path(path)
   if not path.is_dir():
     raise ValueError(f"{path}: no such run folder")
-  if (path / "run.json").is_file():
-    run = study_run(path, results)
+  if (path / "run.json").is_file() or (path / "model" / "run_state.json").is_file():
+    run = study_run(path, results) if (path / "run.json").is_file() else state_run(path, results, preset)
     if run["variant"] != variant:
-      raise ValueError(f"{path / 'run.json'}: the run trained variant {run['variant']!r}, not --variant {variant!r}")
+      raise ValueError(f"{path}: the run trained variant {run['variant']!r}, not --variant {variant!r}")
     return run
   return main_job_run(path, variant)
 
@@ -266,7 +357,8 @@ def dataset_facts(data_path, config: dict) -> dict:
 
 def export(run_path, name: str, variant: str, *, command: str | None = None, commit: str | None = None,
            results=REPO / "benchmarks" / "results", data=None, root=None, overwrite: bool = False,
-           tolerance_db: float = TOLERANCE_DB, export_command: str = "", log=print) -> dict:
+           tolerance_db: float = TOLERANCE_DB, export_command: str = "", preset: str = "cpu",
+           log=print) -> dict:
   """Export one finished run (module docstring); returns the provenance written.
 
   Raises:
@@ -282,17 +374,26 @@ def export(run_path, name: str, variant: str, *, command: str | None = None, com
   folder = pretrained.weights_folder(name, variant, root)
   if folder.exists() and not overwrite:
     raise ValueError(f"{folder}: exists; pass --overwrite to replace it")
-  run = find_run(run_path, variant, results)
+  run = find_run(run_path, variant, results, preset)
   config = run["config"]
   mcfg = train.model_config_for(config, inference.training_setup(config), variant)
-  params, restored = inference.restore_params(run["checkpoints"], mcfg, step=run["step"],
-                                              config_file=run["source"])
+  if "params_file" in run:
+    params, restored = state_params(run, mcfg)
+  else:
+    params, restored = inference.restore_params(run["checkpoints"], mcfg, step=run["step"],
+                                                config_file=run["source"])
   params = jax.tree.map(np.asarray, params)
   log(f"restored step {restored['step']} from {restored['checkpoint']} ({time.perf_counter() - t0:.1f} s)"
       + (f"; its recorded model config predates the fields {restored['added_fields']} (at their defaults)"
          if restored["added_fields"] else ""))
   data_path = pathlib.Path(data if data is not None else config["data"]["path"])
   dataset = dataset_facts(data_path, config)
+  if run.get("data_digest"):
+    from nlosjax.data.dataset import dataset_identity
+    digest = dataset_identity(data_path)[0]
+    if digest != run["data_digest"]:
+      raise ValueError(f"{data_path}: content digest {digest}, the run trained on {run['data_digest']}:"
+                       " not the run's data")
   t1 = time.perf_counter()
   val = validation_scores(config, data_path, mcfg, params)
   log(f"validation: {val['psnr_db']:.6f} dB over {val['n_frames']} frames of {data_path}"
@@ -358,9 +459,10 @@ def export(run_path, name: str, variant: str, *, command: str | None = None, com
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(prog="python -m experiments.export_weights", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("run", help="a mechanism-study run folder or a main-job workdir (or variant folder)")
+  p.add_argument("run", help="a mechanism-study run folder, a study's committed run state, or a main-job"
+                             " workdir (or variant folder)")
   p.add_argument("--name", required=True, help="weights name, e.g. cpu (folder nlosjax/weights/<name>-<variant>)")
-  p.add_argument("--variant", required=True, choices=("ours", "ours_s", "usm"))
+  p.add_argument("--variant", required=True, choices=tuple(VARIANTS))
   p.add_argument("--command", default=None, help="the training command to record (default: see above)")
   p.add_argument("--commit", default=None, help="the training commit to record (default: the run's record)")
   p.add_argument("--results", default=str(REPO / "benchmarks" / "results"),
@@ -370,12 +472,14 @@ def main(argv=None) -> int:
   p.add_argument("--tolerance-db", type=float, default=TOLERANCE_DB,
                  help="largest accepted |recomputed - recorded| validation PSNR, dB (default 1e-3)")
   p.add_argument("--overwrite", action="store_true", help="replace existing weights of that name")
+  p.add_argument("--preset", default="cpu",
+                 help="a committed run state: the preset its study ran on (default cpu)")
   args = p.parse_args(argv)
   argv = sys.argv[1:] if argv is None else list(argv)
   try:
     export(args.run, args.name, args.variant, command=args.command, commit=args.commit,
            results=args.results, data=args.data, root=args.root, overwrite=args.overwrite,
-           tolerance_db=args.tolerance_db,
+           tolerance_db=args.tolerance_db, preset=args.preset,
            export_command="python -m experiments.export_weights " + " ".join(argv))
   except ValueError as e:
     print(f"error: {e}", file=sys.stderr)

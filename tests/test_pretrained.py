@@ -322,3 +322,54 @@ def test_main_job_workdir_records_where_it_trained(tmp_path, monkeypatch):
   (tmp_path / train.INVOCATIONS).write_text("{not json\n")
   with pytest.raises(ValueError, match="invocations.jsonl"):
     export_weights._invocations(tmp_path)
+
+
+def _state_copy(tmp_path, row="lfe"):
+  """A copy of the committed ``full/<row>-seed0`` run state and its record, as ``(state, results)``."""
+  state = tmp_path / "state" / "full" / f"{row}-seed0"
+  results = tmp_path / "results"
+  shutil.copytree(ROOT / "benchmarks" / "mechanisms" / "state" / "full" / f"{row}-seed0", state)
+  (results / "mechanisms" / "full").mkdir(parents=True)
+  shutil.copy(ROOT / "benchmarks" / "results" / "mechanisms" / "full" / f"{row}-seed0.json",
+              results / "mechanisms" / "full")
+  return state, results
+
+
+def test_export_reads_a_committed_run_state(tmp_path):
+  """A study's committed state: the selected step's parameters from best.npz, the record's config.
+
+  Checked against what training recorded independently of the exporter: the parameter-tree
+  fingerprint in the state's signature, the record's best step and stop reason; a state whose
+  selection or record disagrees with it is refused by name.
+  """
+  from experiments import export_weights
+  from nlosjax import train
+  state, results = _state_copy(tmp_path)
+  record = json.loads((results / "mechanisms" / "full" / "lfe-seed0.json").read_text())
+  run = export_weights.find_run(state, "lfe", results)
+  assert run["kind"] == "committed run state" and run["variant"] == "lfe"
+  assert run["step"] == record["best_step"] and run["stop_reason"] == record["stop_reason"]
+  assert run["recorded_val_psnr"] == pytest.approx(record["best_val_psnr"], abs=1e-9)
+  assert run["command"].startswith("python -m benchmarks.mechanisms --budgets full --rows lfe --seeds 0")
+  mcfg = train.model_config_for(run["config"], inference.training_setup(run["config"]), "lfe")
+  params, restored = export_weights.state_params(run, mcfg)
+  assert restored["step"] == run["step"]
+  assert train.param_fingerprint(params) == run["signature"]["params"]
+  shapes = jax.eval_shape(mcfg.module().init, jax.random.key(0),
+                          jax.ShapeDtypeStruct(mcfg.input_shape(), np.float32))["params"]
+  jax.tree.map(lambda a, s: np.testing.assert_equal(a.shape, s.shape), params, shapes)
+  with pytest.raises(ValueError, match="not --variant 'ik'"):
+    export_weights.find_run(state, "ik", results)
+  # A selection naming another step than the best state's is refused.
+  sel = json.loads((state / "model" / "selection.json").read_text())
+  (state / "model" / "selection.json").write_text(json.dumps({**sel, "step": sel["step"] - 50}))
+  with pytest.raises(ValueError, match="best state"):
+    export_weights.find_run(state, "lfe", results)
+  (state / "model" / "selection.json").write_text(json.dumps(sel))
+  # A record whose config builds another model than the one trained is refused.
+  record["config"].setdefault("lfe", {}).setdefault("model", {})["extract_width"] = 5
+  (results / "mechanisms" / "full" / "lfe-seed0.json").write_text(json.dumps(record))
+  run = export_weights.find_run(state, "lfe", results)
+  mcfg = train.model_config_for(run["config"], inference.training_setup(run["config"]), "lfe")
+  with pytest.raises(ValueError, match="rebuilt"):
+    export_weights.state_params(run, mcfg)
