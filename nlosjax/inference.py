@@ -246,7 +246,7 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
     name: the weights' name, e.g. ``"cpu"`` (trained on the cpu preset's data:
       32 x 32 scans of a 2 m wall, 128 bins of 132 ps, input stride 4);
       :func:`pretrained_names` lists them.
-    variant: ``"ours"`` (three frames), ``"ours_s"`` (one frame) or ``"usm"``.
+    variant: ``"ours"`` (three frames), ``"ours_s"`` (one frame), ``"usm"``, ``"lfe"`` or ``"ik"``.
     setup: move the model to this full-grid Setup
       (:meth:`~nlosjax.models.network.ModelConfig.with_setup`: the same
       parameters, the physics layer rebuilt); default: the training Setup. Its
@@ -414,6 +414,29 @@ def default_bin_factor(trained_bin_width: float, capture_bin_width: float) -> in
   return max(1, int(round(trained_bin_width / capture_bin_width)))
 
 
+def setup_dependent_params(model_config) -> list[str]:
+  """The parameters whose shapes depend on the model's Setup: ``[]`` when the model can move to another.
+
+  Compares the parameter tree ``model_config`` initialises (``jax.eval_shape``: traced, not
+  compiled) with the one at twice its grid, wall and bins (the same spacing and bin width, so
+  every layer that checks its sampling still holds). Every network here is empty but I-K
+  (:mod:`nlosjax.models.ik`), whose learned kernel is a Fourier volume of its coarse grid and
+  bins: it runs on its training Setup only.
+
+  Returns:
+    ``"path: shape -> shape"`` for each parameter that changes, sorted.
+  """
+  s = model_config.setup
+  other = Setup(wall_size=2 * s.wall_size, grid=(2 * s.grid[0], 2 * s.grid[1]), bin_width=s.bin_width,
+                num_bins=2 * s.num_bins)
+  here = _expected_tree(model_config)
+  there = _expected_tree(dataclasses.replace(model_config, setup=other))
+  flat = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(here)[0]}
+  moved = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(there)[0]}
+  return sorted(f"{k}: {flat.get(k)} -> {moved.get(k)}" for k in set(flat) | set(moved)
+                if flat.get(k) != moved.get(k))
+
+
 def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = None) -> CaptureAdaptation:
   """Move a trained model to a capture's geometry, keeping what it learned in bin units.
 
@@ -437,9 +460,17 @@ def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = N
       (or :class:`~nlosjax.models.usm.USMConfig`).
     capture: the capture's full-grid Setup (its depth range is kept).
     bin_factor: override the time binning.
+  Raises:
+    ValueError: a bad ``bin_factor``, too few bins, or a model whose parameters depend on
+      its Setup (:func:`setup_dependent_params`: I-K), which cannot move.
   """
   from nlosjax.physics.wavelet import illumination_wavelet
   trained = model_config.setup
+  tied = setup_dependent_params(model_config)
+  if tied:
+    raise ValueError(f"{type(model_config).__name__}: its parameters depend on its training Setup"
+                     f" ({'; '.join(tied[:2])}), so it runs on that Setup only and cannot move to a"
+                     " capture")
   if bin_factor is None:
     bin_factor = default_bin_factor(trained.bin_width, capture.bin_width)
   if not isinstance(bin_factor, int) or bin_factor < 1:
