@@ -1,7 +1,7 @@
 """The on-disk format of trained weights shipped inside the package (``nlosjax/weights/``).
 
-One folder per model, ``<root>/<name>-<variant>/`` (``variant`` one of
-``"ours"``, ``"ours_s"``, ``"usm"``; the name has no path separator), holding:
+One folder per model, ``<root>/<name>-<variant>/`` (``variant``
+a name of :data:`nlosjax.variants.VARIANTS`; the name has no path separator), holding:
 
 * ``params.npz`` -- the model's parameters only (no optimiser state), one
   float32 array per leaf, keyed by the Flax parameter path joined by ``"/"``

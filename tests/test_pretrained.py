@@ -27,7 +27,8 @@ from nlosjax.evaluation import protocol
 from tests.xla_options import xla_optimizations
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-SHIPPED = (("cpu", "ours"), ("cpu", "ours_s"), ("real", "ours"), ("real", "ours_s"))
+SHIPPED = (("cpu", "ours"), ("cpu", "ours_s"), ("cpu", "lfe"), ("cpu", "ik"), ("real", "ours"),
+           ("real", "ours_s"))
 #: Tolerance of the reproduced per-sequence validation PSNR (dB). On the machine that
 #: exported the weights the regenerated sequence is bit-identical to the stored one and
 #: the PSNR equal to the last digit. What another CPU may change is float32 rounding in
@@ -256,7 +257,7 @@ def test_real_undersampling_loads_every_shipped_variant_of_a_name():
   with pytest.raises(ValueError, match=r"cpu \(ours\)"):
     R.load_models(pretrained="nope", log=lambda s: None)
   trained = R.load_models(pretrained="cpu", log=lambda s: None)
-  assert set(trained) == {"ours", "ours_s"}
+  assert set(trained) == {"ours", "ours_s"}     # the measured protocol's networks (its VARIANTS)
   assert trained["ours"][0].frames == 3 and trained["ours_s"][0].frames == 1
   # Without a name, the default: every variant shipped under "real".
   trained = R.load_models(log=lambda s: None)
@@ -373,3 +374,23 @@ def test_export_reads_a_committed_run_state(tmp_path):
   mcfg = train.model_config_for(run["config"], inference.training_setup(run["config"]), "lfe")
   with pytest.raises(ValueError, match="rebuilt"):
     export_weights.state_params(run, mcfg)
+
+
+def test_only_i_k_is_tied_to_its_training_setup():
+  """Every shipped network moves to another Setup but I-K, whose kernel volume is its grid's.
+
+  Independent of the check's own tracing: the I-K module's documented kernel shape
+  (``IKConfig.kernel_shape``) at the training Setup and at the capture's.
+  """
+  from nlosjax.physics.setup import Setup
+  capture = Setup(wall_size=0.6, grid=(64, 64), bin_width=64e-12, num_bins=256)
+  for name, variant in inference.pretrained_names():
+    mcfg, _, _ = inference.load_pretrained(name, variant)
+    tied = inference.setup_dependent_params(mcfg)
+    if variant != "ik":
+      assert tied == [], (name, variant, tied)
+      continue
+    assert tied and all("transform" in t and "kernel_" in t for t in tied), tied
+    assert str(tuple(mcfg.kernel_shape())) in tied[0]
+    with pytest.raises(ValueError, match="runs on that Setup only"):
+      inference.adapt_to_capture(mcfg, capture)
