@@ -108,8 +108,10 @@ def probe_train_and_evaluate(cfg: dict, path, tmp: pathlib.Path, out: dict) -> N
 
 def probe_pretrained(out: dict) -> None:
   from nlosjax import inference
-  rng = np.random.default_rng(20261201)
   for name, variant in inference.pretrained_names():
+    # Each network's input from its own name, so the inputs do not depend on which others are
+    # shipped (a tree that does not know a later variant lists fewer networks).
+    rng = np.random.default_rng([20261201, *f"{name}-{variant}".encode()])
     mcfg, params, _ = inference.load_pretrained(name, variant)
     s = mcfg.setup
     h, w = (-(-n // mcfg.stride) for n in s.grid)                           # the under-scanned grid
