@@ -186,29 +186,30 @@ def state_run(folder, results, preset: str = "cpu") -> dict:
 def state_params(run: dict, mcfg) -> tuple[dict, dict]:
   """The parameters of a :func:`state_run`'s ``best.npz`` and a :func:`restore_params`-like record.
 
-  Raises ValueError when the file's step is not the selected one or the model config
-  rebuilt from the record is not the one the state's signature recorded.
+  Raises ValueError when the file's step is not the selected one, the model config
+  rebuilt from the record is not the one the state's signature recorded, or the file's
+  parameters are not the tree that config initialises (a leaf missing, extra or of
+  another shape or dtype: :func:`nlosjax.train.run_state.arrays_tree`).
   """
-  import re
+  import jax
 
   from nlosjax import train
+  from nlosjax.train.run_state import arrays_tree
   recorded = run["signature"].get("model")
   if recorded is not None and json.loads(json.dumps(train.model_record(mcfg))) != recorded:
     raise ValueError(f"{run['source']}: the model config rebuilt from its record is not the one its run state"
                      " recorded")
-  params: dict = {}
+  # The tree the model initialises, as the template run_state reads its exports against.
+  shapes = jax.eval_shape(mcfg.module().init, jax.random.key(0),
+                          jax.ShapeDtypeStruct(mcfg.input_shape(), np.float32))["params"]
+  template = {"params": jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes)}
   with np.load(run["params_file"], allow_pickle=False) as f:
     step = int(f["['step']"])
-    for key in f.files:
-      if not key.startswith("['params']"):
-        continue
-      names = re.findall(r"\['([^']*)'\]", key)[1:]
-      if "".join(f"['{n}']" for n in ["params", *names]) != key or not names:
-        raise ValueError(f"{run['params_file']}: unexpected parameter key {key}")
-      node = params
-      for n in names[:-1]:
-        node = node.setdefault(n, {})
-      node[names[-1]] = np.asarray(f[key])
+    arrays = {k: f[k] for k in f.files if k.startswith("['params']")}
+  try:
+    params = arrays_tree(arrays, template)["params"]
+  except ValueError as e:
+    raise ValueError(f"{run['params_file']}: {e}") from None
   if step != run["step"]:
     raise ValueError(f"{run['params_file']}: holds step {step}, the selected step is {run['step']}")
   return params, {"step": step, "checkpoint": run["params_file"], "added_fields": []}
@@ -269,16 +270,20 @@ def _invocations(workdir: pathlib.Path) -> dict:
 
 
 def find_run(path, variant: str, results, preset: str = "cpu") -> dict:
-  """:func:`study_run` where ``path`` holds ``run.json``, else :func:`main_job_run`; checks ``variant``."""
+  """:func:`study_run` where ``path`` holds ``run.json``, :func:`state_run` where it holds
+  ``model/run_state.json``, else :func:`main_job_run`; checks ``variant``."""
   path = pathlib.Path(path)
   if not path.is_dir():
     raise ValueError(f"{path}: no such run folder")
-  if (path / "run.json").is_file() or (path / "model" / "run_state.json").is_file():
-    run = study_run(path, results) if (path / "run.json").is_file() else state_run(path, results, preset)
-    if run["variant"] != variant:
-      raise ValueError(f"{path}: the run trained variant {run['variant']!r}, not --variant {variant!r}")
-    return run
-  return main_job_run(path, variant)
+  if (path / "run.json").is_file():
+    run = study_run(path, results)
+  elif (path / "model" / "run_state.json").is_file():
+    run = state_run(path, results, preset)
+  else:
+    return main_job_run(path, variant)
+  if run["variant"] != variant:
+    raise ValueError(f"{path}: the run trained variant {run['variant']!r}, not --variant {variant!r}")
+  return run
 
 
 class _Progress:
