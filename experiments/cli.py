@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import dataclasses
 import difflib
 import importlib.util
 import pathlib
@@ -78,68 +77,19 @@ def override_key(arg: str) -> tuple[tuple[str, ...], str]:
   return tuple(key.split(".")), value
 
 
-def _fields(cls, drop=()) -> set[str]:
-  return {f.name for f in dataclasses.fields(cls)} - set(drop)
-
-
 def _schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
-  """``(keys, sub-sections)`` that the code consuming section ``path`` reads (empty where none is known).
+  """``(keys, sub-sections)`` of section ``path``: the typed config's schema
+  (:func:`nlosjax.train.config.section_schema`), plus the application's ``independent`` section.
 
   Imported lazily: only an override of a key missing from the config pays for it.
   """
+  from nlosjax.train.config import section_schema
   if path == ():
     # "independent" (experiments.train) is replaced whole or edited where present: it needs a path.
-    return {"independent"}, {"data", "model", "train", "usm", "lfe", "ik"}
-  if path == ("data",):
-    from nlosjax.data.dataset.spec import DatasetSpec
-    # DatasetSpec.from_config: the Setup's keys, the spec's fields (counts as num_sequences)
-    # and the load-time keys; the loaders read "loader".
-    keys = {"wall_size", "grid", "bin_width", "num_bins", "input_stride", "input_offset", "path"}
-    return keys | _fields(DatasetSpec, ("setup", "num_train", "num_test", "num_val", "scene", "physics")), \
-        {"scene", "loader", "num_sequences", "physics"}
-  if path == ("data", "physics"):
-    from nlosjax.data.dataset.physics import PhysicsMix
-    return _fields(PhysicsMix), set()
-  if path == ("data", "scene"):
-    from nlosjax.data.scenes import SceneParams
-    return _fields(SceneParams) | {"max_tilt_deg"}, set()
-  if path == ("data", "loader"):
-    from nlosjax.data.dataset import LoaderOptions
-    return _fields(LoaderOptions), set()
-  if path == ("data", "num_sequences"):
-    from nlosjax.data.dataset.spec import SPLITS
-    return set(SPLITS), set()
-  if path == ("model",):
-    from nlosjax.models.network import ModelConfig
-    return _fields(ModelConfig, ("setup", "stride", "frames")), set()   # frames: by variant
-  if path == ("train",):
-    from nlosjax.train import TRAIN_DEFAULTS
-    return set(TRAIN_DEFAULTS) - {"optim", "loss", "stop"}, {"optim", "loss", "stop"}
-  if path == ("train", "stop"):
-    from nlosjax.train import StopRule
-    return _fields(StopRule), set()
-  if path in (("train", "optim"), ("usm", "optim"), ("lfe", "optim"), ("ik", "optim")):
-    from nlosjax.train import OptimConfig
-    return _fields(OptimConfig), set()
-  if path == ("train", "loss"):
-    from nlosjax.losses import LossWeights
-    return _fields(LossWeights), set()
-  if path == ("usm",):
-    return {"recipe"}, {"model", "optim"}                        # nlosjax.train.training_recipe
-  if path == ("usm", "model"):
-    from nlosjax.models.usm import USMConfig
-    return _fields(USMConfig, ("setup", "stride")), set()
-  if path in (("lfe",), ("ik",)):
-    return set(), {"model", "optim"}                             # nlosjax.train.training_recipe
-  if path == ("lfe", "model"):
-    from nlosjax.models.lfe import LFEConfig
-    return _fields(LFEConfig, ("setup", "stride")), set()
-  if path == ("ik", "model"):
-    from nlosjax.models.ik import IKConfig
-    return _fields(IKConfig, ("setup", "stride")), set()
+    return {"independent"}, section_schema(path)[1]
   if path == ("independent",):
     return {"path", "sequences", "frames", "seed"}, set()        # experiments.train
-  return set(), set()
+  return section_schema(path)
 
 
 def _unknown(name: str, what: str, missing: str, known) -> SystemExit:

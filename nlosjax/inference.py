@@ -130,17 +130,17 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
   return mcfg, params, info
 
 
-def training_setup(config: dict) -> Setup:
+def training_setup(config) -> Setup:
   """The full-grid Setup a run trained on, from its config's ``data`` section (wall, grid, bins).
+
+  ``config``: a :class:`~nlosjax.train.RunConfig` or the dict it reads (a run's ``config.json``).
 
   Raises:
     KeyError, TypeError, ValueError: a config without a usable ``data`` section
     (callers name the file).
   """
-  data = config["data"]
-  grid = data["grid"]
-  return Setup(wall_size=data["wall_size"], grid=grid if isinstance(grid, int) else tuple(grid),
-               bin_width=data["bin_width"], num_bins=data["num_bins"])
+  from nlosjax import train
+  return train.run_config(config).data.setup()
 
 
 def restore_params(ckpt, model_config, *, step: int | None = None,
@@ -424,8 +424,14 @@ def setup_dependent_params(model_config) -> list[str]:
   bins: it runs on its training Setup only.
 
   Returns:
-    ``"path: shape -> shape"`` for each parameter that changes, sorted.
+    ``"path: shape -> shape"`` for each parameter that changes, sorted. The answer is kept per
+    model config (they are frozen), so a caller checking every scan traces each model once.
   """
+  return list(_setup_dependent(model_config))
+
+
+@functools.lru_cache(maxsize=32)
+def _setup_dependent(model_config) -> tuple[str, ...]:
   s = model_config.setup
   other = Setup(wall_size=2 * s.wall_size, grid=(2 * s.grid[0], 2 * s.grid[1]), bin_width=s.bin_width,
                 num_bins=2 * s.num_bins)
@@ -433,8 +439,8 @@ def setup_dependent_params(model_config) -> list[str]:
   there = _expected_tree(dataclasses.replace(model_config, setup=other))
   flat = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(here)[0]}
   moved = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(there)[0]}
-  return sorted(f"{k}: {flat.get(k)} -> {moved.get(k)}" for k in set(flat) | set(moved)
-                if flat.get(k) != moved.get(k))
+  return tuple(sorted(f"{k}: {flat.get(k)} -> {moved.get(k)}" for k in set(flat) | set(moved)
+                      if flat.get(k) != moved.get(k)))
 
 
 def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = None) -> CaptureAdaptation:

@@ -33,6 +33,7 @@ job refuses, before any data exist, when one would not fit
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 import time
@@ -50,20 +51,20 @@ def model_folder(variant: str, seed: int, base_seed: int) -> str:
   return variant if seed == base_seed else f"{variant}-seed{seed}"
 
 
-def _training_length(tr: dict) -> str:
+def _training_length(tr: train.TrainConfig) -> str:
   """How long each model trained, for the table's caption: a fixed step count or the plateau rule."""
-  from nlosjax.train.stopping import StopRule
-  rule = StopRule.from_config(tr.get("stop"))
+  rule = tr.stop
   if rule.rule == "steps":
-    return f"{tr['steps']} steps"
+    return f"{tr.steps} steps"
   return (f"trained to a validation plateau (no gain above {rule.min_delta_db} dB over {rule.patience} "
           f"validations {rule.every} steps apart, at most {rule.max_steps} steps; each model's steps in "
           "validation.json)")
 
 
-def tune_classic(config: dict, data_path, log) -> dict:
+def tune_classic(config: train.RunConfig | dict, data_path, log) -> dict:
   """Each classic method's settings chosen on ``data_path``'s validation split (``baselines.tune``)."""
-  batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
+  config = train.run_config(config)
+  batch_size = config.train.eval_batch
   data = protocol.load_split(config, data_path, "val", batch_size=batch_size)
   data["loader"].close()
   return baselines.tune(data["measurement"], data["intensity"], data["depth"], data["setup"],
@@ -85,40 +86,41 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
   the test split into ``results/table1_<name>.{md,json}``.
   """
   config = train.with_defaults(config)
-  tr = config["train"]
+  cfg = train.run_config(config)
+  tr = cfg.train
   primary = jax.process_index() == 0
-  if tr.get("check_memory"):
+  if tr.check_memory:
     from nlosjax.plan import check_fits
-    check_fits(config, log=log)            # before any data or parameters exist
+    check_fits(cfg, log=log)            # before any data or parameters exist
   workdir = pathlib.Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
   if primary:
     (workdir / "config.json").write_text(json.dumps(config, indent=2, default=str) + "\n")
   t0 = time.perf_counter()
-  data_path = pathlib.Path(config["data"]["path"])
+  if cfg.data.path is None:
+    raise ValueError("config data.path: the main job needs the dataset file's path")
+  data_path = pathlib.Path(cfg.data.path)
   if primary:
-    train.ensure_dataset(config, data_path, log=log)
+    train.ensure_dataset(cfg, data_path, log=log)
   if jax.process_count() > 1:              # the others wait for process 0's dataset
     from jax.experimental import multihost_utils
     multihost_utils.sync_global_devices("nlosjax dataset ready")
-  n_seeds = int(tr.get("seeds", 1))
+  n_seeds = tr.seeds
   if n_seeds < 1:
     raise ValueError(f"train.seeds must be >= 1, got {n_seeds}")
-  base = int(tr.get("seed", 0))
+  base = tr.seed
   if export is not None and export.data_digest is None:
-    import dataclasses
-
     from nlosjax.data.dataset import dataset_identity
     digest, fingerprint = dataset_identity(data_path)
     export = dataclasses.replace(export, data_digest=digest, data_fingerprint=fingerprint)
     log(f"dataset: content digest {export.data_digest}")
-  validate = protocol.validation_psnr(config, data_path)
+  validate = protocol.validation_psnr(cfg, data_path)
   trained, logs, checkpoints = {}, {}, {}
-  for variant in tr.get("variants", ("ours_s", "ours")):
+  for variant in tr.variants:
     for seed in range(base, base + n_seeds):
       folder = model_folder(variant, seed, base)
-      run_config = {**config, "train": {**tr, "seed": seed}}
-      mcfg, state = train.train_model(run_config, data_path, workdir, variant, folder=folder,
+      seeded = dataclasses.replace(cfg, train=dataclasses.replace(tr, seed=seed))
+      mcfg, state = train.train_model(seeded, data_path, workdir, variant, folder=folder,
                                       validate=validate, log=log, export=export)
       trained.setdefault(variant, []).append((mcfg, train.to_host(state.params)))
       if seed == base:
@@ -126,24 +128,24 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
       selection = train.read_selection(workdir / folder) or {}
       checkpoints[folder] = {"variant": variant, "seed": seed, "step": selection.get("step"),
                              "val_psnr": selection.get("val_psnr", {}),
-                             "steps_taken": selection.get("steps_taken", int(tr["steps"])),
+                             "steps_taken": selection.get("steps_taken", tr.steps),
                              "stop_reason": selection.get("stop_reason", "steps")}
   if not primary:                         # process 0 evaluates; the others are done
     return {}
   log("validation: tuning the classic methods ...")
-  settings = tune_classic(config, data_path, log)
+  settings = tune_classic(cfg, data_path, log)
   best = max(settings, key=lambda m: settings[m]["psnr"])
-  learned = protocol.tune_model_thresholds(config, data_path, trained, log=log)
+  learned = protocol.tune_model_thresholds(cfg, data_path, trained, log=log)
   thresholds = {v: c["threshold"] for v, c in learned.items()}
   validation = {"split": "val", "classic": settings, "best_classic": best,
                 "learned": learned, "checkpoints": checkpoints}
-  evaluation = protocol.evaluate(config, data_path, trained, split="test",
+  evaluation = protocol.evaluate(cfg, data_path, trained, split="test",
                                  classic_settings=settings, model_thresholds=thresholds, log=log)
   table, comparisons = protocol.tabulate(evaluation, best_classic_method=best)
   n_frames = evaluation["n_frames"]
   n_seq = len(set(evaluation["sequence"].tolist()))
   caption = (f"Test split of `{data_path}` ({n_seq} sequences, {n_frames} frames); "
-             f"{_training_length(tr)} of batch {tr['batch_size']} per model, "
+             f"{_training_length(tr)} of batch {tr.batch_size} per model, "
              f"{n_seeds} seed(s) ({base}-{base + n_seeds - 1}); "
              f"{jax.devices()[0].platform}, {jax.device_count()} device(s); "
              f"main job wall time {time.perf_counter() - t0:.0f} s.")
@@ -151,7 +153,7 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
                          caption=caption, validation=validation, logs=logs)
   for name, path in (extra_test_sets or {}).items():
     log(f"extra test set {name}: {path} ...")
-    ev = protocol.evaluate(config, path, trained, split="test", classic_settings=settings,
+    ev = protocol.evaluate(cfg, path, trained, split="test", classic_settings=settings,
                            model_thresholds=thresholds, log=log)
     t, c = protocol.tabulate(ev, best_classic_method=best)
     n_seq = len(set(ev["sequence"].tolist()))

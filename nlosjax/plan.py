@@ -46,6 +46,7 @@ from jax.sharding import PartitionSpec as P
 from nlosjax import train
 from nlosjax.models.network import flop_counts
 from nlosjax.physics import Setup, operator_args
+from nlosjax.train.config import RunConfig, run_config
 
 GIB = 2 ** 30
 #: Fraction of the device memory a plan may use (XLA needs some room beyond its plan:
@@ -146,16 +147,16 @@ def _abstract_batch(mcfg, batch: int, mesh) -> dict:
   return {k: jax.ShapeDtypeStruct(v, jnp.float32, sharding=split) for k, v in shapes.items()}
 
 
-def compile_train_step(config: dict, mcfg, variant: str, mesh):
+def compile_train_step(config: RunConfig | dict, mcfg, variant: str, mesh):
   """``(compiled, abstract_state, abstract_batch)``: the run's real train step, compiled from shapes."""
-  tr = config["train"]
-  batch = int(tr["batch_size"])
+  tr = run_config(config).train
+  batch = tr.batch_size
   n = mesh.devices.size
   if batch % n:
     raise DoesNotFit(f"train.batch_size = {batch} does not split over the {n} devices of the mesh; "
                      f"use a multiple of {n} (or train.devices)")
   optim, weights = train.training_recipe(config, variant)
-  tx = train.make_optimizer(optim, int(tr["steps"]))
+  tx = train.make_optimizer(optim, tr.steps)
   state = train.abstract_train_state(train.network(mcfg), tuple(mcfg.input_shape(batch)), tx, mesh)
   batch_shapes = _abstract_batch(mcfg, batch, mesh)
   key = jax.eval_shape(lambda: jax.random.key(0))
@@ -171,16 +172,17 @@ def _compile_inference(mcfg, batch: int):
   return forward.lower(params, x).compile()
 
 
-def plan_variant(config: dict, setup: Setup, variant: str, mesh, *, inference: bool = True) -> dict:
+def plan_variant(config: RunConfig | dict, setup: Setup, variant: str, mesh, *, inference: bool = True) -> dict:
   """Compile ``variant``'s train (and inference) step for ``setup``: ``{"model_config", "train", "inference"}``."""
+  config = run_config(config)
   mcfg = train.model_config_for(config, setup, variant)
   t = time.perf_counter()
   compiled, _, _ = compile_train_step(config, mcfg, variant, mesh)
   out = {"model_config": mcfg,
-         "train": _step_plan("train", compiled, mcfg, int(config["train"]["batch_size"]),
+         "train": _step_plan("train", compiled, mcfg, config.train.batch_size,
                              mesh.devices.size, time.perf_counter() - t, backward=True)}
   if inference:
-    b = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
+    b = config.train.eval_batch
     t = time.perf_counter()
     compiled = _compile_inference(mcfg, b)
     out["inference"] = _step_plan("inference", compiled, mcfg, b, 1, time.perf_counter() - t,
@@ -202,7 +204,7 @@ def reduced_setup(setup: Setup, stride: int, factor: int) -> Setup | None:
                  bin_width=setup.bin_width * factor, num_bins=T // factor)
 
 
-def measure_reduced(config: dict, setup: Setup, variant: str, mesh, *, steps: int = 3,
+def measure_reduced(config: RunConfig | dict, setup: Setup, variant: str, mesh, *, steps: int = 3,
                     factors=(8, 4, 2, 1), points: int = 2,
                     log: Callable[[str], None] = print) -> list[dict]:
   """Time real train steps of ``variant`` at the ``points`` largest reductions of ``setup`` the model accepts.
@@ -212,8 +214,9 @@ def measure_reduced(config: dict, setup: Setup, variant: str, mesh, *, steps: in
   where the grid or bins do not divide, the input would be under 4 x 4 scan
   points or 32 bins, or the model rejects the Setup.
   """
-  stride = int(config["data"]["input_stride"])
-  batch = int(config["train"]["batch_size"])
+  config = run_config(config)
+  stride = config.data.stride()
+  batch = config.train.batch_size
   found, last_error = [], None
   for r in factors:
     small = reduced_setup(setup, stride, r)
@@ -226,7 +229,7 @@ def measure_reduced(config: dict, setup: Setup, variant: str, mesh, *, steps: in
       last_error = e
       continue
     optim, _ = train.training_recipe(config, variant)
-    tx = train.make_optimizer(optim, int(config["train"]["steps"]))
+    tx = train.make_optimizer(optim, config.train.steps)
     state = train.create_train_state(train.network(mcfg), mcfg.input_shape(batch), tx,
                                      jax.random.key(0), mesh)
     rng = np.random.default_rng(0)
@@ -275,9 +278,9 @@ def estimate_step_s(measured: list[dict], flops: float) -> float:
   return m["step_s"] * flops / max(m["flops"], 1.0)
 
 
-def _fixes(config: dict, plan: StepPlan, limit: int) -> list[str]:
+def _fixes(config: RunConfig, plan: StepPlan, limit: int) -> list[str]:
   """What would make ``plan`` fit in ``limit`` bytes, most direct first."""
-  model = config.get("model", {})
+  model = config.model
   fixes = []
   per_device = plan.batch // plan.devices
   fixed = plan.peak_bytes - plan.temp_bytes          # state and arguments: do not shrink with the batch
@@ -301,30 +304,25 @@ def _model_fields(config) -> set:
   return {f.name for f in dataclasses.fields(ModelConfig)}
 
 
-def verdict(config: dict, plan: StepPlan, memory: int | None, variant: str) -> str | None:
+def verdict(config: RunConfig | dict, plan: StepPlan, memory: int | None, variant: str) -> str | None:
   """None when ``plan`` fits ``MEMORY_FRACTION`` of ``memory`` (or memory is unknown), else the error message."""
   if memory is None:
     return None
   limit = int(MEMORY_FRACTION * memory)
   if plan.peak_bytes <= limit:
     return None
-  fixes = "\n".join(f"  - {f}" for f in _fixes(config, plan, limit))
+  fixes = "\n".join(f"  - {f}" for f in _fixes(run_config(config), plan, limit))
   return (f"[{variant}] the {plan.kind} step plans {plan.peak_bytes / GIB:.2f} GiB per device, more than "
           f"{MEMORY_FRACTION:.0%} of the device's {memory / GIB:.2f} GiB ({limit / GIB:.2f} GiB); "
           f"batch {plan.batch} over {plan.devices} device(s). Fixes:\n{fixes}")
 
 
-def _setup_of(config: dict) -> Setup:
-  from nlosjax.data.dataset import DatasetSpec
-  return DatasetSpec.from_config(config["data"]).setup
-
-
-def check_fits(config: dict, *, log: Callable[[str], None] = print) -> None:
+def check_fits(config: RunConfig | dict, *, log: Callable[[str], None] = print) -> None:
   """Compile every variant's train step from shapes; raise :class:`DoesNotFit` if one would not fit."""
-  config = train.with_defaults(config)
-  setup, mesh = _setup_of(config), train.mesh_for(config)
+  config = run_config(train.with_defaults(config) if isinstance(config, dict) else config)
+  setup, mesh = config.data.spec().setup, train.mesh_for(config)
   memory, _ = device_memory()
-  for variant in config["train"]["variants"]:
+  for variant in config.train.variants:
     p = plan_variant(config, setup, variant, mesh, inference=False)["train"]
     log(f"[{variant}] planned train step: {p.peak_bytes / GIB:.2f} GiB per device")
     message = verdict(config, p, memory, variant)
@@ -332,7 +330,7 @@ def check_fits(config: dict, *, log: Callable[[str], None] = print) -> None:
       raise DoesNotFit(message + "\n(train.check_memory=False skips this check)")
 
 
-def dry_run(config: dict, *, measure: bool = True, log: Callable[[str], None] = print) -> dict:
+def dry_run(config: RunConfig | dict, *, measure: bool = True, log: Callable[[str], None] = print) -> dict:
   """The dry run (module docstring): plans, estimates and verdicts per variant; nothing is trained or written.
 
   Returns ``{"devices", "platform", "memory_bytes", "memory_source", "steps",
@@ -340,14 +338,14 @@ def dry_run(config: dict, *, measure: bool = True, log: Callable[[str], None] = 
   StepPlan, "reduced": {...} | None, "step_s", "run_s", "fits": bool,
   "problem": str | None}}}``; times are estimates (module docstring, step 3).
   """
-  config = train.with_defaults(config)
-  setup, mesh = _setup_of(config), train.mesh_for(config)
+  config = run_config(train.with_defaults(config) if isinstance(config, dict) else config)
+  setup, mesh = config.data.spec().setup, train.mesh_for(config)
   memory, source = device_memory()
-  steps = int(config["train"]["steps"])
+  steps = config.train.steps
   out = {"devices": mesh.devices.size, "platform": jax.devices()[0].platform,
          "device_kind": jax.devices()[0].device_kind, "memory_bytes": memory,
          "memory_source": source, "steps": steps, "setup": setup, "variants": {}}
-  for variant in config["train"]["variants"]:
+  for variant in config.train.variants:
     log(f"[{variant}] compiling the train and inference steps from shapes ...")
     v = plan_variant(config, setup, variant, mesh)
     problems = [m for m in (verdict(config, v[k], memory, variant) for k in ("train", "inference")) if m]

@@ -34,7 +34,7 @@ def test_paper_recipe_is_explicit_and_matches_model_config_paper(tmp_path):
     if key != "volume_activation":                     # softplus: the cpu preset's choice (config)
       assert getattr(paper, key) == value, key
   # The model section builds exactly ModelConfig.paper() on the preset's data.
-  setup = plan._setup_of(cfg)
+  setup = plan.run_config(cfg).data.spec().setup
   mcfg = T.model_config_for(T.with_defaults(cfg), setup, "ours")
   assert dataclasses.replace(mcfg, volume_activation="relu") == paper
 

@@ -394,3 +394,5 @@ def test_only_i_k_is_tied_to_its_training_setup():
     assert str(tuple(mcfg.kernel_shape())) in tied[0]
     with pytest.raises(ValueError, match="runs on that Setup only"):
       inference.adapt_to_capture(mcfg, capture)
+    tied.clear()                       # the answer kept per model config is not the caller's list
+    assert inference.setup_dependent_params(mcfg)

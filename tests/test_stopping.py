@@ -213,6 +213,7 @@ def test_the_default_rule_is_unchanged(data_path, tmp_path):
 
 def test_the_main_job_caption_names_how_long_its_models_trained():
   from nlosjax.main_job import _training_length
-  assert _training_length({"steps": 350}) == "350 steps"
-  text = _training_length({"steps": 350, "stop": {"rule": "plateau", "every": 25, "max_steps": 900}})
+  assert _training_length(T.TrainConfig.from_dict({"steps": 350})) == "350 steps"
+  text = _training_length(T.TrainConfig.from_dict(
+      {"steps": 350, "stop": {"rule": "plateau", "every": 25, "max_steps": 900}}))
   assert "plateau" in text and "900" in text and "25 steps apart" in text and "350" not in text

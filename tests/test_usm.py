@@ -310,6 +310,9 @@ def test_published_recipe_and_variant_config():
   config["usm"]["recipe"] = "nope"
   with pytest.raises(ValueError, match="recipe"):
     train.training_recipe(config, "usm")
+  with pytest.raises(ValueError, match="recipe"):    # the typed config refuses it wherever it is read
+    train.model_config_for(config, TINY, "usm")
+  config["usm"]["recipe"] = "ours"
   mcfg = train.model_config_for(config, TINY, "usm")
   assert isinstance(mcfg, USMConfig) and mcfg.trn_width == 2 and mcfg.stride == 2
 

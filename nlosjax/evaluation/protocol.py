@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from nlosjax.evaluation import baselines, figures, report, scores
+from nlosjax.train.config import RunConfig, run_config
 
 __all__ = ["load_split", "model_images", "validation_psnr", "surface_cut", "choose_surface_threshold",
            "tune_model_thresholds",
@@ -37,7 +38,7 @@ __all__ = ["load_split", "model_images", "validation_psnr", "surface_cut", "choo
 MODEL_THRESHOLDS = (0.0,) + tuple(baselines.THRESHOLDS)
 
 
-def load_split(config: dict, data_path, split: str, *, batch_size: int) -> dict:
+def load_split(config: RunConfig | dict, data_path, split: str, *, batch_size: int) -> dict:
   """Ground truth and middle-frame input of every example of ``split``.
 
   Returns:
@@ -94,10 +95,11 @@ def model_images(mcfg, params, loader) -> dict:
   return {"intensity": np.concatenate(inten), "depth": np.concatenate(depth)}
 
 
-def validation_psnr(config: dict, data_path, *, split: str = "val") -> Callable:
+def validation_psnr(config: RunConfig | dict, data_path, *, split: str = "val") -> Callable:
   """``(model_config, params) -> mean intensity PSNR (dB)`` on ``split``: the checkpoint criterion."""
   from nlosjax import metrics
-  batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
+  config = run_config(config)
+  batch_size = config.train.eval_batch
 
   def score(mcfg, params) -> float:
     data = load_split(config, data_path, split, batch_size=batch_size)
@@ -128,7 +130,7 @@ def _as_seeds(models) -> list:
   return [models] if isinstance(models, tuple) else list(models)
 
 
-def tune_model_thresholds(config: dict, data_path, trained: dict, *, split: str = "val",
+def tune_model_thresholds(config: RunConfig | dict, data_path, trained: dict, *, split: str = "val",
                           thresholds=MODEL_THRESHOLDS, log: Callable[[str], None] = print) -> dict:
   """Each learned variant's surface threshold, chosen on ``split`` as for the classic methods.
 
@@ -142,7 +144,8 @@ def tune_model_thresholds(config: dict, data_path, trained: dict, *, split: str 
   Returns:
     ``variant -> {"threshold": float, "f1": float, "f1_by_threshold": {str(th): float}}``.
   """
-  batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
+  config = run_config(config)
+  batch_size = config.train.eval_batch
   data = load_split(config, data_path, split, batch_size=batch_size)
   out = {}
   try:
@@ -176,7 +179,7 @@ def choose_surface_threshold(images: list[dict], gt_depth, thresholds=MODEL_THRE
   return {"threshold": float(best), "f1": f1[best], "f1_by_threshold": f1}
 
 
-def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
+def evaluate(config: RunConfig | dict, data_path, trained: dict, *, split: str = "test",
              methods: tuple[str, ...] = baselines.CLASSIC_METHODS,
              classic_settings: dict | None = None, model_thresholds: dict | None = None,
              log: Callable[[str], None] = print) -> dict:
@@ -203,7 +206,8 @@ def evaluate(config: dict, data_path, trained: dict, *, split: str = "test",
     each sequence's first evaluated frame).
   """
   from tqdm import tqdm
-  batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
+  config = run_config(config)
+  batch_size = config.train.eval_batch
   classic_settings = classic_settings or {}
   model_thresholds = model_thresholds or {}
   data = load_split(config, data_path, split, batch_size=batch_size)

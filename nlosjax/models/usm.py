@@ -59,7 +59,7 @@ USM's 115,042. Differences from the public code, each for a reason:
 The published training recipe (losses and weights, AdamW lr 1e-4, weight
 decay 1e-4, no schedule, no clipping) is :data:`PUBLISHED_OPTIM` and
 :data:`PUBLISHED_LOSS`; the main job can train USM with it or with Ours' recipe
-(``config["usm"]["recipe"]``, see :func:`nlosjax.train.usm_recipe`).
+(a config's ``usm.recipe``, see :func:`nlosjax.train.training_recipe`).
 """
 
 from __future__ import annotations

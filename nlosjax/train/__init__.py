@@ -17,6 +17,9 @@ One concern per module, each usable alone; everything is importable from
 * :mod:`~nlosjax.train.checkpoint` -- :class:`Checkpointer` (orbax: params,
   optimizer state, step and data position; refuses another run's checkpoint),
   :func:`run_signature`.
+* :mod:`~nlosjax.train.config` -- :class:`RunConfig`: a run's config typed, one schema per
+  section (:class:`TrainConfig`, :class:`DataConfig`, :class:`BaselineConfig`) and
+  :func:`run_config`, the one reader of a preset's dict (unknown keys raise).
 * :mod:`~nlosjax.train.config_record` -- :func:`model_record`: a model config
   field by field as JSON, and :func:`compare_model` (the one rule: a field a file
   predates passes at its default; ``repr`` strings of older files are parsed).
@@ -28,8 +31,8 @@ One concern per module, each usable alone; everything is importable from
   state as a small folder to commit, resumed on a fresh clone; pausing at a
   deadline (:class:`TrainingPaused`).
 * :mod:`~nlosjax.train.loop` -- :func:`train_model`: one variant, one seed,
-  resumable; the config pieces it reads (:data:`TRAIN_DEFAULTS`,
-  :func:`model_config_for`, :func:`make_loader`, :func:`ensure_dataset`, ...).
+  resumable; what it builds from the config (:func:`model_config_for`, :func:`make_loader`,
+  :func:`ensure_dataset`, :func:`training_recipe`).
 
 Evaluation (classic baselines, scores, tables, figures) is
 :mod:`nlosjax.evaluation`; the main job behind ``python -m experiments.train``
@@ -37,11 +40,19 @@ is :func:`nlosjax.main_job.train_and_evaluate`; the dry run is :mod:`nlosjax.pla
 """
 
 from nlosjax.train.checkpoint import Checkpointer, param_fingerprint, run_signature
+from nlosjax.train.config import (
+    TRAIN_DEFAULTS,
+    USM_RECIPES,
+    BaselineConfig,
+    DataConfig,
+    RunConfig,
+    TrainConfig,
+    run_config,
+    with_defaults,
+)
 from nlosjax.train.config_record import compare as compare_model
 from nlosjax.train.config_record import model_record
 from nlosjax.train.loop import (
-    TRAIN_DEFAULTS,
-    USM_RECIPES,
     VARIANT_FRAMES,
     ensure_dataset,
     make_loader,
@@ -51,7 +62,6 @@ from nlosjax.train.loop import (
     select_frames,
     train_model,
     training_recipe,
-    with_defaults,
 )
 from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
 from nlosjax.train.run_state import StateExport, TrainingPaused, export_state, import_state
@@ -61,7 +71,8 @@ from nlosjax.train.step import BATCH_KEYS, make_targets, make_train_step, train_
 from nlosjax.train.stopping import StopRule, plateau_reached, read_curve, stop_reason
 
 __all__ = [
-    "BATCH_KEYS", "Checkpointer", "OptimConfig", "StateExport", "StopRule", "TRAIN_DEFAULTS", "TrainState",
+    "BATCH_KEYS", "BaselineConfig", "Checkpointer", "DataConfig", "OptimConfig", "RunConfig", "StateExport",
+    "StopRule", "TRAIN_DEFAULTS", "TrainConfig", "TrainState", "run_config",
     "TrainingPaused", "export_state", "import_state",
     "USM_RECIPES", "VARIANT_FRAMES", "abstract_train_state", "compare_model", "create_train_state",
     "ensure_dataset", "initialize_distributed", "learning_rate_at", "make_loader", "make_mesh",

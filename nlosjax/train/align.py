@@ -35,6 +35,7 @@ import numpy as np
 import optax
 
 from nlosjax import losses
+from nlosjax.train.config import run_config
 from nlosjax.train.step import make_targets
 
 __all__ = ["DEFAULT_LAYER", "layer_features", "all_layer_features", "layer_separation", "chosen_layer",
@@ -181,7 +182,7 @@ def _checked_measured(measured, model_config) -> np.ndarray:
   return measured
 
 
-def _loss_fn(config: dict, model_config, *, lam: float, samples: int, layer: str):
+def _loss_fn(config, model_config, *, lam: float, samples: int, layer: str):
   """:func:`align_loss` bound to the run's model, loss weights and wavelet."""
   from nlosjax.physics import illumination_wavelet
   from nlosjax.train.loop import training_recipe
@@ -201,7 +202,7 @@ def _device_batch(host: dict, model_config) -> dict:
   return batch
 
 
-def term_gradient_norms(config: dict, data_path, model_config, params, measured: np.ndarray, *,
+def term_gradient_norms(config, data_path, model_config, params, measured: np.ndarray, *,
                         batches: int = 8, measured_batch: int = 4, samples: int = 512,
                         layer: str = DEFAULT_LAYER, seed: int = 0) -> dict:
   """Each term's global gradient norm at ``params``, on ``batches`` synthetic training batches.
@@ -229,7 +230,7 @@ def term_gradient_norms(config: dict, data_path, model_config, params, measured:
     return optax.global_norm(g_syn), optax.global_norm(g_mmd), terms[1]
 
   run = operator_args.bind(norms, model_config.physics_operators())
-  loader = make_loader(config, data_path, "train", batch_size=int(config["train"]["batch_size"]),
+  loader = make_loader(config, data_path, "train", batch_size=run_config(config).train.batch_size,
                        shuffle=True, seed=seed)
   rng = np.random.default_rng(seed)
   key = jax.random.key(seed)
@@ -263,7 +264,7 @@ def balanced_lam(norms: dict, share: float = 1.0) -> float:
   return share * syn / mmd
 
 
-def align(config: dict, data_path, model_config, params, measured: np.ndarray, workdir, *,
+def align(config, data_path, model_config, params, measured: np.ndarray, workdir, *,
           steps: int = 100, learning_rate: float = 1e-4, lam: float = 1.0, measured_batch: int = 4,
           samples: int = 512, layer: str = DEFAULT_LAYER, validate: Callable | None = None,
           every: int = 25, seed: int = 0, extra: dict | None = None,
@@ -271,7 +272,7 @@ def align(config: dict, data_path, model_config, params, measured: np.ndarray, w
   """Run the second stage (module docstring) for ``steps`` steps; returns ``(params, record)``.
 
   Args:
-    config: the run config of the synthetic data and loss (``nlosjax.train.with_defaults``).
+    config: the run config of the synthetic data and loss (a :class:`~nlosjax.train.RunConfig` or its dict).
     data_path: its dataset file (the ``train`` split is read).
     model_config, params: the trained network (its config at the data's Setup).
     measured: ``[M, F, T, h, w]`` unlabelled measured inputs at the same Setup, ``M >= 1``.
@@ -303,7 +304,7 @@ def align(config: dict, data_path, model_config, params, measured: np.ndarray, w
     return optax.apply_updates(p, updates), opt_state, terms
 
   run = operator_args.bind(step, model_config.physics_operators())
-  batch_size = int(config["train"]["batch_size"])
+  batch_size = run_config(config).train.batch_size
   loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed)
   rng = np.random.default_rng(seed)
   key = jax.random.key(seed)

@@ -8,6 +8,7 @@ global batch; process 0 writes the log and the selection.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -20,77 +21,42 @@ import numpy as np
 
 from nlosjax import losses
 from nlosjax.train.checkpoint import Checkpointer, run_signature
+from nlosjax.train.config import BASELINES, RunConfig, model_class, run_config
 from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
 from nlosjax.train.run_state import StateExport, TrainingPaused, copy_logs, export_state, import_state, read_meta
 from nlosjax.train.sharding import mesh_for, shard_batch, to_host
 from nlosjax.train.state import TrainState, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_train_step
-from nlosjax.train.stopping import BEST_FOLDER, PlateauTracker, StopRule
+from nlosjax.train.stopping import BEST_FOLDER, PlateauTracker
 from nlosjax.variants import VARIANTS
 
 #: Input frames of each variant (:data:`nlosjax.variants.VARIANTS`).
 VARIANT_FRAMES = {name: v.frames for name, v in VARIANTS.items()}
-#: USM's training recipes (``config["usm"]["recipe"]``): "ours" trains it with the config's
-#: ``train.optim`` and ``train.loss`` (Ours' recipe, the like-for-like default); "published"
-#: with USM's own (:data:`nlosjax.models.usm.PUBLISHED_OPTIM`, ``PUBLISHED_LOSS``).
-USM_RECIPES = ("ours", "published")
-
-#: Defaults of a config's ``train`` section (the presets override some).
-#: ``seeds``: training seeds per variant (``seed``, ``seed + 1``, ...; tables
-#: then cover seeds too); ``select_checkpoint``: ``"last"`` or ``"val"`` (the
-#: kept checkpoint with the best validation intensity PSNR); ``check_memory``: before
-#: any data or parameters exist, compile each variant's train step and refuse when XLA's
-#: planned peak exceeds the device's memory (:func:`nlosjax.plan.check_fits`);
-#: ``devices``: train data-parallel on the first ``devices`` devices (None: all of them);
-#: ``stop``: when training stops (:class:`~nlosjax.train.stopping.StopRule`): ``{"rule":
-#: "steps"}`` runs ``steps`` steps; ``{"rule": "plateau", ...}`` validates during training,
-#: stops when validation stops improving and keeps the best model (``steps`` and
-#: ``select_checkpoint`` then play no part).
-TRAIN_DEFAULTS = {
-    "steps": 300, "batch_size": 4, "seed": 0, "seeds": 1, "log_every": 10, "checkpoint_every": 50,
-    "keep_checkpoints": 2, "eval_batch_size": 8, "variants": ("ours_s", "ours"),
-    "data_workers": 1, "optim": {}, "loss": {}, "select_checkpoint": "last",
-    "check_memory": False, "devices": None, "stop": {"rule": "steps"},
-}
 
 
-def with_defaults(config: dict) -> dict:
-  """``config`` with :data:`TRAIN_DEFAULTS` filled into its ``train`` section (a new dict)."""
-  unknown = set(config.get("train", {})) - set(TRAIN_DEFAULTS)
-  if unknown:
-    raise ValueError(f"config train section: unknown key(s) {sorted(unknown)}; known: {sorted(TRAIN_DEFAULTS)}")
-  return {**config, "train": {**TRAIN_DEFAULTS, **config.get("train", {})}}
-
-
-def model_config_for(config: dict, setup, variant: str):
+def model_config_for(config: RunConfig | dict, setup, variant: str):
   """The model config of ``variant`` for a dataset's Setup.
 
   ``"ours"`` / ``"ours_s"``: a :class:`~nlosjax.models.network.ModelConfig` from
-  ``config["model"]``; ``"usm"``: a :class:`~nlosjax.models.usm.USMConfig`
-  from ``config["usm"]["model"]`` (USM's published widths where absent); ``"lfe"``:
-  a :class:`~nlosjax.models.lfe.LFEConfig` from ``config["lfe"]["model"]``; ``"ik"``: a
-  :class:`~nlosjax.models.ik.IKConfig` from ``config["ik"]["model"]``. The
-  baselines' phasor-field loss wavelet (``wavelet_cycles``, ``wavelet_sampling``) is Ours'
-  from ``config["model"]`` unless their own ``model`` section sets it, so all
+  the config's ``model`` section; ``"usm"``, ``"lfe"``, ``"ik"``: their
+  :class:`~nlosjax.models.usm.USMConfig`, :class:`~nlosjax.models.lfe.LFEConfig`,
+  :class:`~nlosjax.models.ik.IKConfig` from their own section's ``model`` (published
+  widths where absent). The baselines' phasor-field loss wavelet (``wavelet_cycles``,
+  ``wavelet_sampling``) is Ours' unless their own ``model`` section sets it, so all
   train with the same loss (and a preset that needs a longer wavelet for its
   bins, as ``real``, gives USM one too).
   """
-  from nlosjax.models.network import ModelConfig
   if variant not in VARIANT_FRAMES:
     raise ValueError(f"variant must be one of {tuple(VARIANT_FRAMES)}, got {variant!r}")
-  if variant in ("usm", "lfe", "ik"):
-    from nlosjax.models.ik import IKConfig
-    from nlosjax.models.lfe import LFEConfig
-    from nlosjax.models.usm import USMConfig
-    baseline = dict(config.get(variant, {}).get("model", {}))
+  cfg = run_config(config)
+  cls = model_class(variant)
+  if variant in BASELINES:
+    baseline = dict(cfg.baselines[variant].model)
     for key in ("wavelet_cycles", "wavelet_sampling"):
-      if key in config.get("model", {}):
-        baseline.setdefault(key, config["model"][key])
-    cls = {"usm": USMConfig, "lfe": LFEConfig, "ik": IKConfig}[variant]
-    return cls(setup=setup, stride=int(config["data"]["input_stride"]), **baseline)
-  overrides = dict(config.get("model", {}))
-  overrides["frames"] = VARIANT_FRAMES[variant]
-  return ModelConfig(setup=setup, stride=int(config["data"]["input_stride"]), **overrides)
+      if key in cfg.model:
+        baseline.setdefault(key, cfg.model[key])
+    return cls(setup=setup, stride=cfg.data.stride(), **baseline)
+  return cls(setup=setup, stride=cfg.data.stride(), **{**cfg.model, "frames": VARIANT_FRAMES[variant]})
 
 
 def select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
@@ -99,29 +65,24 @@ def select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
   return measurement[:, mid - frames // 2:mid + frames // 2 + 1]
 
 
-def make_loader(config: dict, path, split: str, *, batch_size: int, shuffle: bool, seed: int,
+def make_loader(config: RunConfig | dict, path, split: str, *, batch_size: int, shuffle: bool, seed: int,
                 shard: tuple[int, int] = (0, 1)):
   """The config's :class:`~nlosjax.data.dataset.TripletLoader` of ``split`` (the model's under-scan offset checked).
 
-  ``data.loader`` is read by :meth:`~nlosjax.data.dataset.LoaderOptions.from_dict` (its
-  ``prefetch`` is the training loop's: :func:`train_model`).
-  ``shard = (index, count)``: this process's rows of every global batch.
+  ``data.loader`` is :class:`~nlosjax.data.dataset.LoaderOptions` (its ``prefetch`` is the
+  training loop's: :func:`train_model`). ``shard = (index, count)``: this process's rows of
+  every global batch.
   """
-  from nlosjax.data.dataset import LoaderOptions, TripletLoader
-  data = config["data"]
-  opts = LoaderOptions.from_dict(data.get("loader"))
-  stride = int(data["input_stride"])
-  offset = int(data.get("input_offset", stride // 2))
-  if offset != stride // 2:
-    raise ValueError(f"config data.input_offset = {offset}, but the model reads scan points "
-                     f"stride // 2 + stride * i (offset {stride // 2} for stride {stride})")
-  return TripletLoader(path, split=split, batch_size=batch_size, stride=stride, offset=offset,
+  from nlosjax.data.dataset import TripletLoader
+  data = run_config(config).data
+  opts = data.loader
+  return TripletLoader(path, split=split, batch_size=batch_size, stride=data.stride(), offset=data.input_offset,
                        seed=seed, shuffle=shuffle, drop_remainder=shuffle,
                        ends=opts.ends, target=opts.target, in_memory=opts.in_memory,
                        prefetch_size=opts.prefetch, shard=shard)
 
 
-def ensure_dataset(config: dict, path: pathlib.Path, log: Callable[[str], None] = print) -> None:
+def ensure_dataset(config: RunConfig | dict, path: pathlib.Path, log: Callable[[str], None] = print) -> None:
   """Generate the config's dataset at ``path``, or add the sequences an existing file lacks.
 
   An existing file made with the same data configuration but fewer sequences
@@ -129,10 +90,11 @@ def ensure_dataset(config: dict, path: pathlib.Path, log: Callable[[str], None] 
   every stored sequence (:func:`~nlosjax.data.dataset.extend_dataset`); a file
   made with another configuration is used as it is.
   """
-  from nlosjax.data.dataset import DatasetSpec, extend_dataset, write_dataset
+  from nlosjax.data.dataset import extend_dataset, write_dataset
   path = pathlib.Path(path)
-  spec = DatasetSpec.from_config(config["data"])
-  workers = int(config["train"].get("data_workers", 1))
+  cfg = run_config(config)
+  spec = cfg.data.spec()
+  workers = cfg.train.data_workers
   if path.exists():
     try:
       result = extend_dataset(path, spec, workers=workers)
@@ -162,24 +124,25 @@ def read_metrics(path) -> list[dict]:
   return rows
 
 
-def train_model(config: dict, data_path, workdir, variant: str, *, folder: str | None = None,
+def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, folder: str | None = None,
                 validate: Callable[[Any, Any], float] | None = None,
                 log: Callable[[str], None] = print,
                 export: StateExport | None = None) -> tuple[Any, TrainState]:
   """Train one variant (``"ours"``, ``"ours_s"`` or ``"usm"``), resuming from ``workdir/<folder>``.
 
   Args:
-    config: the run config (:func:`with_defaults`); the seed is ``config["train"]["seed"]``.
+    config: the run config (:class:`~nlosjax.train.config.RunConfig`, or the dict it reads);
+      the seed is ``train.seed``.
     data_path: the dataset file.
     workdir: the run folder.
     variant: ``"ours"``, ``"ours_s"`` or ``"usm"`` (:data:`VARIANT_FRAMES`).
     folder: sub-folder of this model (default ``variant``).
     validate: ``(model_config, params) -> score`` on the validation split
       (higher is better; the validation intensity PSNR in dB). With
-      ``config["train"]["select_checkpoint"] == "val"`` every kept checkpoint
+      ``train.select_checkpoint == "val"`` every kept checkpoint
       is scored after training and the best is returned; the scores and the
       choice go to ``<folder>/selection.json`` (:func:`read_selection`).
-      Required by the plateau stopping rule (``config["train"]["stop"]``,
+      Required by the plateau stopping rule (``train.stop``,
       :mod:`nlosjax.train.stopping`), which scores the model every
       ``stop.every`` steps during training, stops when the scores stop
       improving (or at ``stop.max_steps``) and returns the best; its curve
@@ -193,15 +156,16 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
       ``export.deadline`` the run saves, exports and raises
       :class:`~nlosjax.train.run_state.TrainingPaused`.
   Returns:
-    ``(model_config, state)``: after ``config["train"]["steps"]`` steps, or at
+    ``(model_config, state)``: after ``train.steps`` steps, or at
     the checkpoint chosen on validation (the plateau rule's best).
   """
   from tqdm import tqdm
 
   from nlosjax.models.network import format_summary, model_summary
-  tr = config["train"]
-  steps, batch_size, seed = int(tr["steps"]), int(tr["batch_size"]), int(tr.get("seed", 0))
-  stop = StopRule.from_config(tr.get("stop"))
+  config = run_config(config)
+  tr = config.train
+  steps, batch_size, seed = tr.steps, tr.batch_size, tr.seed
+  stop = tr.stop
   if stop.rule == "plateau" and validate is None:
     raise ValueError('train.stop.rule "plateau" needs the validate callback')
   steps = stop.horizon(steps)       # the plateau rule: its max_steps, also the schedule's horizon
@@ -223,8 +187,8 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
   shape = (batch_size, mcfg.frames, loader.setup.num_bins) + tuple(loader.input_shape[-2:])
   state = create_train_state(model, shape, make_optimizer(optim, steps), init_key, mesh)
   signature = run_signature(mcfg, state.params, optim, weights, batch_size, seed)
-  ckpt = Checkpointer(vdir / "checkpoints", signature, every=int(tr.get("checkpoint_every", 50)),
-                      keep=int(tr.get("keep_checkpoints", 2)), model=mcfg)
+  ckpt = Checkpointer(vdir / "checkpoints", signature, every=tr.checkpoint_every,
+                      keep=tr.keep_checkpoints, model=mcfg)
   start = 0
   restored = ckpt.restore_latest(state)
   if restored is not None:
@@ -265,7 +229,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     kept = [r for r in read_metrics(log_path) if r["step"] <= start]
     log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
   step_fn = make_train_step(mcfg, weights, mesh)
-  log_every = int(tr.get("log_every", 10))
+  log_every = tr.log_every
   exported_best = {"step": (exported or {}).get("best_step")}
 
   def export_now(current: TrainState) -> None:
@@ -335,10 +299,7 @@ def train_model(config: dict, data_path, workdir, variant: str, *, folder: str |
     export_now(state)                   # with the final curve and selection.json
     return mcfg, chosen
   last = state
-  selection = {"select": str(tr.get("select_checkpoint", "last")), "step": int(state.step),
-               "val_psnr": {}}
-  if selection["select"] not in ("last", "val"):
-    raise ValueError(f'train.select_checkpoint must be "last" or "val", got {selection["select"]!r}')
+  selection = {"select": tr.select_checkpoint, "step": int(state.step), "val_psnr": {}}
   if selection["select"] == "val" and validate is not None:
     candidates = {}
     for step in ckpt.all_steps():
@@ -379,29 +340,24 @@ def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpoint
   return best
 
 
-def training_recipe(config: dict, variant: str) -> tuple[OptimConfig, losses.LossWeights]:
+def training_recipe(config: RunConfig | dict, variant: str) -> tuple[OptimConfig, losses.LossWeights]:
   """``(optimiser, loss weights)`` a variant trains with.
 
-  The config's ``train.optim`` and ``train.loss``, except for ``"usm"``: with
-  ``config["usm"]["recipe"] == "published"`` (:data:`USM_RECIPES`) USM's
-  published AdamW (lr 1e-4, weight decay 1e-4, no schedule, no clipping) and
-  loss; with ``"ours"``, Ours' recipe with ``config["usm"]["optim"]``'s entries
-  (e.g. its own learning rate, chosen on validation) replacing ``train.optim``'s.
+  The config's ``train.optim`` and ``train.loss``, except for the baselines: USM with
+  ``usm.recipe == "published"`` (:data:`USM_RECIPES`) trains with its published AdamW
+  (lr 1e-4, weight decay 1e-4, no schedule, no clipping) and loss; with ``"ours"`` (and LFE
+  and I-K always) with Ours' recipe, its own section's ``optim`` entries (e.g. its own
+  learning rate, chosen on validation) replacing ``train.optim``'s.
   """
-  tr = config["train"]
-  optim = dict(tr.get("optim", {}))
-  if variant == "usm":
-    usm = config.get("usm", {})
-    recipe = usm.get("recipe", "ours")
-    if recipe not in USM_RECIPES:
-      raise ValueError(f'config usm.recipe must be one of {USM_RECIPES}, got {recipe!r}')
-    if recipe == "published":
+  cfg = run_config(config)
+  optim = cfg.train.optim
+  if variant in BASELINES:
+    section = cfg.baselines[variant]
+    if variant == "usm" and section.recipe == "published":
       from nlosjax.models.usm import PUBLISHED_LOSS, PUBLISHED_OPTIM
       return OptimConfig(**PUBLISHED_OPTIM), losses.LossWeights(**PUBLISHED_LOSS)
-    optim.update(usm.get("optim", {}))
-  if variant in ("lfe", "ik"):   # Ours' recipe; their "transient" is their input: those terms are constant
-    optim.update(config.get(variant, {}).get("optim", {}))
-  return OptimConfig(**optim), losses.LossWeights(**tr.get("loss", {}))
+    optim = dataclasses.replace(optim, **section.optim)   # LFE's, I-K's "transient" is their input
+  return optim, cfg.train.loss
 
 
 def read_selection(folder) -> dict | None:

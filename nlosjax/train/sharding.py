@@ -33,13 +33,15 @@ def make_mesh(devices=None) -> Mesh:
   return Mesh(devices.reshape(-1), ("data",))
 
 
-def mesh_for(config: dict) -> Mesh:
-  """The data-parallel mesh of a run: every device, or the first ``config["train"]["devices"]``.
+def mesh_for(config) -> Mesh:
+  """The data-parallel mesh of a run (a :class:`~nlosjax.train.config.RunConfig` or its dict): every device,
+  or the first ``train.devices``.
 
   With several processes (``jax.distributed``) the mesh spans every process's
   devices and ``train.devices`` must be None.
   """
-  n = config.get("train", {}).get("devices")
+  from nlosjax.train.config import run_config
+  n = run_config(config).train.devices
   if n is None:
     return make_mesh()
   n = int(n)

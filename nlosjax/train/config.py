@@ -1,0 +1,328 @@
+"""A run's config, typed: one schema per section and :func:`run_config`, the one reader of a preset's dict.
+
+A preset (``experiments/configs``) writes a nested dict of plain values (``data``,
+``model``, ``train``, ``usm``, ``lfe``, ``ik``). :meth:`RunConfig.from_dict` reads it
+once: each section's schema is a frozen dataclass (the ``train`` section's is
+:class:`TrainConfig`), a key no section
+reads is a ``ValueError`` naming the known ones, and the library's functions read the
+typed fields. A key the config leaves out takes its default where it has one; the
+data section's Setup keys are needed only by what builds a Setup from them.
+
+The library's functions take a :class:`RunConfig`; during the move they also accept
+the dict and read it here (:func:`run_config`), so nothing in ``nlosjax`` indexes a
+config dict.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+from typing import Any, Mapping
+
+from nlosjax import losses
+from nlosjax.train.optimizer import OptimConfig
+from nlosjax.train.stopping import StopRule
+from nlosjax.variants import VARIANTS
+from nlosjax.variants import variant as variant_info
+
+#: USM's training recipes (``usm.recipe``): "ours" trains it with the config's ``train.optim``
+#: and ``train.loss`` (Ours' recipe, the like-for-like default); "published" with USM's own
+#: (:data:`nlosjax.models.usm.PUBLISHED_OPTIM`, ``PUBLISHED_LOSS``).
+USM_RECIPES = ("ours", "published")
+#: The variants with a section of their own (``usm``, ``lfe``, ``ik``: every variant not built by
+#: ST-Mamba, :data:`nlosjax.variants.VARIANTS`): a ``model`` and an ``optim``.
+BASELINES = tuple(name for name, v in VARIANTS.items() if v.family != "stmamba")
+
+
+#: What a preset's ``train`` section gets where it is silent (:func:`nlosjax.train.with_defaults`):
+#: :class:`TrainConfig`'s defaults, with 8 sequences per evaluation batch.
+TRAIN_DEFAULTS = {
+    "steps": 300, "batch_size": 4, "seed": 0, "seeds": 1, "log_every": 10, "checkpoint_every": 50,
+    "keep_checkpoints": 2, "eval_batch_size": 8, "variants": ("ours_s", "ours"),
+    "data_workers": 1, "optim": {}, "loss": {}, "select_checkpoint": "last",
+    "check_memory": False, "devices": None, "stop": {"rule": "steps"},
+}
+
+
+def _frozen(mapping: Mapping | None) -> Mapping:
+  return types.MappingProxyType(dict(mapping or {}))
+
+
+def _field_names(cls, drop=()) -> set[str]:
+  return {f.name for f in dataclasses.fields(cls)} - set(drop)
+
+
+def _check_section(path: tuple[str, ...], section: Mapping) -> None:
+  keys, subsections = section_schema(path)
+  known = keys | subsections
+  unknown = set(section) - known
+  if unknown:
+    raise ValueError(f"config {'.'.join(path)} section: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """A config's ``train`` section: how each variant trains and is chosen.
+
+  Attributes:
+    steps: training steps (the ``"steps"`` stopping rule; the plateau rule uses ``stop.max_steps``).
+    batch_size: sequences per step; eval_batch_size: per evaluation batch (None: ``batch_size``;
+      :attr:`eval_batch` reads it).
+    seed, seeds: the first training seed and how many (``seed``, ``seed + 1``, ...; tables
+      then cover seeds too).
+    log_every, checkpoint_every: steps between log rows and between checkpoints.
+    keep_checkpoints: checkpoints kept.
+    variants: the variants the main job trains (:data:`nlosjax.variants.VARIANTS`).
+    data_workers: processes writing the dataset.
+    optim: the optimiser (:class:`~nlosjax.train.OptimConfig`); loss: the loss weights.
+    select_checkpoint: ``"last"`` or ``"val"`` (the kept checkpoint with the best
+      validation intensity PSNR).
+    check_memory: before any data or parameters exist, compile each variant's train step
+      and refuse when XLA's planned peak exceeds the device's memory
+      (:func:`nlosjax.plan.check_fits`).
+    devices: train data-parallel on the first ``devices`` devices (None: all of them).
+    stop: when training stops (:class:`~nlosjax.train.stopping.StopRule`).
+  """
+
+  steps: int = 300
+  batch_size: int = 4
+  seed: int = 0
+  seeds: int = 1
+  log_every: int = 10
+  checkpoint_every: int = 50
+  keep_checkpoints: int = 2
+  eval_batch_size: int | None = None
+  variants: tuple[str, ...] = ("ours_s", "ours")
+  data_workers: int = 1
+  optim: OptimConfig = OptimConfig()
+  loss: losses.LossWeights = losses.LossWeights()
+  select_checkpoint: str = "last"
+  check_memory: bool = False
+  devices: int | None = None
+  stop: StopRule = StopRule()
+
+  @classmethod
+  def from_dict(cls, section: Mapping | None) -> "TrainConfig":
+    """The section of a ``train`` mapping (None: the defaults); unknown keys raise ``ValueError``."""
+    d = dict(section or {})
+    _check_section(("train",), d)
+    for key, kind in (("optim", OptimConfig), ("loss", losses.LossWeights)):
+      value = d.get(key)
+      if value is None or isinstance(value, Mapping):
+        _check_section(("train", key), value or {})
+        d[key] = kind(**(value or {}))
+    if "stop" in d and not isinstance(d["stop"], StopRule):
+      d["stop"] = StopRule.from_config(d["stop"])
+    for key in ("steps", "batch_size", "seed", "seeds", "log_every", "checkpoint_every",
+                "keep_checkpoints", "eval_batch_size", "data_workers"):
+      if d.get(key) is not None:
+        d[key] = int(d[key])
+    if "variants" in d:
+      d["variants"] = tuple(d["variants"])
+    return cls(**d)
+
+  @property
+  def eval_batch(self) -> int:
+    """Sequences per evaluation batch: ``eval_batch_size``, else ``batch_size``."""
+    return self.batch_size if self.eval_batch_size is None else self.eval_batch_size
+
+  def __post_init__(self):
+    if self.select_checkpoint not in ("last", "val"):
+      raise ValueError(f'train.select_checkpoint must be "last" or "val", got {self.select_checkpoint!r}')
+    unknown = [v for v in self.variants if v not in VARIANTS]
+    if unknown:
+      raise ValueError(f"train.variants: unknown variant(s) {unknown}; known: {list(VARIANTS)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class BaselineConfig:
+  """A learned baseline's section (``usm``, ``lfe``, ``ik``).
+
+  Attributes:
+    model: its model config's fields (those of :class:`~nlosjax.models.usm.USMConfig`,
+      ``LFEConfig``, ``IKConfig`` but ``setup`` and ``stride``); where absent, its published widths.
+    optim: entries of :class:`~nlosjax.train.OptimConfig` replacing ``train.optim``'s
+      (e.g. its own learning rate, chosen on validation).
+    recipe: USM only (:data:`USM_RECIPES`): ``"ours"`` or ``"published"``.
+  """
+
+  model: Mapping[str, Any] = dataclasses.field(default_factory=_frozen)
+  optim: Mapping[str, Any] = dataclasses.field(default_factory=_frozen)
+  recipe: str = "ours"
+
+  @classmethod
+  def from_dict(cls, name: str, section: Mapping | None) -> "BaselineConfig":
+    d = dict(section or {})
+    for path, sub in (((name,), d), ((name, "model"), d.get("model")), ((name, "optim"), d.get("optim"))):
+      _check_section(path, sub or {})
+    recipe = d.get("recipe", "ours")
+    if recipe not in USM_RECIPES:
+      raise ValueError(f"config usm.recipe must be one of {USM_RECIPES}, got {recipe!r}")
+    return cls(model=_frozen(d.get("model")), optim=_frozen(d.get("optim")), recipe=recipe)
+
+
+def model_class(variant: str) -> type:
+  """The model config class of ``variant``, by its family (:class:`nlosjax.variants.Variant`)."""
+  family = variant_info(variant).family
+  if family == "stmamba":
+    from nlosjax.models.network import ModelConfig
+    return ModelConfig
+  if family == "usm":
+    from nlosjax.models.usm import USMConfig
+    return USMConfig
+  if family == "lfe":
+    from nlosjax.models.lfe import LFEConfig
+    return LFEConfig
+  from nlosjax.models.ik import IKConfig
+  return IKConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+  """A config's ``data`` section as the loaders read it; :meth:`spec` reads the rest.
+
+  Attributes:
+    section: the whole section (read by :meth:`~nlosjax.data.dataset.DatasetSpec.from_config`).
+    input_stride: under-scanning at load time (every ``input_stride``-th scan point per axis).
+    input_offset: the first kept scan point; the model reads ``stride // 2 + stride * i``,
+      so any other offset is refused.
+    path: the dataset file (None where the config names none).
+    loader: :class:`~nlosjax.data.dataset.LoaderOptions` (``data.loader``).
+  """
+
+  section: Mapping[str, Any]
+  input_stride: int | None
+  input_offset: int | None
+  path: str | None
+  loader: Any
+
+  @classmethod
+  def from_dict(cls, section: Mapping | None) -> "DataConfig":
+    from nlosjax.data.dataset import LoaderOptions
+    d = dict(section or {})
+    for path in (("data",), ("data", "scene"), ("data", "physics"), ("data", "num_sequences")):
+      sub = d if len(path) == 1 else d.get(path[1])
+      if isinstance(sub, Mapping):
+        _check_section(path, sub)
+    stride = None if d.get("input_stride") is None else int(d["input_stride"])
+    offset = d.get("input_offset")
+    if stride is not None:
+      offset = int(offset if offset is not None else stride // 2)
+      if offset != stride // 2:
+        raise ValueError(f"config data.input_offset = {offset}, but the model reads scan points "
+                         f"stride // 2 + stride * i (offset {stride // 2} for stride {stride})")
+    return cls(section=_frozen(d), input_stride=stride, input_offset=offset,
+               path=None if d.get("path") is None else str(d["path"]),
+               loader=LoaderOptions.from_dict(d.get("loader")))
+
+  def stride(self) -> int:
+    """``input_stride``; a ``ValueError`` where the section has none."""
+    if self.input_stride is None:
+      raise ValueError("config data section lacks 'input_stride'")
+    return self.input_stride
+
+  def spec(self):
+    """The dataset's :class:`~nlosjax.data.dataset.DatasetSpec` (what :func:`ensure_dataset` writes)."""
+    from nlosjax.data.dataset import DatasetSpec
+    return DatasetSpec.from_config(self.section)
+
+  def setup(self):
+    """The full-grid :class:`~nlosjax.physics.Setup` of the section's wall, grid and bins.
+
+    Raises:
+      KeyError, TypeError, ValueError: a section without them.
+    """
+    from nlosjax.physics import Setup
+    s = self.section
+    grid = s["grid"]
+    return Setup(wall_size=s["wall_size"], grid=grid if isinstance(grid, int) else tuple(grid),
+                 bin_width=s["bin_width"], num_bins=s["num_bins"])
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+  """A run's config, typed (module docstring).
+
+  Attributes:
+    data: :class:`DataConfig`.
+    model: Ours' and Ours-S's model fields (:class:`~nlosjax.models.ModelConfig`'s but
+      ``setup``, ``stride`` and ``frames``, which come from the data and the variant).
+    train: :class:`TrainConfig`.
+    baselines: ``"usm"``, ``"lfe"``, ``"ik"`` -> :class:`BaselineConfig`.
+    extra: top-level sections the library does not read (the application's, e.g. ``independent``).
+  """
+
+  data: DataConfig
+  model: Mapping[str, Any]
+  train: TrainConfig
+  baselines: Mapping[str, BaselineConfig]
+  extra: Mapping[str, Any] = dataclasses.field(default_factory=_frozen)
+
+  @classmethod
+  def from_dict(cls, config: Mapping) -> "RunConfig":
+    """Read a preset's nested dict (the one reader); unknown keys of a known section raise ``ValueError``."""
+    if isinstance(config, RunConfig):
+      return config
+    if not isinstance(config, Mapping):
+      raise ValueError(f"a run config must be a mapping or a RunConfig, got {type(config).__name__}")
+    model = dict(config.get("model") or {})
+    _check_section(("model",), model)
+    sections = {"data", "model", "train", *BASELINES}
+    return cls(data=DataConfig.from_dict(config.get("data")), model=_frozen(model),
+               train=TrainConfig.from_dict(config.get("train")),
+               baselines=_frozen({b: BaselineConfig.from_dict(b, config.get(b)) for b in BASELINES}),
+               extra=_frozen({k: v for k, v in config.items() if k not in sections}))
+
+
+def with_defaults(config: Mapping) -> dict:
+  """A preset's dict with :data:`TRAIN_DEFAULTS` filled into its ``train`` section (a new dict, as
+  ``config.json`` records it); unknown ``train`` keys raise ``ValueError``."""
+  _check_section(("train",), config.get("train") or {})
+  return {**config, "train": {**TRAIN_DEFAULTS, **(config.get("train") or {})}}
+
+
+def section_schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
+  """``(keys, sub-sections)`` of the config section at ``path`` (``()``: the top level), from the
+  typed sections' fields: the one schema the reader and the command line's overrides share.
+
+  Empty sets for a path no section has.
+  """
+  if path == ():
+    return set(), {"data", "model", "train", *BASELINES}
+  if path == ("data",):
+    from nlosjax.data.dataset.spec import DatasetSpec
+    keys = ({"wall_size", "grid", "bin_width", "num_bins"} | {"input_stride", "input_offset", "path"}
+            | _field_names(DatasetSpec, ("setup", "num_train", "num_test", "num_val", "scene", "physics")))
+    return keys, {"scene", "loader", "num_sequences", "physics"}
+  if path == ("data", "physics"):
+    from nlosjax.data.dataset.physics import PhysicsMix
+    return _field_names(PhysicsMix), set()
+  if path == ("data", "scene"):
+    from nlosjax.data.scenes import SceneParams
+    return _field_names(SceneParams) | {"max_tilt_deg"}, set()
+  if path == ("data", "loader"):
+    from nlosjax.data.dataset import LoaderOptions
+    return _field_names(LoaderOptions), set()
+  if path == ("data", "num_sequences"):
+    from nlosjax.data.dataset.spec import SPLITS
+    return set(SPLITS), set()
+  if path == ("model",):
+    return _field_names(model_class(next(iter(VARIANTS))), ("setup", "stride", "frames")), set()   # frames: by variant
+  if path == ("train",):
+    return _field_names(TrainConfig, ("optim", "loss", "stop")), {"optim", "loss", "stop"}
+  if path == ("train", "stop"):
+    return _field_names(StopRule), set()
+  if path == ("train", "loss"):
+    return _field_names(losses.LossWeights), set()
+  if path == ("train", "optim") or (len(path) == 2 and path[0] in BASELINES and path[1] == "optim"):
+    return _field_names(OptimConfig), set()
+  if len(path) == 1 and path[0] in BASELINES:
+    return ({"recipe"} if path[0] == "usm" else set()), {"model", "optim"}
+  if len(path) == 2 and path[0] in BASELINES and path[1] == "model":
+    return _field_names(model_class(path[0]), ("setup", "stride")), set()
+  return set(), set()
+
+
+def run_config(config: "RunConfig | Mapping") -> RunConfig:
+  """``config`` as a :class:`RunConfig` (read by :meth:`RunConfig.from_dict` when it is a dict)."""
+  return RunConfig.from_dict(config)
