@@ -13,7 +13,7 @@ optax, orbax-checkpoint, h5py, chex, scipy and matplotlib; tqdm is optional; doc
 
    under a wall-clock limit below 10 minutes (e.g. ``timeout 560`` in front of it, for the
    default ``--budget-s 480``). It needs no install step
-   and no network: only the tree, ``experiments/data/`` (the shipped scan) and
+   and no network: only the tree, ``nlosjax/data/scans/`` (the shipped scan) and
    ``benchmarks/device_reference/reference.npz`` (the CPU values the checks compare with).
    The command manages the budget itself: each part gets a share of it (environment 3 %,
    correctness 20 %, scan kernels 22 %, paper scale 38 %, classic 17 %, unused time rolls

@@ -1,6 +1,6 @@
 """Time ``python -m experiments.reconstruct`` from a cold process: ``benchmarks/results/reconstruct_time.md``.
 
-    python -m benchmarks.reconstruct_time [--capture experiments/data/data_exit_sign.mat]
+    python -m benchmarks.reconstruct_time [--capture nlosjax/data/scans/data_exit_sign.mat]
         [--pretrained real cpu] [--repeats 2]
 
 What a user waits for when reconstructing a capture with a shipped model:
@@ -30,7 +30,7 @@ from experiments import provenance as _machine
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "reconstruct_time.md"
-DEFAULT_CAPTURE = "experiments/data/data_exit_sign.mat"
+DEFAULT_CAPTURE = "nlosjax/data/scans/data_exit_sign.mat"
 LEARNED = ("ours", "ours_s")
 CLASSIC = ("lct", "phasor", "rsd")
 GOAL_S = 10.0

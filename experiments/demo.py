@@ -2,7 +2,7 @@
 
     python -m experiments.demo [--out runs/demo] [--scan FILE]
 
-Loads the O'Toole et al. 2018 exit-sign scan (``experiments/data``), runs
+Loads the O'Toole et al. 2018 exit-sign scan (``nlosjax/data/scans``), runs
 FBP, LCT, f-k, phasor and RSD (jitted; compile and run time reported
 separately), and writes ``intensity_depth.png`` (one row per method:
 intensity and depth) and ``timings.json`` into ``--out``.

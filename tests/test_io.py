@@ -440,13 +440,23 @@ def test_package_exports():
   assert nlosjax.data.shipped_scan_path is dio.shipped_scan_path
 
 
+def test_the_shipped_scans_are_package_data():
+  """shipped_scan_path works in an installed package, not only in a checkout: pyproject ships them."""
+  import tomllib
+  with open(REPO / "pyproject.toml", "rb") as f:
+    globs = tomllib.load(f)["tool"]["setuptools"]["package-data"]["nlosjax.data"]
+  for name in (*dio.SHIPPED_SCAN_NAMES, "README.md"):
+    rel = shipped_scan_path().parent.relative_to(REPO / "nlosjax" / "data") / name
+    assert any(rel.as_posix() == g or Path(rel).match(g) for g in globs), f"{rel} is not package data"
+
+
 def test_shipped_scan_is_the_published_file():
   path = shipped_scan_path()
-  assert path == REPO / "experiments" / "data" / "data_exit_sign.mat"
+  assert path == REPO / "nlosjax" / "data" / "scans" / "data_exit_sign.mat"
   assert sha256(path) == EXIT_SIGN_SHA256
-  assert (REPO / "experiments" / "data" / "README.md").is_file()
+  assert (REPO / "nlosjax" / "data" / "scans" / "README.md").is_file()
   su = shipped_scan_path("data_s_u.mat")
-  assert su == REPO / "experiments" / "data" / "data_s_u.mat" and sha256(su) == S_U_SHA256
+  assert su == REPO / "nlosjax" / "data" / "scans" / "data_s_u.mat" and sha256(su) == S_U_SHA256
   transient, setup = load_measurement(su)
   assert transient.shape == (512, 64, 64) and setup.wall_size == pytest.approx(0.7)
   with pytest.raises(ValueError, match="shipped scans are"):
@@ -482,7 +492,7 @@ def test_shipped_scan_path_missing(tmp_path, monkeypatch):
 
 def _real_scan_files():
   """The measured scans the repository ships, and those of a shared/data/real folder beside it, if any."""
-  files = sorted((REPO / "experiments" / "data").glob("data_*.mat"))
+  files = sorted((REPO / "nlosjax" / "data" / "scans").glob("data_*.mat"))
   for root in (Path("/work/shared/data/real"), REPO.parent / "shared" / "data" / "real"):
     if root.is_dir():
       return files + sorted(root.glob("*.mat"))

@@ -21,8 +21,8 @@ def _optimised_xla():
     yield
 
 
-# The measured exit-sign scan ships in the repository (experiments/data/README.md says where it is from).
-EXIT_SIGN = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "data" / "data_exit_sign.mat"
+# The measured exit-sign scan ships in the package (nlosjax/data/scans/README.md says where it is from).
+EXIT_SIGN = pathlib.Path(__file__).resolve().parents[1] / "nlosjax" / "data" / "scans" / "data_exit_sign.mat"
 
 # 16 x 16 scan, 128 bins of 32 ps: T c dt = 1.23 m >= 2 * wall, so the LCT cone stays in range.
 SMALL = Setup(wall_size=0.5, grid=(16, 16), bin_width=32e-12, num_bins=128)

@@ -4,7 +4,7 @@
 measured confocal scan (O'Toole LCT, Stanford f-k, NLOST, nlosjax HDF5; see
 :mod:`nlosjax.data.io`); ``save_capture`` writes the nlosjax single-capture
 layout; ``shipped_scan_path()`` locates the exit-sign scan shipped in
-``experiments/data/``.
+the package (``nlosjax/data/scans/``).
 """
 
 from nlosjax.data.io import detect_format, load_measurement, save_capture, shipped_scan_path

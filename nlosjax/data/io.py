@@ -303,26 +303,25 @@ def load_measurement(path, *, format: str | None = None, zero_bins: int | None =
 
 # -------------------------------------------------------------- shipped data
 
-#: The measured scan shipped with the repository (see experiments/data/README.md).
+#: The measured scan shipped with the package (see nlosjax/data/scans/README.md).
 SHIPPED_SCAN_NAME = "data_exit_sign.mat"
 #: Every measured scan shipped with the repository: the exit sign and the letters S and U.
 SHIPPED_SCAN_NAMES = (SHIPPED_SCAN_NAME, "data_s_u.mat")
-_SHIPPED_DIR = Path(__file__).resolve().parents[2] / "experiments" / "data"
+_SHIPPED_DIR = Path(__file__).resolve().parent / "scans"
 
 
 def shipped_scan_path(name: str = SHIPPED_SCAN_NAME) -> Path:
-  """Path of a measured scan shipped in ``experiments/data/`` (default: the exit sign).
+  """Path of a measured scan shipped in the package, ``nlosjax/data/scans/`` (default: the exit sign).
 
   The O'Toole et al. 2018 ``data_exit_sign.mat`` or ``data_s_u.mat``
   (``lct_mat``: 64 x 64 scan points, 0.8 or 0.7 m wall, 2048 bins of 4 ps),
-  unchanged. They live in the source repository, not in the Python package.
+  unchanged (their provenance: ``nlosjax/data/scans/README.md``).
 
   Args:
     name: one of :data:`SHIPPED_SCAN_NAMES`.
   Raises:
     ValueError: for another name.
-    FileNotFoundError: if the file is absent, e.g. for a pip-installed
-      package without the repository checkout.
+    FileNotFoundError: if the file is absent (an install without its package data).
   """
   if name not in SHIPPED_SCAN_NAMES:
     raise ValueError(f"shipped scans are {SHIPPED_SCAN_NAMES}, got {name!r}")
@@ -330,8 +329,7 @@ def shipped_scan_path(name: str = SHIPPED_SCAN_NAME) -> Path:
   if not path.is_file():
     raise FileNotFoundError(
         errno.ENOENT,
-        f"shipped scan not found at {path}: it lives in the nlosjax source"
-        " repository (experiments/data/), not in an installed package; use a source"
-        f" checkout or pass the path of a copy of {name} to load_measurement",
+        f"shipped scan not found at {path}: the package data of this install are incomplete;"
+        f" reinstall nlosjax or pass the path of a copy of {name} to load_measurement",
         str(path))
   return path
