@@ -116,6 +116,11 @@ def run(args, config, parser, argv=None):
     if args.seeds < 1:
       parser.error(f"--seeds must be >= 1, got {args.seeds}")
     config.setdefault("train", {})["seeds"] = args.seeds
+  from nlosjax.train import run_config, with_defaults
+  try:
+    config = run_config(with_defaults(config))        # typed and frozen from here on
+  except ValueError as e:
+    parser.error(str(e))
   if args.num_processes > 1:
     if not args.coordinator:
       parser.error("--num-processes > 1 needs --coordinator host:port (process 0's address)")
@@ -133,11 +138,11 @@ def run(args, config, parser, argv=None):
   if args.process_id == 0:
     record_invocation(args.workdir, argv)
   extra = {}
-  spec = config.get("independent")
+  spec = config.extra.get("independent")
   if spec:
     from experiments.independent_set import ensure_independent_set
     extra["independent"] = ensure_independent_set(
-        spec["path"], config["data"], spec.get("sequences", 8), spec.get("frames", 8),
+        spec["path"], dict(config.data.section), spec.get("sequences", 8), spec.get("frames", 8),
         spec.get("seed", 2026))
   kwargs = {"extra_test_sets": extra} if extra else {}
   if args.resume_from:

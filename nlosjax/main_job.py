@@ -71,9 +71,13 @@ def tune_classic(config: train.RunConfig | dict, data_path, log) -> dict:
                         data["stride"], batch_size=batch_size, log=log)
 
 
-def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print,
+def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None, log=print,
                        export: train.StateExport | None = None) -> dict:
   """Run the main job (module docstring); returns the test table ``method -> metric -> summary``.
+
+  ``config``: the run's :class:`~nlosjax.train.RunConfig` (a preset's dict is read with its
+  ``train`` defaults filled, :func:`nlosjax.train.with_defaults`); recorded in
+  ``workdir/config.json`` (:meth:`~nlosjax.train.RunConfig.to_dict`).
 
   ``export``: each model's resumable state mirrored into ``export.directory /
   <model folder>`` and resumed from there when it is ahead of ``workdir``
@@ -85,8 +89,7 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
   dataset layout (test split; no choice is made on them), each scored like
   the test split into ``results/table1_<name>.{md,json}``.
   """
-  config = train.with_defaults(config)
-  cfg = train.run_config(config)
+  cfg = train.run_config(config if isinstance(config, train.RunConfig) else train.with_defaults(config))
   tr = cfg.train
   primary = jax.process_index() == 0
   if tr.check_memory:
@@ -95,7 +98,7 @@ def train_and_evaluate(config: dict, workdir, *, extra_test_sets=None, log=print
   workdir = pathlib.Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
   if primary:
-    (workdir / "config.json").write_text(json.dumps(config, indent=2, default=str) + "\n")
+    (workdir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2, default=str) + "\n")
   t0 = time.perf_counter()
   if cfg.data.path is None:
     raise ValueError("config data.path: the main job needs the dataset file's path")

@@ -32,10 +32,10 @@ def record(monkeypatch):
 
 
 def train_dataset(config, record):
-  """``(path, spec, workers)`` of the dataset ``experiments.train``'s main job makes for ``config``."""
-  path = pathlib.Path(config["data"]["path"])
+  """``(path, spec, workers)`` of the dataset ``experiments.train``'s main job makes for ``config`` (a RunConfig)."""
+  path = pathlib.Path(config.data.path)
   path.unlink(missing_ok=True)
-  T.ensure_dataset(T.with_defaults(config), path, log=lambda s: None)
+  T.ensure_dataset(config, path, log=lambda s: None)
   return record.pop("write")
 
 
@@ -47,14 +47,14 @@ def train_dataset(config, record):
 def test_make_dataset_takes_trains_overrides_and_makes_trains_file(record, tmp_path, preset, overrides):
   overrides = overrides + [f"--config.data.path={tmp_path / 'data.h5'}"]
   train_cli.main(["--config", preset, "--workdir", str(tmp_path / "run"), *overrides])
-  config = record["train"]
-  assert config["data"]["path"] == str(tmp_path / "data.h5")
+  config = record["train"]                           # the typed config the main job is handed
+  assert isinstance(config, T.RunConfig) and config.data.path == str(tmp_path / "data.h5")
   assert make_dataset.main(["--config", preset, "--quiet", *overrides]) == 0
   made = record.pop("write")
   assert made == train_dataset(config, record)
   path, spec, workers = made
   assert path == tmp_path / "data.h5"
-  assert spec == D.DatasetSpec.from_config(config["data"])
+  assert spec == D.DatasetSpec.from_config(config.data.section)
   if preset == "cpu":
     assert (spec.renderer, spec.retroreflective, spec.frames) == ("lct", 0.0, 4)
   else:

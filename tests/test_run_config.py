@@ -118,3 +118,31 @@ def test_the_library_indexes_no_config_dict():
           if re.search(r"\bconfig\[", line) or re.search(r"\bconfig\.get\(", line)]
   allowed = {"nlosjax/train/config.py"}                 # the one reader
   assert [h for h in hits if h.split(":")[0] not in allowed] == []
+
+
+@pytest.mark.parametrize("preset", configs.PRESETS)
+def test_to_dict_reads_back_to_the_same_config_also_through_json(preset):
+  import json
+
+  cfg = T.run_config(T.with_defaults(configs.get_config(preset)))
+  d = cfg.to_dict()
+  assert T.run_config(d) == cfg
+  d["data"]["grid"] = -1                        # a plain copy: editing it leaves the config alone
+  assert cfg.data.section["grid"] != -1
+  back = T.run_config(json.loads(json.dumps(cfg.to_dict())))    # a run's config.json
+  assert back.train == cfg.train                 # (lists where tuples were: the models they build agree)
+  setup = cfg.data.spec().setup
+  for variant in ("ours", "usm"):
+    assert T.model_config_for(back, setup, variant) == T.model_config_for(cfg, setup, variant)
+
+
+def test_the_paper_preset_model_is_model_config_paper_itself():
+  from experiments.configs import paper
+  from nlosjax.models.network import ModelConfig
+  cfg = T.run_config(T.with_defaults(configs.get_config("paper")))
+  built = T.model_config_for(cfg, cfg.data.spec().setup, "ours")
+  assert built == ModelConfig.paper(volume_activation="softplus")
+  want = ModelConfig.paper()
+  rebuilt = ModelConfig(setup=want.setup, stride=want.stride, frames=want.frames, **paper.model_section(want))
+  assert rebuilt == want
+  assert paper.model_section(ModelConfig(setup=want.setup, stride=8)) == {}    # the defaults: nothing to say

@@ -186,7 +186,7 @@ def test_train_cli_seeds_flag_sets_the_config(monkeypatch, tmp_path):
   monkeypatch.setattr(independent_set, "ensure_independent_set", lambda path, *a: path)
   monkeypatch.chdir(tmp_path)             # the command records its invocation under the workdir
   cli.main(["--seeds", "3", "--workdir", "runs/x", "--config.train.steps=5"])
-  assert seen["config"]["train"]["seeds"] == 3 and seen["config"]["train"]["steps"] == 5
+  assert seen["config"].train.seeds == 3 and seen["config"].train.steps == 5
   assert seen["workdir"] == "runs/x"
   # The CPU preset scores its models on the independent set too.
   assert seen["extra_test_sets"] == {"independent": "runs/data/independent-cpu-v3-gen3.h5"}

@@ -2,8 +2,9 @@
 
 For reproducing the paper's training run at its sizes: every 8th scan point (16 x 16)
 of a 128 x 128 scan of a 2 m wall, 512 bins of 33 ps, 32-frame sequences (150 train,
-16 validation, 17 test), 40 epochs of batch 4. Every setting is written here, so
-nothing falls back to the cpu preset's values.
+16 validation, 17 test), 40 epochs of batch 4. Every data and training setting is
+written here, so nothing falls back to the cpu preset's values; the model is
+``ModelConfig.paper()`` itself.
 
     python -m experiments.train --config paper --dry-run      # memory and time per device, no data
     python -m experiments.train --config paper --workdir runs/paper
@@ -18,11 +19,23 @@ memory.
 Why each value: docs/decisions.md, "The paper preset's choices".
 """
 
+import dataclasses
+
 from experiments.configs import cpu
+from nlosjax.models.network import ModelConfig
 
 #: Steps of batch 4 per epoch over 150 sequences of 30 training triplets.
 STEPS_PER_EPOCH = 150 * 30 // 4
 EPOCHS = 40
+
+
+def model_section(model: ModelConfig) -> dict:
+  """A config's ``model`` section that builds ``model`` on its data: the fields that differ from
+  :class:`~nlosjax.models.network.ModelConfig`'s defaults, but the Setup, stride and frames (the
+  data and the variant set those)."""
+  defaults = {f.name: f.default for f in dataclasses.fields(ModelConfig)}
+  return {k: getattr(model, k) for k in defaults
+          if k not in ("setup", "stride", "frames") and getattr(model, k) != defaults[k]}
 
 
 def get_config() -> dict:
@@ -44,21 +57,9 @@ def get_config() -> dict:
       "loader": {"ends": "valid", "target": "measurement", "in_memory": False, "prefetch": 4},
       "path": "runs/data/paper.h5",
   })
-  # ModelConfig.paper()'s widths, written out (tests/test_plan.py checks they agree).
-  model = {
-      "width": 32,                 # feature channels C
-      "d_state": 16,               # Mamba state size N
-      "extract_time_stride": 4,    # time bins merged by the extraction
-      "extract_blocks": 2,         # interlaced residual blocks in the extraction
-      "st_depth": 2,               # ST-Mamba blocks per frame
-      "cross_depth": 1,            # cross ST-Mamba blocks per neighbour
-      "volume_time_stride": 2,     # time bins merged before the physics layer
-      "volume_features": 4,        # channels through the physics layer
-      "refine_width": 4,           # channels of the refinement
-      "physics_chunk": 1,          # physics layer one feature channel at a time (memory)
-      "remat": True,               # recompute activations in the backward pass (memory)
-      "volume_activation": "softplus",   # as the cpu preset
-  }
+  # ModelConfig.paper() itself (its widths: C = 32, N = 16, two ST-Mamba blocks, the physics
+  # layer one channel at a time, rematerialisation), with the cpu preset's softplus volume.
+  model = model_section(ModelConfig.paper(volume_activation="softplus"))
   train = {
       "steps": EPOCHS * STEPS_PER_EPOCH,   # 45,000
       "batch_size": 4,

@@ -15,6 +15,7 @@ config dict.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import types
 from typing import Any, Mapping
@@ -272,6 +273,30 @@ class RunConfig:
                train=TrainConfig.from_dict(config.get("train")),
                baselines=_frozen({b: BaselineConfig.from_dict(b, config.get(b)) for b in BASELINES}),
                extra=_frozen({k: v for k, v in config.items() if k not in sections}))
+
+  def to_dict(self) -> dict:
+    """The plain dict this config is read back from (a run's ``config.json``).
+
+    The data and model sections and the application's as given; the ``train`` section with
+    every field (its optimiser, loss and stopping rule whole); each baseline's section.
+    ``RunConfig.from_dict(c.to_dict()) == c``.
+    """
+    t = self.train
+    train = {f.name: getattr(t, f.name) for f in dataclasses.fields(TrainConfig)}
+    train.update(optim=dataclasses.asdict(t.optim), loss=dataclasses.asdict(t.loss), stop=t.stop.to_dict(),
+                 variants=list(t.variants))
+    out = {"data": _thaw(self.data.section), "model": _thaw(self.model), "train": train}
+    for name, b in self.baselines.items():
+      out[name] = {"model": _thaw(b.model), "optim": _thaw(b.optim), **({"recipe": b.recipe} if name == "usm" else {})}
+    out.update(_thaw(self.extra))
+    return out
+
+
+def _thaw(value):
+  """A plain, mutable deep copy of a (possibly read-only) mapping tree."""
+  if isinstance(value, Mapping):
+    return {k: _thaw(v) for k, v in value.items()}
+  return copy.deepcopy(value)
 
 
 def with_defaults(config: Mapping) -> dict:
