@@ -2,15 +2,16 @@
 
 A preset (``experiments/configs``) writes a nested dict of plain values (``data``,
 ``model``, ``train``, ``usm``, ``lfe``, ``ik``). :meth:`RunConfig.from_dict` reads it
-once: each section's schema is a frozen dataclass (the ``train`` section's is
-:class:`TrainConfig`), a key no section
-reads is a ``ValueError`` naming the known ones, and the library's functions read the
-typed fields. A key the config leaves out takes its default where it has one; the
-data section's Setup keys are needed only by what builds a Setup from them.
+once: each section's schema is a frozen dataclass (:class:`TrainConfig`,
+:class:`DataConfig`, :class:`BaselineConfig`; :func:`section_schema` lists every
+section's keys, for the command line's overrides too), a key no section reads is a
+``ValueError`` naming the known ones, and the library's functions read the typed
+fields. A key the config leaves out takes its default where it has one; the data
+section's Setup keys are needed only by what builds a Setup from them.
 
 The library's functions take a :class:`RunConfig`; during the move they also accept
 the dict and read it here (:func:`run_config`), so nothing in ``nlosjax`` indexes a
-config dict.
+config dict. :meth:`RunConfig.to_dict` is what a run records (``config.json``).
 """
 
 from __future__ import annotations
