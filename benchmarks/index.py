@@ -65,7 +65,7 @@ GOALS = {
     "scan": "associative <= 4x / <= 10x the exp floor (forward / fwd+bwd), best <= 2x / <= 6x, "
             "auto within 10 % of the best, fwd+bwd peak <= 3x inputs + outputs",
     "scan_torch": "associative >= 5x faster than mambapy's pscan, fwd+bwd",
-    "stopping_replay": "time to the validation plateau halved (issue 62) by a stopping rule that keeps the "
+    "stopping_replay": "time to the validation plateau halved by a stopping rule that keeps the "
                        "best validation score",
     "table1": "Ours - Ours-S >= +0.5 dB; Ours >= best classic + 3 dB; "
               "Ours >= USM + 0.5 dB",
