@@ -27,7 +27,7 @@ experiments.train``: workdir, variant folder or checkpoints folder), else the
 weights shipped inside the package, ``--pretrained NAME`` (default ``real``;
 ``nlosjax.inference.pretrained_names()`` lists them; ``cpu`` is trained on
 the cpu preset's 32 x 32 synthetic scans). Either way the model moves to the
-capture as described above (``nlosjax.inference.adapt_to_capture``).
+capture as described above (``nlosjax.inference.for_capture``).
 
 ``--scan-stride K`` under-scans the capture (interval sampling: scan points
 ``K // 2 + K i``, the network's convention): classic methods then run on the

@@ -138,7 +138,7 @@ def adapt(model_config, params, frames, *, trainable=DEFAULT_TRAINABLE, steps: i
 
   Args:
     model_config: the network's config, moved to the capture
-      (:func:`nlosjax.inference.adapt_to_capture` ``.model_config``).
+      (:func:`nlosjax.inference.for_capture` ``.model_config``).
     params: its parameters.
     frames: ``[F, T, h, w]`` under-scanned counts in the model's bins; every frame is fitted.
     trainable: parameter path prefixes to fit (:data:`DEFAULT_TRAINABLE`).

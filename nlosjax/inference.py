@@ -3,7 +3,7 @@
 :func:`load_trained` reads the parameters of the latest checkpoint written by
 ``python -m experiments.train`` (``WORKDIR/<variant>/checkpoints``, orbax) and
 rebuilds the model config from the run's ``config.json``; it needs no
-optimizer state and no training data. :func:`adapt_to_capture` moves the
+optimizer state and no training data. :func:`for_capture` moves the
 trained network to a measured capture: the same parameters, the physics layer
 rebuilt for the capture's wall, grid and bins (the network's parameter tree
 does not depend on the Setup; see :mod:`nlosjax.models.network`), with time
@@ -251,7 +251,7 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
       (:meth:`~nlosjax.models.network.ModelConfig.with_setup`: the same
       parameters, the physics layer rebuilt); default: the training Setup. Its
       bin width must be the trained one (ValueError otherwise); for a measured
-      capture with other bins use :func:`adapt_to_capture`, which rebins it.
+      capture with other bins use :func:`for_capture`, which rebins it.
     root: the folder holding the weights folders (default: the package's; tests).
   Returns:
     ``(ModelConfig, params, provenance)``: params a nested dict of float32
@@ -299,7 +299,7 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
     if not np.isclose(setup.bin_width, mcfg.setup.bin_width, rtol=1e-9, atol=0.0):
       raise ValueError(f"{where}: trained on {mcfg.setup.bin_width:g} s bins, the setup has"
                        f" {setup.bin_width:g} s ones; the network reads its trained bin width:"
-                       " use nlosjax.inference.adapt_to_capture(model_config, capture) to rebin"
+                       " use nlosjax.inference.for_capture(model_config, capture) to rebin"
                        " a capture to it")
     mcfg = mcfg.with_setup(setup)
   return mcfg, params, prov
@@ -382,8 +382,8 @@ def _check_tree(where, params, expected, *, what: str = "checkpoint") -> None:
 
 
 @dataclasses.dataclass(frozen=True)
-class CaptureAdaptation:
-  """How a capture is presented to a trained network.
+class CaptureView:
+  """How a capture is presented to a trained network (:func:`for_capture`).
 
   Attributes:
     bin_factor: capture bins summed into one network bin.
@@ -391,7 +391,7 @@ class CaptureAdaptation:
       and grid; ``bin_factor`` times its bin width; ``T // bin_factor`` bins;
       the capture's depth range, if any).
     model_config: the trained config moved to ``setup``, with the physics
-      layer's wavelet rescaled (see :func:`adapt_to_capture`).
+      layer's wavelet rescaled (see :func:`for_capture`).
   """
 
   bin_factor: int
@@ -443,7 +443,7 @@ def _setup_dependent(model_config) -> tuple[str, ...]:
                       if flat.get(k) != moved.get(k)))
 
 
-def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = None) -> CaptureAdaptation:
+def for_capture(model_config, capture: Setup, *, bin_factor: int | None = None) -> CaptureView:
   """Move a trained model to a capture's geometry, keeping what it learned in bin units.
 
   * Time: ``bin_factor`` (default ``round(trained bin width / capture bin
@@ -489,7 +489,7 @@ def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = N
                 bin_width=capture.bin_width * bin_factor, num_bins=num_bins,
                 depth_range=capture.depth_range, aperture=capture.aperture)
   if getattr(model_config, "physics", None) != "phasor":
-    return CaptureAdaptation(bin_factor=bin_factor, setup=setup,
+    return CaptureView(bin_factor=bin_factor, setup=setup,
                              model_config=dataclasses.replace(model_config, setup=setup))
   # Wavelength in coarse bins, as trained.
   stride = model_config.volume_time_stride
@@ -500,7 +500,13 @@ def adapt_to_capture(model_config, capture: Setup, *, bin_factor: int | None = N
   coarse_length = setup.bin_length * stride
   sampling = max(1.0, per_bin * coarse_length / (2.0 * max(setup.spacing)))
   mcfg = dataclasses.replace(model_config, setup=setup, wavelet_sampling=float(sampling))
-  return CaptureAdaptation(bin_factor=bin_factor, setup=setup, model_config=mcfg)
+  return CaptureView(bin_factor=bin_factor, setup=setup, model_config=mcfg)
+
+
+#: The former names of :func:`for_capture` and :class:`CaptureView` ("adapt" now means only the
+#: fit to one capture, :func:`nlosjax.adaptation.adapt`); kept so existing code runs.
+adapt_to_capture = for_capture
+CaptureAdaptation = CaptureView
 
 
 @functools.lru_cache(maxsize=2)

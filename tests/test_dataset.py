@@ -334,8 +334,27 @@ def test_extend_dataset_adds_the_validation_split_and_keeps_every_stored_sequenc
   assert D.extend_dataset(out, wider, progress=False).generated == 0        # nothing missing
   with pytest.raises(ValueError, match="more sequences"):
     D.extend_dataset(out, dataclasses.replace(spec, num_train=1), progress=False)
-  with pytest.raises(ValueError, match="another data configuration"):
+  with pytest.raises(ValueError, match=r"another data configuration.*seed: file 0, config 9"):
     D.extend_dataset(out, dataclasses.replace(wider, seed=9), progress=False)
+
+
+def test_the_main_jobs_dataset_step_refuses_a_file_of_other_data(tiny, tmp_path):
+  """A config changed under an existing file (a photon range, say) is an error, not a silent
+  run on the old data; the message names what differs."""
+  from nlosjax import train as T
+  path, spec = tiny
+  out = tmp_path / "data.h5"
+  shutil.copy(path, out)
+  config = T.with_defaults({"data": {**spec.to_dict(), "path": str(out)}})
+  T.ensure_dataset(config, out, log=lambda s: None)                  # the same data: used
+  before = out.read_bytes()
+  other = {**config, "data": {**config["data"], "photons": (10.0, 20.0)}}
+  with pytest.raises(ValueError, match=r"photons: file \[.*\], config \[10\.0, 20\.0\]"):
+    T.ensure_dataset(other, out, log=lambda s: None)
+  fewer = {**config, "data": {**config["data"], "num_sequences": {"train": 1, "val": 1, "test": 1}}}
+  with pytest.raises(ValueError, match="more sequences"):
+    T.ensure_dataset(fewer, out, log=lambda s: None)
+  assert out.read_bytes() == before                                  # nothing written
 
 
 # ------------------------------------------------------- under-scanning

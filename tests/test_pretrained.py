@@ -200,8 +200,8 @@ def test_load_pretrained_moves_to_another_setup():
   other = Setup(wall_size=1.0, grid=(16, 16), bin_width=132e-12, num_bins=128)
   mcfg, _, prov = inference.load_pretrained("cpu", "ours_s", setup=other)
   assert mcfg.setup == other and mcfg.frames == 1 and prov["variant"] == "ours_s"
-  # Other bins would be read as the trained ones: refused, pointing at adapt_to_capture.
-  with pytest.raises(ValueError, match="adapt_to_capture"):
+  # Other bins would be read as the trained ones: refused, pointing at for_capture.
+  with pytest.raises(ValueError, match="for_capture"):
     inference.load_pretrained("cpu", "ours_s", setup=Setup(wall_size=1.0, grid=16, bin_width=33e-12,
                                                            num_bins=512))
 
@@ -376,6 +376,11 @@ def test_export_reads_a_committed_run_state(tmp_path):
     export_weights.state_params(run, mcfg)
 
 
+def test_the_former_names_of_for_capture_still_run():
+  assert inference.adapt_to_capture is inference.for_capture
+  assert inference.CaptureAdaptation is inference.CaptureView
+
+
 def test_only_i_k_is_tied_to_its_training_setup():
   """Every shipped network moves to another Setup but I-K, whose kernel volume is its grid's.
 
@@ -393,6 +398,6 @@ def test_only_i_k_is_tied_to_its_training_setup():
     assert tied and all("transform" in t and "kernel_" in t for t in tied), tied
     assert str(tuple(mcfg.kernel_shape())) in tied[0]
     with pytest.raises(ValueError, match="runs on that Setup only"):
-      inference.adapt_to_capture(mcfg, capture)
+      inference.for_capture(mcfg, capture)
     tied.clear()                       # the answer kept per model config is not the caller's list
     assert inference.setup_dependent_params(mcfg)

@@ -141,7 +141,7 @@ def test_reconstruct_cli_images_match_public_reference(scan, method, tmp_path):
 
 
 def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(scan):
-  """The ``real`` preset builds its model, and ``adapt_to_capture`` maps it onto the shipped scan
+  """The ``real`` preset builds its model, and ``for_capture`` maps it onto the shipped scan
   with whole capture bins per network bin and the trained wavelength in bins (same depth range)."""
   import dataclasses
 
@@ -155,7 +155,7 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
   spec = DatasetSpec.from_config(config["data"])
   mcfg = T.model_config_for(config, spec.setup, "ours_s")      # raises if the physics layer can't be built
   _, capture = scan
-  adapted = cio.adapt_to_capture(mcfg, capture)
+  adapted = cio.for_capture(mcfg, capture)
   assert adapted.bin_factor * capture.bin_width == pytest.approx(spec.setup.bin_width)
   assert adapted.bin_factor == cio.default_bin_factor(spec.setup.bin_width, capture.bin_width) == 4
   with pytest.raises(ValueError, match="bin widths"):
@@ -174,7 +174,7 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
   # USM has no phasor layer: the same time binning and geometry, its (loss) wavelet kept as
   # trained. Rescaled as Ours' would be, its carrier on the coarse bins raised "not resolved".
   usm = T.model_config_for(config, spec.setup, "usm")
-  moved = cio.adapt_to_capture(usm, capture)
+  moved = cio.for_capture(usm, capture)
   assert moved.bin_factor == 4 and moved.setup == adapted.setup
   assert moved.model_config == dataclasses.replace(usm, setup=adapted.setup)
   assert moved.model_config.input_shape(1) == (1, 1, capture.num_bins // 4, 16, 16)

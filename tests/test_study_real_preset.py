@@ -6,6 +6,7 @@ import pytest
 
 from experiments import store
 from experiments.studies.real_preset import study
+from nlosjax import train as T
 from tests.tiny_run import tiny_config
 
 TINY = study.Run("tiny-ours_s", "cpu", "ours_s")
@@ -90,10 +91,10 @@ def test_data_of_an_edited_candidate_config_are_refused_not_used(tiny_study):
   cfg = study.run_config(TINY)
   path = store.data_path("tiny.h5")
   path.parent.mkdir(parents=True)
-  study.ensure_data(cfg, path, log=lambda s: None)
+  T.ensure_dataset(cfg, path, log=lambda s: None)
   edited = {**cfg, "data": {**cfg["data"], "photons": (10.0, 20.0)}}
   with pytest.raises(ValueError, match="another data configuration"):
-    study.ensure_data(edited, path, log=lambda s: None)
+    T.ensure_dataset(edited, path, log=lambda s: None)
 
 
 def test_a_candidates_workdir_links_its_runs_and_names_both_variants(monkeypatch, tmp_path):
@@ -137,7 +138,7 @@ def test_alignment_folds_accumulate_across_stretches_and_machines(tmp_path, monk
   monkeypatch.setattr(study, "STATE_DIR", tmp_path / "repo" / "state")
   a = study.Alignment("align-x", "pretrained:real", "ours_s")
   monkeypatch.setattr(study, "ALIGNMENTS", (a,))
-  monkeypatch.setattr(study, "ensure_data", lambda config, path, log: None)
+  monkeypatch.setattr(T, "ensure_dataset", lambda config, path, log: None)
   monkeypatch.setattr(protocol, "validation_psnr", lambda config, path: None)
   monkeypatch.setattr(cli, "load_source", lambda source, variants: (
       tiny_config("unused.h5"), {"ours_s": ("mcfg", {"w": np.zeros(2)})}))

@@ -38,7 +38,7 @@ Protocol (the paper's under-scanning experiment, on measured data):
   name; ``--checkpoint none``: classic methods only) read the sparse scan
   with time summed to the trained bin width (4 x 16 ps), the physics layer
   rebuilt for the scan's wall and grid
-  (``nlosjax.inference.adapt_to_capture``). At their trained stride they
+  (``nlosjax.inference.for_capture``). At their trained stride they
   output the 64 x 64 grid directly. At twice that stride (8) the network keeps
   its trained stride and outputs a 32 x 32 grid of every other scan point
   (full-grid points ``0, 2, ..., 62``, so its inputs ``2 + 4 i`` are the full

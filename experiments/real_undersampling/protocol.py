@@ -248,7 +248,7 @@ def binned_classic(results, methods=("phasor", "rsd"), refined=("phasor",)) -> d
 
   Tells what the networks' coarser bins cost from what the networks do: the
   same sparse scans, interpolation and reference as :func:`run`, but time
-  summed over the bin factor :func:`nlosjax.inference.adapt_to_capture`
+  summed over the bin factor :func:`nlosjax.inference.for_capture`
   uses, and phasor / RSD with the wavelength raised
   to 3 bins per period where their default is unresolved on those bins
   (``nlosjax.evaluation.baselines.default_options``).

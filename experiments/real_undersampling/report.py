@@ -142,7 +142,7 @@ def _network_text(results) -> str:
   from nlosjax.inference import default_bin_factor
   mcfg = next(iter(trained.values()))[0]
   s = mcfg.setup
-  factor = default_bin_factor(s.bin_width, CAPTURE_BIN_WIDTH)   # what adapt_to_capture sums
+  factor = default_bin_factor(s.bin_width, CAPTURE_BIN_WIDTH)   # what for_capture sums
   return (f"the networks on the sparse scan with time summed {factor} × 16 ps ="
           f" {factor * 16} ps (trained on {s.bin_width * 1e12:.0f} ps bins, {s.grid[0]} × {s.grid[1]}"
           f" scans of a {s.wall_size:g} m wall at stride {mcfg.stride}).")

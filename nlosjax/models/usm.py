@@ -115,7 +115,7 @@ class HalfResolutionShapes:
   """
 
   physics = "lct"
-  # What nlosjax.inference.adapt_to_capture reads: time is halved once, before the physics layer.
+  # What nlosjax.inference.for_capture reads: time is halved once, before the physics layer.
   extract_time_stride = 1
   volume_time_stride = 2
 

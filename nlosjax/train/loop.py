@@ -87,8 +87,12 @@ def ensure_dataset(config: RunConfig | dict, path: pathlib.Path, log: Callable[[
 
   An existing file made with the same data configuration but fewer sequences
   (e.g. before the validation split existed) is extended in place, keeping
-  every stored sequence (:func:`~nlosjax.data.dataset.extend_dataset`); a file
-  made with another configuration is used as it is.
+  every stored sequence (:func:`~nlosjax.data.dataset.extend_dataset`).
+
+  Raises:
+    ValueError: ``path`` holds a dataset of another data configuration or generator
+      version (the message names what differs), or more sequences of a split than the
+      config asks for: training on it would not be training on the config's data.
   """
   from nlosjax.data.dataset import extend_dataset, write_dataset
   path = pathlib.Path(path)
@@ -96,11 +100,7 @@ def ensure_dataset(config: RunConfig | dict, path: pathlib.Path, log: Callable[[
   spec = cfg.data.spec()
   workers = cfg.train.data_workers
   if path.exists():
-    try:
-      result = extend_dataset(path, spec, workers=workers)
-    except ValueError as e:
-      log(f"dataset: using {path} as it is ({e})")
-      return
+    result = extend_dataset(path, spec, workers=workers)
     log(f"dataset: using {path}" + (f" (added {result.generated} sequences the config asks for)"
                                     if result.generated else ""))
     return

@@ -139,7 +139,7 @@ def train_run(run: Run, *, deadline: float | None, allow_data_change: bool = Fal
   config = run_config(run)
   data_path = pathlib.Path(config["data"]["path"])
   data_path.parent.mkdir(parents=True, exist_ok=True)
-  ensure_data(config, data_path, log=log)
+  train.ensure_dataset(config, data_path, log=log)   # a file of another config is refused
   digest, fingerprint = dataset_identity(data_path)
   log(f"[{run.name}] data {data_path} (content digest {digest})")
   export = train.StateExport(state_folder(run), data_digest=digest, data_fingerprint=fingerprint,
@@ -167,24 +167,6 @@ def _record_invocation(run: Run, digest: str) -> None:
   record = run_record("python -m experiments.studies.real_preset " + " ".join(sys.argv[1:]))
   with open(folder / "invocations.jsonl", "a") as f:
     f.write(json.dumps({**record, "run": run.name, "data_digest": digest}) + "\n")
-
-
-def ensure_data(config: dict, path: pathlib.Path, *, log: Callable[[str], None] = print) -> None:
-  """Make (or finish, or extend) the run's dataset in the store; a file of another config is refused.
-
-  Stricter than :func:`nlosjax.train.ensure_dataset`, which uses such a file as it is: a
-  study's runs resume across machines and days, so a candidate config edited since its data
-  were made must not train on them unnoticed.
-  """
-  from nlosjax.data.dataset import DatasetSpec, extend_dataset, write_dataset
-  spec = DatasetSpec.from_config(config["data"])
-  workers = int(config["train"].get("data_workers", 1))
-  if path.exists():
-    result = extend_dataset(path, spec, workers=workers)     # ValueError: another configuration
-  else:
-    log(f"dataset: generating {path} ...")
-    result = write_dataset(path, spec, workers=workers)
-  log(f"dataset: {path} ({result.generated} sequences generated now)")
 
 
 def run_study(names=None, *, hours: float | None = None, allow_data_change: bool = False,
@@ -377,7 +359,7 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
   config = train.with_defaults(config)
   data_path = store.data_path(pathlib.Path(config["data"]["path"]).name)   # made in the store, checked strictly
   data_path.parent.mkdir(parents=True, exist_ok=True)
-  ensure_data(config, data_path, log=log)
+  train.ensure_dataset(config, data_path, log=log)   # a file of another config is refused
   validate = protocol.validation_psnr(config, data_path)
   mcfg, params = trained[a.variant]
   sync_alignment(a)

@@ -138,6 +138,19 @@ def _generation_key(spec_json):
     return None
 
 
+def _differences(stored: dict | None, wanted: dict, version) -> str:
+  """What differs between a file's generation key (and generator version) and the config's, for errors."""
+  if stored is None:
+    return "the file records no readable spec"
+  keys = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
+  parts = [f"{k}: file {stored.get(k)!r}, config {wanted.get(k)!r}" for k in keys[:4]]
+  if len(keys) > 4:
+    parts.append(f"and {len(keys) - 4} more")
+  if version != scenes.GENERATOR_VERSION:
+    parts.append(f"generator version: file {version!r}, this code {scenes.GENERATOR_VERSION!r}")
+  return "; ".join(parts) or "no difference found"
+
+
 def _simulate_job(spec_dict, split, index):
   """Worker entry point (process pools pickle a plain dict, not the Setup)."""
   return simulate_sequence(DatasetSpec.from_config(spec_dict), split, index)
@@ -263,9 +276,10 @@ def extend_dataset(path, spec: DatasetSpec, *, workers: int = 1, progress: bool 
   import shutil
   path = pathlib.Path(path)
   with h5py.File(path, "r") as f:
-    if _generation_key(f.attrs.get("spec")) != spec.generation_key() or \
-        f.attrs.get("generator_version") != scenes.GENERATOR_VERSION:
-      raise ValueError(f"{path}: made with another data configuration or generator version; "
+    stored = _generation_key(f.attrs.get("spec"))
+    if stored != spec.generation_key() or f.attrs.get("generator_version") != scenes.GENERATOR_VERSION:
+      raise ValueError(f"{path}: made with another data configuration or generator version "
+                       f"({_differences(stored, spec.generation_key(), f.attrs.get('generator_version'))}); "
                        "move it away (or point data.path elsewhere) to generate this one")
     have = {split: sum(1 for n in f["sequences"] if n.startswith(split + "-")) for split in SPLITS}
   more = {s: have[s] for s in SPLITS if have[s] > spec.count(s)}
