@@ -328,12 +328,13 @@ class ModelConfig(ScanInputConfig):
 
   @classmethod
   def cpu(cls, setup: Setup | None = None, **overrides) -> "ModelConfig":
-    """A CPU-sized model: 8 x 8 x 128 in, 32 x 32 out (1 m wall, 64 ps bins), stride 4.
+    """A small model for tests and examples: 8 x 8 x 128 in, 32 x 32 out (1 m wall, 64 ps bins), stride 4.
 
     C = 16, N = 8, one ST-Mamba block, one cross block per neighbour,
     extraction time stride 2, phasor physics at time stride 2 on 2 feature
     channels, refinement width 4: one forward + backward pass of a batch of 4
-    takes about 1-3 s on 2 CPU cores.
+    takes about 1-3 s on 2 CPU cores. Not the ``cpu`` preset's model, which is
+    narrower (C = 8, N = 4; ``experiments/configs/cpu.py``).
     """
     setup = setup or Setup(wall_size=1.0, grid=(32, 32), bin_width=64e-12, num_bins=128)
     kw = dict(stride=4, frames=3, width=16, extract_time_stride=2, extract_blocks=1, st_depth=1,
