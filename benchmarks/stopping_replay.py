@@ -38,7 +38,6 @@ RECORDED = (50, 4)
 #: Candidate rules ``(every, patience)``: fewer validations without gain, or validations half as often.
 CANDIDATES = ((50, 3), (50, 2), (50, 1), (100, 2), (100, 1))
 MIN_DELTA_DB = 0.05
-N_BOOT = 2000
 
 
 def curves(results: pathlib.Path, root: pathlib.Path = ROOT) -> dict[str, dict]:
@@ -93,10 +92,11 @@ def recorded(run: dict) -> dict:
   return {"step": step, "time_s": time_s, "best": best, "best_step": best_step}
 
 
-def _interval(x: np.ndarray, seed: int = 0) -> tuple[float, float]:
-  rng = np.random.default_rng(seed)
-  means = x[rng.integers(0, len(x), (N_BOOT, len(x)))].mean(axis=1)
-  return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+def _interval(x: np.ndarray) -> tuple[float, float]:
+  """95 % bootstrap interval of the mean over runs (:func:`nlosjax.stats.summarize`, one value a run)."""
+  from nlosjax import stats
+  lo, hi = stats.summarize(x[:, None])["ci95"]
+  return lo, hi
 
 
 def compare(runs: dict[str, dict]) -> list[dict]:
