@@ -116,9 +116,9 @@ def run(args, config, parser, argv=None):
     if args.seeds < 1:
       parser.error(f"--seeds must be >= 1, got {args.seeds}")
     config.setdefault("train", {})["seeds"] = args.seeds
-  from nlosjax.train import run_config, with_defaults
+  from nlosjax.train import read_preset
   try:
-    config = run_config(with_defaults(config))        # typed and frozen from here on
+    config = read_preset(config)        # typed and frozen from here on
   except ValueError as e:
     parser.error(str(e))
   if args.num_processes > 1:

@@ -76,7 +76,7 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
   """Run the main job (module docstring); returns the test table ``method -> metric -> summary``.
 
   ``config``: the run's :class:`~nlosjax.train.RunConfig` (a preset's dict is read with its
-  ``train`` defaults filled, :func:`nlosjax.train.with_defaults`); recorded in
+  ``train`` defaults filled, :func:`nlosjax.train.read_preset`); recorded in
   ``workdir/config.json`` (:meth:`~nlosjax.train.RunConfig.to_dict`).
 
   ``export``: each model's resumable state mirrored into ``export.directory /
@@ -89,7 +89,7 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
   dataset layout (test split; no choice is made on them), each scored like
   the test split into ``results/table1_<name>.{md,json}``.
   """
-  cfg = train.run_config(config if isinstance(config, train.RunConfig) else train.with_defaults(config))
+  cfg = train.read_preset(config)
   tr = cfg.train
   primary = jax.process_index() == 0
   if tr.check_memory:

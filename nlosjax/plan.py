@@ -319,7 +319,7 @@ def verdict(config: RunConfig | dict, plan: StepPlan, memory: int | None, varian
 
 def check_fits(config: RunConfig | dict, *, log: Callable[[str], None] = print) -> None:
   """Compile every variant's train step from shapes; raise :class:`DoesNotFit` if one would not fit."""
-  config = run_config(train.with_defaults(config) if isinstance(config, dict) else config)
+  config = train.read_preset(config)
   setup, mesh = config.data.spec().setup, train.mesh_for(config)
   memory, _ = device_memory()
   for variant in config.train.variants:
@@ -338,7 +338,7 @@ def dry_run(config: RunConfig | dict, *, measure: bool = True, log: Callable[[st
   StepPlan, "reduced": {...} | None, "step_s", "run_s", "fits": bool,
   "problem": str | None}}}``; times are estimates (module docstring, step 3).
   """
-  config = run_config(train.with_defaults(config) if isinstance(config, dict) else config)
+  config = train.read_preset(config)
   setup, mesh = config.data.spec().setup, train.mesh_for(config)
   memory, source = device_memory()
   steps = config.train.steps

@@ -26,9 +26,11 @@ import numpy as np
 import pytest
 
 from nlosjax.ssm import MambaMixer, bidirectional_scan, resolve_method, selective_scan
+from nlosjax.ssm import scan as scan_module
 from nlosjax.ssm.mamba import depthwise_conv
 
-METHODS = ("sequential", "associative", "chunked", "blockwise")
+# Every kernel of the library ("auto" resolves to one of them), the sequential reference first.
+METHODS = ("sequential", *(m for m in scan_module.METHODS if m not in ("sequential", "auto")))
 # Every call under jit: op-by-op (eager) dispatch of the scans is what makes tests slow.
 scan = jax.jit(selective_scan, static_argnames=("reverse", "method", "return_state",
                                                 "chunk_size", "unroll"))

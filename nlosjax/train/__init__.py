@@ -47,6 +47,7 @@ from nlosjax.train.config import (
     DataConfig,
     RunConfig,
     TrainConfig,
+    read_preset,
     run_config,
     with_defaults,
 )
@@ -72,7 +73,7 @@ from nlosjax.train.stopping import StopRule, plateau_reached, read_curve, stop_r
 
 __all__ = [
     "BATCH_KEYS", "BaselineConfig", "Checkpointer", "DataConfig", "OptimConfig", "RunConfig", "StateExport",
-    "StopRule", "TRAIN_DEFAULTS", "TrainConfig", "TrainState", "run_config",
+    "StopRule", "TRAIN_DEFAULTS", "TrainConfig", "TrainState", "read_preset", "run_config",
     "TrainingPaused", "export_state", "import_state",
     "USM_RECIPES", "VARIANT_FRAMES", "abstract_train_state", "compare_model", "create_train_state",
     "ensure_dataset", "initialize_distributed", "learning_rate_at", "make_loader", "make_mesh",

@@ -36,16 +36,6 @@ USM_RECIPES = ("ours", "published")
 BASELINES = tuple(name for name, v in VARIANTS.items() if v.family != "stmamba")
 
 
-#: What a preset's ``train`` section gets where it is silent (:func:`nlosjax.train.with_defaults`):
-#: :class:`TrainConfig`'s defaults, with 8 sequences per evaluation batch.
-TRAIN_DEFAULTS = {
-    "steps": 300, "batch_size": 4, "seed": 0, "seeds": 1, "log_every": 10, "checkpoint_every": 50,
-    "keep_checkpoints": 2, "eval_batch_size": 8, "variants": ("ours_s", "ours"),
-    "data_workers": 1, "optim": {}, "loss": {}, "select_checkpoint": "last",
-    "check_memory": False, "devices": None, "stop": {"rule": "steps"},
-}
-
-
 def _frozen(mapping: Mapping | None) -> Mapping:
   return types.MappingProxyType(dict(mapping or {}))
 
@@ -282,15 +272,24 @@ class RunConfig:
     every field (its optimiser, loss and stopping rule whole); each baseline's section.
     ``RunConfig.from_dict(c.to_dict()) == c``.
     """
-    t = self.train
-    train = {f.name: getattr(t, f.name) for f in dataclasses.fields(TrainConfig)}
-    train.update(optim=dataclasses.asdict(t.optim), loss=dataclasses.asdict(t.loss), stop=t.stop.to_dict(),
-                 variants=list(t.variants))
-    out = {"data": _thaw(self.data.section), "model": _thaw(self.model), "train": train}
+    out = {"data": _thaw(self.data.section), "model": _thaw(self.model), "train": _train_dict(self.train)}
     for name, b in self.baselines.items():
       out[name] = {"model": _thaw(b.model), "optim": _thaw(b.optim), **({"recipe": b.recipe} if name == "usm" else {})}
     out.update(_thaw(self.extra))
     return out
+
+
+def _train_dict(t: TrainConfig) -> dict:
+  """``t`` as a plain ``train`` section: every field, its optimiser, loss and stopping rule whole."""
+  out = {f.name: getattr(t, f.name) for f in dataclasses.fields(TrainConfig)}
+  out.update(optim=dataclasses.asdict(t.optim), loss=dataclasses.asdict(t.loss), stop=t.stop.to_dict(),
+             variants=list(t.variants))
+  return out
+
+
+#: What a preset's ``train`` section gets where it is silent (:func:`with_defaults`):
+#: :class:`TrainConfig`'s defaults, with 8 sequences per evaluation batch.
+TRAIN_DEFAULTS = types.MappingProxyType(_train_dict(TrainConfig(eval_batch_size=8)))
 
 
 def _thaw(value):
@@ -304,7 +303,17 @@ def with_defaults(config: Mapping) -> dict:
   """A preset's dict with :data:`TRAIN_DEFAULTS` filled into its ``train`` section (a new dict, as
   ``config.json`` records it); unknown ``train`` keys raise ``ValueError``."""
   _check_section(("train",), config.get("train") or {})
-  return {**config, "train": {**TRAIN_DEFAULTS, **(config.get("train") or {})}}
+  return {**config, "train": {**_thaw(TRAIN_DEFAULTS), **(config.get("train") or {})}}
+
+
+def read_preset(config: "RunConfig | Mapping") -> RunConfig:
+  """The one way the application's entry points read a config: a :class:`RunConfig` as it is,
+  a preset's dict with its ``train`` defaults filled (:func:`with_defaults`) and read once."""
+  if isinstance(config, RunConfig):
+    return config
+  if not isinstance(config, Mapping):
+    raise ValueError(f"a run config must be a mapping or a RunConfig, got {type(config).__name__}")
+  return RunConfig.from_dict(with_defaults(config))
 
 
 def section_schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
@@ -316,10 +325,11 @@ def section_schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
   if path == ():
     return set(), {"data", "model", "train", *BASELINES}
   if path == ("data",):
-    from nlosjax.data.dataset.spec import DatasetSpec
-    keys = ({"wall_size", "grid", "bin_width", "num_bins"} | {"input_stride", "input_offset", "path"}
-            | _field_names(DatasetSpec, ("setup", "num_train", "num_test", "num_val", "scene", "physics")))
-    return keys, {"scene", "loader", "num_sequences", "physics"}
+    from nlosjax.data.dataset.spec import LOAD_KEYS, SETUP_KEYS, DatasetSpec
+    subsections = {"scene", "loader", "num_sequences", "physics"}
+    keys = ({*SETUP_KEYS, *LOAD_KEYS}
+            | _field_names(DatasetSpec, ("setup", "num_train", "num_test", "num_val"))) - subsections
+    return keys, subsections
   if path == ("data", "physics"):
     from nlosjax.data.dataset.physics import PhysicsMix
     return _field_names(PhysicsMix), set()

@@ -276,10 +276,10 @@ def extend_dataset(path, spec: DatasetSpec, *, workers: int = 1, progress: bool 
   import shutil
   path = pathlib.Path(path)
   with h5py.File(path, "r") as f:
-    stored = _generation_key(f.attrs.get("spec"))
-    if stored != spec.generation_key() or f.attrs.get("generator_version") != scenes.GENERATOR_VERSION:
+    stored, wanted = _generation_key(f.attrs.get("spec")), spec.generation_key()
+    if stored != wanted or f.attrs.get("generator_version") != scenes.GENERATOR_VERSION:
       raise ValueError(f"{path}: made with another data configuration or generator version "
-                       f"({_differences(stored, spec.generation_key(), f.attrs.get('generator_version'))}); "
+                       f"({_differences(stored, wanted, f.attrs.get('generator_version'))}); "
                        "move it away (or point data.path elsewhere) to generate this one")
     have = {split: sum(1 for n in f["sequences"] if n.startswith(split + "-")) for split in SPLITS}
   more = {s: have[s] for s in SPLITS if have[s] > spec.count(s)}

@@ -26,8 +26,10 @@ RENDERERS = ("lct", "transport", "mix")
 #: fixes each split's seed stream (:func:`sequence_seed`): new splits go last.
 SPLITS = ("train", "test", "val")
 
-# Keys of a config's ``data`` section that concern loading, not generation.
-_LOAD_KEYS = ("input_stride", "input_offset", "loader", "path")
+#: Keys of a config's ``data`` section that build its :class:`~nlosjax.physics.Setup`.
+SETUP_KEYS = ("wall_size", "grid", "bin_width", "num_bins")
+#: Keys of a config's ``data`` section that concern loading, not generation.
+LOAD_KEYS = ("input_stride", "input_offset", "loader", "path")
 
 
 def _range(value, name, *, low=None, high=None, positive=False):
@@ -195,10 +197,9 @@ class DatasetSpec:
     """
     if not isinstance(data, Mapping):
       raise ValueError(f"data config must be a mapping, got {type(data).__name__}")
-    d = {k: v for k, v in data.items() if k not in _LOAD_KEYS}
-    setup_keys = ("wall_size", "grid", "bin_width", "num_bins")
-    d.update({k: v for k, v in overrides.items() if k in setup_keys})
-    overrides = {k: v for k, v in overrides.items() if k not in setup_keys}
+    d = {k: v for k, v in data.items() if k not in LOAD_KEYS}
+    d.update({k: v for k, v in overrides.items() if k in SETUP_KEYS})
+    overrides = {k: v for k, v in overrides.items() if k not in SETUP_KEYS}
     try:
       setup = Setup(wall_size=d.pop("wall_size"), grid=_grid(d.pop("grid")),
                     bin_width=d.pop("bin_width"), num_bins=d.pop("num_bins"))
@@ -215,7 +216,7 @@ class DatasetSpec:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(d) - names)
     if unknown:
-      raise ValueError(f"unknown data config key(s) {unknown}; known: {sorted(names | set(_LOAD_KEYS))}")
+      raise ValueError(f"unknown data config key(s) {unknown}; known: {sorted(names | set(LOAD_KEYS))}")
     if isinstance(d.get("scene"), Mapping):
       d["scene"] = scenes.SceneParams.from_dict(d["scene"])
     if isinstance(d.get("physics"), Mapping):
