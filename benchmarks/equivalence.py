@@ -24,6 +24,10 @@ a change to a preset's own values (a learning rate, a step count) moves no probe
 changes a preset regenerates the files that run it rather than relying on this check
 (``main_job.md`` after the ``cpu`` preset's schedule changed in 7e438ba).
 
+A module moved verbatim (:data:`MOVES`) is judged at its new path: a results file naming
+the old path compares the base's code with today's at the new one, and every import of the
+old dotted name, written with the new name, counts as the same code.
+
 Records against several bases may stand side by side (``equivalence.md`` for the first
 base named, ``equivalence_<COMMIT>.md`` for the others; :func:`records`): a file is carried
 when one of them carries it, so files current at different commits can all be carried.
@@ -36,6 +40,7 @@ import argparse
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 import tempfile
@@ -50,6 +55,28 @@ PROBE = HERE / "equivalence_probe.py"
 #: Largest ``max|new - old| / max|old|`` of one probe array that counts as rounding.
 TOLERANCE = 1e-5
 NAME = "equivalence"
+#: Modules moved since a base, old path -> new path (the library's application and study
+#: instruments moved out of ``nlosjax``). Only code moved unchanged belongs here.
+MOVES = {
+    "nlosjax/main_job.py": "experiments/main_job.py",
+    "nlosjax/models/probe.py": "benchmarks/mechanisms/probe.py",
+    "nlosjax/train/align.py": "experiments/alignment.py",
+}
+
+
+def _dotted(path: str) -> str:
+  return path.removesuffix(".py").replace("/", ".")
+
+
+def as_moved(source: str | None) -> str | None:
+  """``source`` with every import of a module of :data:`MOVES` written with its new name."""
+  if source is None:
+    return None
+  for old, new in MOVES.items():
+    (old_pkg, old_name), (new_pkg, new_name) = _dotted(old).rsplit(".", 1), _dotted(new).rsplit(".", 1)
+    source = re.sub(rf"\bfrom {re.escape(old_pkg)} import {old_name}\b", f"from {new_pkg} import {new_name}", source)
+    source = re.sub(rf"\b{re.escape(_dotted(old))}\b", _dotted(new), source)
+  return source
 
 
 def use_todays_weights(tree: pathlib.Path) -> list[str]:
@@ -220,11 +247,13 @@ def _carries(entry, results: pathlib.Path, name: str, files) -> bool:
     if provenance.code_digest(entry.modules, lambda p: show(base, p)) != entry.digest:
       return False                         # not current at the base: nothing to carry
     closure = set(own.modules)
+    today = {m: MOVES.get(m, m) for m in entry.modules}
     moved = [m for m in entry.modules
-             if not _same_code(show(base, m), (provenance.ROOT / m).read_text() if m in files else None, m)]
+             if not _same_code(as_moved(show(base, m)),
+                               (provenance.ROOT / today[m]).read_text() if today[m] in files else None, m)]
   finally:
     show.close()
-  return all(m in closure for m in moved)
+  return all(today[m] in closure for m in moved)
 
 
 def record_name(base: str, first: bool) -> str:

@@ -176,7 +176,7 @@ def main(argv=None) -> int:
   from experiments.provenance import provenance
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
-  from nlosjax.main_job import tune_classic
+  from experiments.main_job import tune_classic
   t0 = time.perf_counter()
   specs = {}
   for item in args.model:

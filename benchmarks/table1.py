@@ -3,7 +3,7 @@
     python -m benchmarks.table1 [--seeds 3] [--config cpu] [--workdir runs/table1]
                                 [--out benchmarks/results/table1.md] [overrides ...]
 
-Runs the main job (:func:`nlosjax.main_job.train_and_evaluate`, the code
+Runs the main job (:func:`experiments.main_job.train_and_evaluate`, the code
 behind ``python -m experiments.train``) with ``--seeds`` training seeds per
 learned variant, so every interval covers the training run as well as the
 test sequences, then writes the results file whole: provenance (command,
@@ -49,7 +49,7 @@ def main(argv=None):
     parser.error(f"--seeds must be >= 1, got {args.seeds}")
   from experiments.cli import apply_overrides, load_config
   from experiments.provenance import provenance
-  from nlosjax.main_job import train_and_evaluate
+  from experiments.main_job import train_and_evaluate
   config = apply_overrides(load_config(args.config), overrides)
   config.setdefault("train", {})["seeds"] = args.seeds
   t0 = time.perf_counter()

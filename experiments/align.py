@@ -8,7 +8,7 @@ For each measured scan (``--data-dir``, the scans of ``experiments.real_undersam
 and each variant of the trained run ``--checkpoint`` (a workdir of
 ``python -m experiments.train``, or ``pretrained:NAME`` for the weights shipped as
 ``NAME-<variant>``): the run's network trained on
-:func:`nlosjax.train.align.align` with the run's synthetic data and the measured
+:func:`experiments.alignment.align` with the run's synthetic data and the measured
 inputs of every *other* scan (each under-scanned at all ``stride^2`` offsets of
 the trained stride, time summed to the trained bins), into
 ``WORKDIR/<variant>-without-<scene>/`` (``params.npz``, ``align.json``). So a
@@ -22,14 +22,14 @@ generated from the run config's data spec first (``nlosjax.train.ensure_dataset`
 ``--lam balanced`` sets each fold's ``lam`` from the training side alone: the MMD term's
 gradient as large as the synthetic loss's, in the median over 8 synthetic training
 batches, at the starting parameters, with that fold's measured inputs
-(:func:`nlosjax.train.align.balanced_lam`); the norms and the ``lam`` are recorded in the
+(:func:`experiments.alignment.balanced_lam`); the norms and the ``lam`` are recorded in the
 fold's ``align.json`` (``"lam_rule"``).
 
 ``--layer auto`` chooses each fold's aligned layer from the training side too: among the
 network's layers that keep a feature vector per time step and scan point (extraction,
 ST-Mamba and cross blocks), the one whose features of the fold's measured inputs stand the
 most noise widths away from those of 8 synthetic training batches
-(:func:`nlosjax.train.align.layer_separation`); the separations and the choice are recorded
+(:func:`experiments.alignment.layer_separation`); the separations and the choice are recorded
 (``"layer_rule"``), and a balanced ``lam`` is measured at that layer.
 """
 
@@ -83,7 +83,7 @@ def fold_lam(lam: float | str, config: dict, data_path, model_config, params, me
   (the MMD term at ``layer``)."""
   if lam != "balanced":
     return float(lam), None
-  from nlosjax.train.align import balanced_lam, term_gradient_norms
+  from experiments.alignment import balanced_lam, term_gradient_norms
   norms = term_gradient_norms(config, data_path, model_config, params, measured, batches=BALANCED_BATCHES,
                               layer=layer)
   value = balanced_lam(norms, BALANCED_SHARE)
@@ -93,7 +93,7 @@ def fold_lam(lam: float | str, config: dict, data_path, model_config, params, me
 
 
 #: ``--layer auto``: the synthetic training inputs the layer is chosen against (batches of the
-#: training split), and the separation's estimates (:func:`nlosjax.train.align.layer_separation`).
+#: training split), and the separation's estimates (:func:`experiments.alignment.layer_separation`).
 AUTO_LAYER_BATCHES, AUTO_LAYER_DRAWS = 8, 16
 
 
@@ -104,7 +104,7 @@ def fold_layer(layer: str, config: dict, data_path, model_config, params, measur
   if layer != "auto":
     return layer, None
   from nlosjax.train import make_loader, select_frames
-  from nlosjax.train.align import chosen_layer, layer_separation
+  from experiments.alignment import chosen_layer, layer_separation
   loader = make_loader(config, data_path, "train", batch_size=int(config["train"]["batch_size"]),
                        shuffle=True, seed=0)
   try:
@@ -129,14 +129,14 @@ def align_folds(config: dict, data_path, model_config, params, inputs: dict, wor
   """Leave one scan out: for each scan of ``inputs``, ``params`` aligned on the *other* scans' inputs.
 
   ``inputs``: ``scene -> [n, F, T, h, w]`` (:func:`measured_inputs`); each fold trains
-  :func:`nlosjax.train.align.align` into :func:`fold_folder` ``(workdir, variant, scene)``;
+  :func:`experiments.alignment.align` into :func:`fold_folder` ``(workdir, variant, scene)``;
   finished folds (:func:`fold_files`) are skipped. ``lam``: a number, or ``"balanced"``
   (:func:`fold_lam`, measured per fold). ``layer``: the aligned layer, or ``"auto"``
   (:func:`fold_layer`, chosen per fold on the fold's training scans). ``before_fold(scene)`` returning False
   stops before that fold (a deadline); ``after_fold(folder)`` runs after each one trained.
   Returns ``(every fold finished, at least one trained now)``.
   """
-  from nlosjax.train.align import align
+  from experiments.alignment import align
   started = False
   for scene in inputs:
     folder = fold_folder(workdir, variant, scene)

@@ -21,7 +21,7 @@ section (the CPU preset does), the models are also scored on an independent
 test set (:mod:`experiments.independent_set`: other shapes, motion, renderer
 and noise code) into ``results/table1_independent.md``. Writes ``WORKDIR/results/{table.md,
 table.json, comparisons.json, validation.json, comparison.png,
-training_curves.png}`` (see :mod:`nlosjax.main_job`); rerun the same command after an interruption to
+training_curves.png}`` (see :mod:`experiments.main_job`); rerun the same command after an interruption to
 resume from the last checkpoint.
 
 ``--dry-run`` builds the data spec, model and optimiser, compiles the train
@@ -134,7 +134,7 @@ def run(args, config, parser, argv=None):
     from nlosjax.plan import dry_run, format_plan
     print(format_plan(dry_run(config, measure=not args.no_measure)))
     return
-  from nlosjax.main_job import train_and_evaluate
+  from experiments.main_job import train_and_evaluate
   if args.process_id == 0:
     record_invocation(args.workdir, argv)
   extra = {}

@@ -1,4 +1,4 @@
-"""nlosjax.train.align: the second stage's loss and loop on a tiny run.
+"""experiments.alignment: the second stage's loss and loop on a tiny run.
 
 Independent references: the synthetic term against the paper's loss computed
 directly from the model's outputs; the feature rows against the layer's shape;
@@ -12,7 +12,7 @@ import pytest
 
 from nlosjax import losses
 from nlosjax import train as T
-from nlosjax.train import align as A
+from experiments import alignment as A
 from tests.tiny_run import make_tiny_dataset, tiny_config
 
 

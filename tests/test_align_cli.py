@@ -13,7 +13,7 @@ from experiments import align as cli
 from nlosjax import inference
 from nlosjax import train as T
 from nlosjax.evaluation import protocol
-from nlosjax.train import align as stage
+from experiments import alignment as stage
 
 
 @pytest.fixture()

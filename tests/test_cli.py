@@ -10,7 +10,7 @@ import pytest
 
 from experiments import cli, independent_set, make_dataset
 from experiments import train as train_cli
-from nlosjax import main_job
+from experiments import main_job
 from nlosjax import train as T
 from nlosjax.data import dataset as D
 

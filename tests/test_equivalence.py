@@ -145,3 +145,23 @@ def test_several_bases_run_todays_probe_once_and_write_a_record_each(tmp_path, m
   assert equivalence.record_name("bbb", False) == "equivalence_bbb.md"
   with pytest.raises(SystemExit):
     equivalence.main(["--base", "aaa", "bbb", "--out", outs[0]])
+
+
+def test_a_module_moved_verbatim_is_judged_at_its_new_path(tmp_path, monkeypatch):
+  before = "b9dbfc3"                  # the last commit before MOVES' modules left nlosjax
+  if results_header.git_output("cat-file", "-e", f"{before}^{{commit}}") is None:
+    pytest.skip(f"this clone lacks commit {before} (a shallow clone)")
+  # The mechanism study's probe moved unchanged and the study's import of it was rewritten;
+  # neither lies in the check's closure, so only the move rule carries the file.
+  modules = ["nlosjax/models/probe.py", "benchmarks/mechanisms/study.py"]
+  entry = _entry(modules, _digest_at(before, modules))
+  _record(tmp_path, base=before)
+  assert "benchmarks/mechanisms/probe.py" not in provenance.code_modules(
+      ["benchmarks.equivalence", "benchmarks.equivalence_probe"])
+  assert equivalence.carried_forward(entry, results=tmp_path) == f"carried forward from {before} by equivalence.md"
+  monkeypatch.setattr(equivalence, "MOVES", {})
+  assert equivalence.carried_forward(entry, results=tmp_path) is None
+  # The rewrite renames imports of the moved module only.
+  monkeypatch.setattr(equivalence, "MOVES", {"a/b/c.py": "d/e.py"})
+  assert equivalence.as_moved("from a.b import c as x\nimport a.b.c\nfrom a.b.cd import y\n") == \
+      "from d import e as x\nimport d.e\nfrom a.b.cd import y\n"

@@ -84,7 +84,7 @@ def test_a_plan_over_the_device_memory_is_refused_with_the_fix(tiny, monkeypatch
     plan.check_fits(tiny, log=lambda s: None)
   assert "more devices" in str(e.value) and "check_memory=False" in str(e.value)
   # The main job refuses before making any data.
-  from nlosjax.main_job import train_and_evaluate
+  from experiments.main_job import train_and_evaluate
   cfg = {**tiny, "train": {**tiny["train"], "check_memory": True}}
   with pytest.raises(plan.DoesNotFit):
     train_and_evaluate(cfg, tiny["data"]["path"] + ".work", log=lambda s: None)

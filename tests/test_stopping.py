@@ -212,7 +212,7 @@ def test_the_default_rule_is_unchanged(data_path, tmp_path):
 
 
 def test_the_main_job_caption_names_how_long_its_models_trained():
-  from nlosjax.main_job import _training_length
+  from experiments.main_job import _training_length
   assert _training_length(T.TrainConfig.from_dict({"steps": 350})) == "350 steps"
   text = _training_length(T.TrainConfig.from_dict(
       {"steps": 350, "stop": {"rule": "plateau", "every": 25, "max_steps": 900}}))

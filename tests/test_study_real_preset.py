@@ -133,7 +133,7 @@ def test_alignment_folds_accumulate_across_stretches_and_machines(tmp_path, monk
 
   from experiments import align as cli
   from nlosjax.evaluation import protocol
-  from nlosjax.train import align as stage
+  from experiments import alignment as stage
   monkeypatch.setenv(store.ENV, str(tmp_path / "home"))
   monkeypatch.setattr(study, "STATE_DIR", tmp_path / "repo" / "state")
   a = study.Alignment("align-x", "pretrained:real", "ours_s")

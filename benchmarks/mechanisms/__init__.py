@@ -49,7 +49,7 @@ After the full row's seed 0 of a budget, the SSM probe (:func:`probe_model`)
 runs on that model and goes into its JSON: the validation PSNR with each SSM's
 output replaced by its input at inference (no retraining), with all of them
 replaced, and the mean SiLU gate of every block
-(:mod:`nlosjax.models.probe`). ``--probe RUN_DIR`` probes any finished run
+(:mod:`benchmarks.mechanisms.probe`). ``--probe RUN_DIR`` probes any finished run
 folder (``WORKDIR/<budget>/<row>-seed<k>``) and stores it in that run's JSON.
 
 ``--untrained`` scores Table 1's methods without training on each budget's test frames

@@ -128,7 +128,7 @@ def probe_model(cfg: dict, data_path, mcfg, params, log: Callable[[str], None] =
   checkpoint (mean over the validation frames of the clamped intensity's PSNR).
   ``intact_psnr`` is computed by that very function, so it equals the run's
   best validation PSNR bit for bit. The bypassed passes run the probe's own
-  program (:func:`nlosjax.models.probe.probed_apply`, a different XLA program,
+  program (:func:`benchmarks.mechanisms.probe.probed_apply`, a different XLA program,
   which may round differently in the last place, and which a process may have
   compiled under other XLA options than the validation forward it cached);
   each ``drop_db`` is measured against that program's pass with nothing
@@ -147,7 +147,7 @@ def probe_model(cfg: dict, data_path, mcfg, params, log: Callable[[str], None] =
 
   from nlosjax import metrics
   from nlosjax.evaluation import protocol
-  from nlosjax.models import probe as P
+  from benchmarks.mechanisms import probe as P
   from nlosjax.train import select_frames
   ssms, blocks = P.ssm_paths(params), P.gate_paths(params)
   fn = P.probed_apply(mcfg, ssms, blocks)

@@ -36,7 +36,7 @@ One concern per module, each usable alone; everything is importable from
 
 Evaluation (classic baselines, scores, tables, figures) is
 :mod:`nlosjax.evaluation`; the main job behind ``python -m experiments.train``
-is :func:`nlosjax.main_job.train_and_evaluate`; the dry run is :mod:`nlosjax.plan`.
+is :func:`experiments.main_job.train_and_evaluate`; the dry run is :mod:`nlosjax.plan`.
 """
 
 from nlosjax.train.checkpoint import Checkpointer, param_fingerprint, run_signature
