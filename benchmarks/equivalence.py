@@ -79,6 +79,52 @@ def as_moved(source: str | None) -> str | None:
   return source
 
 
+def imports_sorted(source: str | None) -> str | None:
+  """``source`` with each run of consecutive import statements in one order, merged where they
+  import from the same module: the renamed imports of a move, re-sorted by the linter, do
+  what the base's did. Comments go; docstrings stay (the code comparison drops them)."""
+  if source is None:
+    return None
+  import ast
+  tree = ast.parse(source)
+
+  def key(node):
+    return (type(node).__name__, getattr(node, "module", None) or "", getattr(node, "level", 0))
+
+  for node in ast.walk(tree):
+    for field in ("body", "orelse", "finalbody"):
+      body = getattr(node, field, None)
+      if not isinstance(body, list):
+        continue
+      out, run = [], []
+      for stmt in [*body, None]:
+        if isinstance(stmt, (ast.Import, ast.ImportFrom)):
+          run.append(stmt)
+          continue
+        merged = {}
+        for imp in run:
+          k = key(imp) if isinstance(imp, ast.ImportFrom) else (key(imp), len(merged))
+          if k in merged:
+            merged[k].names = merged[k].names + imp.names
+          else:
+            merged[k] = imp
+        for imp in merged.values():
+          imp.names = sorted(imp.names, key=lambda a: (a.name, a.asname or ""))
+        out += sorted(merged.values(), key=ast.dump)
+        run = []
+        if stmt is not None:
+          out.append(stmt)
+      setattr(node, field, out)
+  return ast.unparse(tree)
+
+
+def same_moved_code(base: str | None, today: str | None, path: str) -> bool:
+  """Whether ``today``'s module holds ``base``'s code once the moves' imports are renamed (:func:`as_moved`)
+  and import runs put in one order (:func:`imports_sorted`)."""
+  from benchmarks.results_header import same_code
+  return same_code(base, today, path) or same_code(imports_sorted(as_moved(base)), imports_sorted(today), path)
+
+
 def use_todays_weights(tree: pathlib.Path) -> list[str]:
   """Put today's shipped weights (``nlosjax/weights/``) into ``tree``; returns the names that differed.
 
@@ -233,7 +279,6 @@ def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
 def _carries(entry, results: pathlib.Path, name: str, files) -> bool:
   from benchmarks.results_header import GitFiles as _GitFiles
   from benchmarks.results_header import read_entry
-  from benchmarks.results_header import same_code as _same_code
   record = json.loads((results / f"{name}.json").read_text())
   own = read_entry(results / f"{name}.md")
   if not record.get("passed") or any(m not in files for m in own.modules) \
@@ -249,8 +294,8 @@ def _carries(entry, results: pathlib.Path, name: str, files) -> bool:
     closure = set(own.modules)
     today = {m: MOVES.get(m, m) for m in entry.modules}
     moved = [m for m in entry.modules
-             if not _same_code(as_moved(show(base, m)),
-                               (provenance.ROOT / today[m]).read_text() if today[m] in files else None, m)]
+             if not same_moved_code(show(base, m),
+                                    (provenance.ROOT / today[m]).read_text() if today[m] in files else None, m)]
   finally:
     show.close()
   return all(today[m] in closure for m in moved)

@@ -173,10 +173,10 @@ def main(argv=None) -> int:
   argv = sys.argv[1:] if argv is None else list(argv)
   from experiments import configs
   from experiments.independent_set import GENERATOR_VERSION, ensure_independent_set
+  from experiments.main_job import tune_classic
   from experiments.provenance import provenance
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
-  from experiments.main_job import tune_classic
   t0 = time.perf_counter()
   specs = {}
   for item in args.model:

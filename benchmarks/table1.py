@@ -48,8 +48,8 @@ def main(argv=None):
   if args.seeds < 1:
     parser.error(f"--seeds must be >= 1, got {args.seeds}")
   from experiments.cli import apply_overrides, load_config
-  from experiments.provenance import provenance
   from experiments.main_job import train_and_evaluate
+  from experiments.provenance import provenance
   config = apply_overrides(load_config(args.config), overrides)
   config.setdefault("train", {})["seeds"] = args.seeds
   t0 = time.perf_counter()

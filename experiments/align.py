@@ -103,8 +103,8 @@ def fold_layer(layer: str, config: dict, data_path, model_config, params, measur
   ``measured`` (the fold's training scans) stand furthest from the synthetic training inputs'."""
   if layer != "auto":
     return layer, None
-  from nlosjax.train import make_loader, select_frames
   from experiments.alignment import chosen_layer, layer_separation
+  from nlosjax.train import make_loader, select_frames
   loader = make_loader(config, data_path, "train", batch_size=int(config["train"]["batch_size"]),
                        shuffle=True, seed=0)
   try:

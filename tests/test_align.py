@@ -10,9 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from experiments import alignment as A
 from nlosjax import losses
 from nlosjax import train as T
-from experiments import alignment as A
 from tests.tiny_run import make_tiny_dataset, tiny_config
 
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from experiments import align as cli
+from experiments import alignment as stage
 from nlosjax import inference
 from nlosjax import train as T
 from nlosjax.evaluation import protocol
-from experiments import alignment as stage
 
 
 @pytest.fixture()

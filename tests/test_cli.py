@@ -8,9 +8,8 @@ import types
 
 import pytest
 
-from experiments import cli, independent_set, make_dataset
+from experiments import cli, independent_set, main_job, make_dataset
 from experiments import train as train_cli
-from experiments import main_job
 from nlosjax import train as T
 from nlosjax.data import dataset as D
 

@@ -165,3 +165,11 @@ def test_a_module_moved_verbatim_is_judged_at_its_new_path(tmp_path, monkeypatch
   monkeypatch.setattr(equivalence, "MOVES", {"a/b/c.py": "d/e.py"})
   assert equivalence.as_moved("from a.b import c as x\nimport a.b.c\nfrom a.b.cd import y\n") == \
       "from d import e as x\nimport d.e\nfrom a.b.cd import y\n"
+  # A run of imports the linter re-sorted after the rename does what the base's did; other
+  # reorderings of code do not count as the same.
+  base = "def f():\n  from nlosjax import metrics\n  from a.b import c as P\n  from a import z\n  return P\n"
+  today = "def f():\n  from a import z\n  from d import e as P\n  from nlosjax import metrics\n  return P\n"
+  assert equivalence.same_moved_code(base, today, "x.py")
+  assert not equivalence.same_moved_code(base, today.replace("return P", "return z"), "x.py")
+  assert equivalence.same_moved_code("from a import x\nfrom a import y\n", "from a import x, y\n", "x.py")
+  assert not equivalence.same_moved_code("x = 1\ny = 2\n", "y = 2\nx = 1\n", "x.py")

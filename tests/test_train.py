@@ -30,8 +30,8 @@ def data_path(tmp_path_factory):
 
 @pytest.mark.full
 def test_main_job_writes_table_and_figures(data_path, tmp_path, monkeypatch):
-  from nlosjax.evaluation import baselines, protocol, report, scores
   from experiments.main_job import train_and_evaluate
+  from nlosjax.evaluation import baselines, protocol, report, scores
   # Two settings per classic method instead of up to eight: the choice among several is
   # what this job needs; tests/test_evaluation.py checks tune() over the whole grid.
   grid = baselines.option_grid
@@ -177,9 +177,8 @@ def test_upsample_scan_interpolates_linearly_between_samples():
 
 
 def test_train_cli_seeds_flag_sets_the_config(monkeypatch, tmp_path):
-  from experiments import independent_set
+  from experiments import independent_set, main_job
   from experiments import train as cli
-  from experiments import main_job
   seen = {}
   monkeypatch.setattr(main_job, "train_and_evaluate",
                       lambda config, workdir, **kw: seen.update(config=config, workdir=workdir, **kw))

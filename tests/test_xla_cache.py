@@ -85,9 +85,8 @@ def test_counts_are_written_whole_and_added_up(tmp_path):
 
 
 def test_the_main_job_ends_with_the_hit_rate(monkeypatch, capsys, tmp_path):
-  from experiments import independent_set
+  from experiments import independent_set, main_job
   from experiments import train as cli
-  from experiments import main_job
   monkeypatch.setattr(main_job, "train_and_evaluate", lambda config, workdir, **kw: print("trained"))
   monkeypatch.setattr(independent_set, "ensure_independent_set", lambda path, *a: path)
   cli.main(["--workdir", str(tmp_path / "run")])

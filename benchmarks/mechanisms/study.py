@@ -145,9 +145,9 @@ def probe_model(cfg: dict, data_path, mcfg, params, log: Callable[[str], None] =
   import jax.numpy as jnp
   from tqdm import tqdm
 
+  from benchmarks.mechanisms import probe as P
   from nlosjax import metrics
   from nlosjax.evaluation import protocol
-  from benchmarks.mechanisms import probe as P
   from nlosjax.train import select_frames
   ssms, blocks = P.ssm_paths(params), P.gate_paths(params)
   fn = P.probed_apply(mcfg, ssms, blocks)

@@ -291,8 +291,8 @@ def run_classic(base: dict, design: str, name: str, sets: dict, results, preset:
                 log=print) -> dict:
   """The classic methods on set ``name`` with settings tuned on ``design``'s validation split."""
   from benchmarks.mechanisms import machine, write_json
-  from nlosjax import train as T
   from experiments.main_job import tune_classic
+  from nlosjax import train as T
   cfg = design_config(base, design, physics)
   val_path = pathlib.Path(cfg["data"]["path"])
   tuning = pathlib.Path(results) / "physics_shift" / f"tuning-{design}.json"
