@@ -41,7 +41,7 @@ from typing import Any
 import flax.linen as nn
 import jax.numpy as jnp
 
-from nlosjax.ssm.mamba import SelectiveSSM, mirror_params, resolve_dt_rank, torch_default_init
+from nlosjax.ssm.mamba import MixerWidths, SelectiveSSM, mirror_params, torch_default_init
 
 MIXERS = ("temporal", "spatial", "identity")
 # The SSMs of each ST-Mamba block, by ``ModelConfig.variant``.
@@ -96,14 +96,9 @@ class _SSMChain(nn.Module):
     return x
 
 
-class _BlockBase(nn.Module):
-  """Fields shared by the two blocks."""
+class _BlockBase(MixerWidths):
+  """Fields shared by the two blocks (their widths: :class:`~nlosjax.ssm.mamba.MixerWidths`)."""
 
-  d_model: int
-  d_state: int = 16
-  d_conv: int = 4
-  expand: int = 2
-  dt_rank: int | str = "auto"
   mixers: tuple[str, ...] = ("temporal", "spatial")
   temporal_direction: str = "causal"
   scan_method: str = "auto"
@@ -111,14 +106,6 @@ class _BlockBase(nn.Module):
   n_residuals: int = 1
   dtype: Any = jnp.float32
   param_dtype: Any = jnp.float32
-
-  @property
-  def d_inner(self) -> int:
-    return self.expand * self.d_model
-
-  @property
-  def rank(self) -> int:
-    return resolve_dt_rank(self.d_model, self.dt_rank)
 
   def _check(self, x, name: str):
     if x.ndim != 5 or x.shape[-1] != self.d_model:

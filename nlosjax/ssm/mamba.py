@@ -294,7 +294,31 @@ SHARED_SSM_FIELDS = tuple(f.name for f in dataclasses.fields(SelectiveSSM)
                           if f.name not in ("parent", "name", "d_inner", "dt_rank"))
 
 
-class MambaMixer(nn.Module):
+class MixerWidths(nn.Module):
+  """The widths every Mamba-style mixer shares (:class:`MambaMixer`, the network's blocks).
+
+  Attributes:
+    d_model: width in and out; ``d_inner = expand * d_model`` inside (:attr:`d_inner`).
+    d_state: ``N``, states per channel; d_conv: taps of the depthwise conv.
+    dt_rank: rank of the dt projection, or "auto" (``ceil(d_model / 16)``; :attr:`rank`).
+  """
+
+  d_model: int
+  d_state: int = 16
+  d_conv: int = 4
+  expand: int = 2
+  dt_rank: int | str = "auto"
+
+  @property
+  def d_inner(self) -> int:
+    return self.expand * self.d_model
+
+  @property
+  def rank(self) -> int:
+    return resolve_dt_rank(self.d_model, self.dt_rank)
+
+
+class MambaMixer(MixerWidths):
   """Mamba v1 mixer: ``[..., L, d_model] -> [..., L, d_model]`` (see module docstring).
 
   ``in_proj``, a :class:`SelectiveSSM` named ``ssm``, the gate and ``out_proj``.
@@ -324,11 +348,6 @@ class MambaMixer(nn.Module):
       dt bias are always float32).
   """
 
-  d_model: int
-  d_state: int = 16
-  d_conv: int = 4
-  expand: int = 2
-  dt_rank: int | str = "auto"
   direction: str = "causal"
   conv: str = "directional"
   share_params: bool = False
@@ -344,14 +363,6 @@ class MambaMixer(nn.Module):
   n_residuals: int = 1
   dtype: Any = jnp.float32
   param_dtype: Any = jnp.float32
-
-  @property
-  def d_inner(self) -> int:
-    return self.expand * self.d_model
-
-  @property
-  def rank(self) -> int:
-    return resolve_dt_rank(self.d_model, self.dt_rank)
 
   def _check(self, u):
     """The mixer's own fields (the SSM's are checked by :class:`SelectiveSSM`)."""
