@@ -26,7 +26,8 @@ changes a preset regenerates the files that run it rather than relying on this c
 
 A module moved verbatim (:data:`MOVES`) is judged at its new path: a results file naming
 the old path compares the base's code with today's at the new one, and every import of the
-old dotted name, written with the new name, counts as the same code.
+old dotted name, written with the new name, counts as the same code; so does a function or
+class renamed everywhere (:data:`RENAMED`).
 
 Records against several bases may stand side by side (``equivalence.md`` for the first
 base named, ``equivalence_<COMMIT>.md`` for the others; :func:`records`): a file is carried
@@ -63,15 +64,25 @@ MOVES = {
     "nlosjax/train/align.py": "experiments/alignment.py",
 }
 
+#: Functions and classes renamed since a base, old name -> new name (whole words; names
+#: distinctive enough that no other identifier or text spells them).
+RENAMED = {
+    "adapt_to_capture": "for_capture",
+    "CaptureAdaptation": "CaptureView",
+}
+
 
 def _dotted(path: str) -> str:
   return path.removesuffix(".py").replace("/", ".")
 
 
 def as_moved(source: str | None) -> str | None:
-  """``source`` with every import of a module of :data:`MOVES` written with its new name."""
+  """``source`` with every import of a module of :data:`MOVES` written with its new name, and
+  every name of :data:`RENAMED` with its new one."""
   if source is None:
     return None
+  for old, new in RENAMED.items():
+    source = re.sub(rf"\b{re.escape(old)}\b", new, source)
   for old, new in MOVES.items():
     (old_pkg, old_name), (new_pkg, new_name) = _dotted(old).rsplit(".", 1), _dotted(new).rsplit(".", 1)
     source = re.sub(rf"\bfrom {re.escape(old_pkg)} import {old_name}\b", f"from {new_pkg} import {new_name}", source)

@@ -53,7 +53,7 @@ def measured_inputs(files, model_config) -> dict:
   s = model_config.stride
   for path in files:
     x, setup = io.load_measurement(path)
-    prepared = inference.adapt_to_capture(model_config, setup).prepare(x)          # [T, H, W]
+    prepared = inference.for_capture(model_config, setup).prepare(x)          # [T, H, W]
     h, w = model_config.input_grid
     views = np.stack([prepared[:, a::s, b::s][:, :h, :w] for a in range(s) for b in range(s)])
     out[scene_name(pathlib.Path(path))] = np.repeat(views[:, None], model_config.frames, axis=1)

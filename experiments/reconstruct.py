@@ -334,7 +334,7 @@ def reconstruct_model(transient, setup, args, log):
   if args.scan_stride is not None and args.scan_stride != mcfg.stride:
     raise ValueError(f"--scan-stride {args.scan_stride}: the network at {info['checkpoint']} was"
                      f" trained on stride {mcfg.stride}")
-  adapted = cio.adapt_to_capture(mcfg, setup, bin_factor=args.model_bin_factor)
+  adapted = cio.for_capture(mcfg, setup, bin_factor=args.model_bin_factor)
   log(f"model: {info['variant']} step {info['step']} from {info['checkpoint']}; capture bins x"
       f" {adapted.bin_factor} -> {adapted.setup.num_bins} bins of"
       f" {adapted.setup.bin_width * 1e12:.0f} ps; input {adapted.model_config.input_grid} ->"

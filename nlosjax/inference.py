@@ -503,12 +503,6 @@ def for_capture(model_config, capture: Setup, *, bin_factor: int | None = None) 
   return CaptureView(bin_factor=bin_factor, setup=setup, model_config=mcfg)
 
 
-#: The former names of :func:`for_capture` and :class:`CaptureView` ("adapt" now means only the
-#: fit to one capture, :func:`nlosjax.adaptation.adapt`); kept so existing code runs.
-adapt_to_capture = for_capture
-CaptureAdaptation = CaptureView
-
-
 @functools.lru_cache(maxsize=2)
 def _checked_forward(model_config):
   """The jitted, checked forward of ``model_config`` (NaN / negative counts raise), kept per config.

@@ -173,3 +173,7 @@ def test_a_module_moved_verbatim_is_judged_at_its_new_path(tmp_path, monkeypatch
   assert not equivalence.same_moved_code(base, today.replace("return P", "return z"), "x.py")
   assert equivalence.same_moved_code("from a import x\nfrom a import y\n", "from a import x, y\n", "x.py")
   assert not equivalence.same_moved_code("x = 1\ny = 2\n", "y = 2\nx = 1\n", "x.py")
+  # A function renamed everywhere is the same code; a caller left on the old name is not.
+  monkeypatch.setattr(equivalence, "RENAMED", {"adapt_to_capture": "for_capture"})
+  assert equivalence.same_moved_code("v = cio.adapt_to_capture(m, s)\n", "v = cio.for_capture(m, s)\n", "x.py")
+  assert not equivalence.same_moved_code("v = cio.adapt_to_capture(m, s)\n", "v = cio.for_capture(m, t)\n", "x.py")

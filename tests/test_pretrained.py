@@ -376,11 +376,6 @@ def test_export_reads_a_committed_run_state(tmp_path):
     export_weights.state_params(run, mcfg)
 
 
-def test_the_former_names_of_for_capture_still_run():
-  assert inference.adapt_to_capture is inference.for_capture
-  assert inference.CaptureAdaptation is inference.CaptureView
-
-
 def test_only_i_k_is_tied_to_its_training_setup():
   """Every shipped network moves to another Setup but I-K, whose kernel volume is its grid's.
 

@@ -114,14 +114,14 @@ def model_intensity(trained, transient, setup, stride: int) -> np.ndarray:
     return cio.run_model(model_config, p, sparse[None])["intensity"][0]
 
   if stride == mcfg.stride:
-    adapted = cio.adapt_to_capture(mcfg, setup)
+    adapted = cio.for_capture(mcfg, setup)
     sparse = np.asarray(underscan(adapted.prepare(transient), stride))
     return apply(adapted.model_config, sparse)
   if stride == 2 * mcfg.stride:
     # Output grid: every other full-grid point (0, 2, ..., H - 2), spanning (H - 2) spacings.
     half = dataclasses.replace(setup, grid=(H // 2, W // 2),
                                wall_size=setup.wall_size * (H - 2) / (H - 1))
-    adapted = cio.adapt_to_capture(mcfg, half)
+    adapted = cio.for_capture(mcfg, half)
     sparse = np.asarray(underscan(adapted.prepare(transient), stride))   # full-grid 4 + 8 i
     assert sparse.shape[-2:] == adapted.model_config.input_grid
     image = apply(adapted.model_config, sparse)
@@ -271,12 +271,12 @@ def binned_classic(results, methods=("phasor", "rsd"), refined=("phasor",)) -> d
     return None
   from nlosjax.data import io
   from nlosjax.evaluation.baselines import default_options as classic_options
-  from nlosjax.inference import adapt_to_capture
+  from nlosjax.inference import for_capture
   mcfg = next(iter(trained.values()))[0]
   rows, options, extra = {}, {}, {}
   for entry in results["scenes"].values():
     full, capture = io.load_measurement(entry["file"])
-    adapted = adapt_to_capture(mcfg, capture)                  # the networks' time binning
+    adapted = for_capture(mcfg, capture)                  # the networks' time binning
     transient, setup = np.asarray(adapted.prepare(full)), adapted.setup
     for method in methods:
       opts = {**OPTIONS[method], **classic_options(method, setup)}
