@@ -38,6 +38,10 @@ VARIANTS = {v.name: v for v in (
     Variant("ik", "I-K", 1, "ik"),
 )}
 
+#: The paired differences every results table reports, ``(a, b)`` for ``a - b``, where both ran
+#: (each variant also against the best classic method).
+COMPARISONS = (("ours", "ours_s"), ("ours", "usm"), ("ours_s", "usm"), ("ours", "lfe"), ("ours", "ik"))
+
 
 def variant(name: str) -> Variant:
   """The :class:`Variant` called ``name``; ValueError naming the known ones otherwise."""

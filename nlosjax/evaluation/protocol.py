@@ -27,6 +27,7 @@ import numpy as np
 
 from nlosjax.evaluation import baselines, figures, report, scores
 from nlosjax.train.config import RunConfig, run_config
+from nlosjax.variants import COMPARISONS, VARIANTS
 
 __all__ = ["load_split", "model_images", "validation_psnr", "surface_cut", "choose_surface_threshold",
            "tune_model_thresholds",
@@ -270,9 +271,9 @@ def tabulate(evaluation: dict, *, best_classic_method: str | None = None, n_boot
   kw = {} if n_boot is None else {"n_boot": n_boot}
   per_frame, seq = evaluation["scores"], evaluation["sequence"]
   table = {m: scores.summarize_scores(s, seq, **kw) for m, s in per_frame.items()}
-  pairs = [("ours", "ours_s"), ("ours", "usm"), ("ours_s", "usm"), ("ours", "lfe"), ("ours", "ik")]
+  pairs = list(COMPARISONS)
   if best_classic_method is not None:
-    pairs += [(v, best_classic_method) for v in ("ours", "ours_s", "usm", "lfe", "ik")]
+    pairs += [(v, best_classic_method) for v in VARIANTS]
   comparisons = [{"a": a, "b": b, "label": f"{report.label(a)} - {report.label(b)}",
                   "diff": scores.compare_scores(per_frame[a], per_frame[b], seq, **kw)}
                  for a, b in pairs if a in per_frame and b in per_frame]
