@@ -1,1 +1,4 @@
-"""Benchmarks of nlosjax against NumPy/SciPy twins of the public reference code."""
+"""Performance benchmarks: kernels, physics, compilation, memory, the main job's time, the device run,
+beside NumPy/SciPy twins of the public reference code; and the index of every results file
+(``benchmarks/results/``, ``python -m benchmarks.index``) with the check that carries results
+forward across code changes (``benchmarks.equivalence``). The studies are in ``experiments/studies``."""

@@ -56,12 +56,17 @@ PROBE = HERE / "equivalence_probe.py"
 #: Largest ``max|new - old| / max|old|`` of one probe array that counts as rounding.
 TOLERANCE = 1e-5
 NAME = "equivalence"
-#: Modules moved since a base, old path -> new path (the library's application and study
-#: instruments moved out of ``nlosjax``). Only code moved unchanged belongs here.
+#: Modules and folders moved since a base, old path -> new path (a folder ends in ``/``): the
+#: library's application and study instruments moved out of ``nlosjax``, the studies out of
+#: ``benchmarks``. Only code moved unchanged belongs here.
 MOVES = {
     "nlosjax/main_job.py": "experiments/main_job.py",
-    "nlosjax/models/probe.py": "benchmarks/mechanisms/probe.py",
+    "nlosjax/models/probe.py": "experiments/studies/mechanisms/probe.py",
     "nlosjax/train/align.py": "experiments/alignment.py",
+    **{f"benchmarks/{name}/": f"experiments/studies/{name}/" for name in ("mechanisms", "physics_shift")},
+    **{f"benchmarks/{name}.py": f"experiments/studies/{name}.py"
+       for name in ("generalisation", "realism", "ablations", "preset_choice", "time_to_plateau",
+                    "stopping_replay", "independent_test", "temporal_probe")},
 }
 
 #: Functions and classes renamed since a base, old name -> new name (whole words; names
@@ -73,12 +78,21 @@ RENAMED = {
 
 
 def _dotted(path: str) -> str:
-  return path.removesuffix(".py").replace("/", ".")
+  return path.removesuffix("/").removesuffix(".py").replace("/", ".")
+
+
+def moved_path(path: str) -> str:
+  """Where the module at ``path`` (as a base commit names it) lies today (:data:`MOVES`)."""
+  for old, new in MOVES.items():
+    if path == old or (old.endswith("/") and path.startswith(old)):
+      return new + path[len(old):]
+  return path
 
 
 def as_moved(source: str | None) -> str | None:
-  """``source`` with every import of a module of :data:`MOVES` written with its new name, and
-  every name of :data:`RENAMED` with its new one."""
+  """``source`` with every name of a moved module or folder of :data:`MOVES` written with its new
+  one (imports, dotted names in text such as ``python -m`` commands, and file paths), and every
+  name of :data:`RENAMED` with its new one."""
   if source is None:
     return None
   for old, new in RENAMED.items():
@@ -87,6 +101,11 @@ def as_moved(source: str | None) -> str | None:
     (old_pkg, old_name), (new_pkg, new_name) = _dotted(old).rsplit(".", 1), _dotted(new).rsplit(".", 1)
     source = re.sub(rf"\bfrom {re.escape(old_pkg)} import {old_name}\b", f"from {new_pkg} import {new_name}", source)
     source = re.sub(rf"\b{re.escape(_dotted(old))}\b", _dotted(new), source)
+    if old.endswith("/"):
+      source = re.sub(rf"\b{re.escape(old)}", new, source)
+      source = re.sub(rf"\b{re.escape(old[:-1])}\b(?!\.)", new[:-1], source)
+    else:
+      source = re.sub(rf"\b{re.escape(old)}\b", new, source)
   return source
 
 
@@ -303,7 +322,7 @@ def _carries(entry, results: pathlib.Path, name: str, files) -> bool:
     if provenance.code_digest(entry.modules, lambda p: show(base, p)) != entry.digest:
       return False                         # not current at the base: nothing to carry
     closure = set(own.modules)
-    today = {m: MOVES.get(m, m) for m in entry.modules}
+    today = {m: moved_path(m) for m in entry.modules}
     moved = [m for m in entry.modules
              if not same_moved_code(show(base, m),
                                     (provenance.ROOT / today[m]).read_text() if today[m] in files else None, m)]

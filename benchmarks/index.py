@@ -86,11 +86,13 @@ commit, and a digest of the project modules that command may run. The "state" co
 that digest on the tree this index was written from: **current** means the code is the same,
 **stale since <commit>** names the first later commit that changed one of those modules (and
 which ones). A stale file is regenerated with its command; until then the README and `docs/`
-mark the numbers they quote from it as stale. The numbers are in the files. Files a later study
+mark the numbers they quote from it as stale. The command column gives the command as it is
+typed today, and the one that ran where a study has moved since. The numbers are in the files. Files a later study
 supersedes are kept, unindexed, in `results/archive/`, whose README names what replaces each.
 `pip install -e ".[bench]"` installs PyTorch and mambapy, needed only for
-`benchmarks/scan_torch.py`. Imports run downward only: `nlosjax` <- `experiments` <-
-`benchmarks` (provenance and the NumPy twins live in `experiments/`).
+`benchmarks/scan_torch.py`. The studies that write results here live in `experiments/studies/`.
+Imports run downward only: `nlosjax` <- `experiments` <- `benchmarks` (provenance and the NumPy
+twins live in `experiments/`).
 
 This file is written by `python -m benchmarks.index` from the results files' headers; rerun it
 after any benchmark (a test fails while it is out of date).
@@ -188,12 +190,15 @@ def render(results: pathlib.Path = RESULTS, computed: dict[str, str] | None = No
   """The index's Markdown text; ``computed``: :func:`states` where the caller has them already."""
   lines = [HEADER, "| results file | what | command | date (UTC) | machine | commit | "
            "state | goal | companions |", "|---|---|---|---|---|---|---|---|---|"]
+  from benchmarks.equivalence import as_moved
   found = entries(results)
   tables = {e.name for e in found}
   computed = states(results) if computed is None else computed
   for e in found:
+    today = as_moved(e.command)          # the command as it is typed today (a study moved since)
+    command = f"`{today}`" + ("" if today == e.command else f" (ran as `{e.command}`)")
     cells = [f"[{e.name}.md](results/{e.name}.md)", e.title.replace("|", "\\|"),
-             f"`{e.command}`".replace("|", "\\|"), e.date, e.machine, e.commit,
+             command.replace("|", "\\|"), e.date, e.machine, e.commit,
              f"**{st}**" if (st := computed[e.name]) == "current" else st,
              GOALS.get(e.name, "none stated"),
              ", ".join(companions(results, e.name, tables))]

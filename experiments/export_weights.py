@@ -3,20 +3,20 @@
     python -m experiments.export_weights runs/mechanisms/full/full-seed0 --name cpu --variant ours
     python -m experiments.export_weights runs/mechanisms/full/ours_s-seed0 --name cpu --variant ours_s
     python -m experiments.export_weights runs/default --name cpu --variant ours --command "python -m experiments.train"
-    python -m experiments.export_weights benchmarks/mechanisms/state/full/lfe-seed0 --name cpu --variant lfe
+    python -m experiments.export_weights experiments/studies/mechanisms/state/full/lfe-seed0 --name cpu --variant lfe
 
 RUN is one of
 
-* a run folder of the mechanism study (``python -m benchmarks.mechanisms``,
+* a run folder of the mechanism study (``python -m experiments.studies.mechanisms``,
   ``runs/mechanisms/<budget>/<row>-seed<k>``): ``run.json`` (``budget``,
   ``row``, ``seed``, ``config``) and ``model/`` (orbax ``checkpoints/`` and
   ``best_checkpoint/``, ``selection.json`` naming the selected step and the
   stop reason). The run's machine and commit come from ``run.json`` or else
   its record ``RESULTS/mechanisms/<budget>/<row>-seed<k>.json`` (``--results``,
   default ``benchmarks/results``); the default command is ``python -m
-  benchmarks.mechanisms --budgets <budget> --rows <row> --seeds <k>``;
+  experiments.studies.mechanisms --budgets <budget> --rows <row> --seeds <k>``;
 * a run state committed by a study (``--state``, e.g.
-  ``benchmarks/mechanisms/state/<budget>/<row>-seed<k>``: ``model/best.npz``,
+  ``experiments/studies/mechanisms/state/<budget>/<row>-seed<k>``: ``model/best.npz``,
   ``model/selection.json`` and ``model/run_state.json`` of
   :mod:`nlosjax.train.run_state`), with its record
   ``RESULTS/mechanisms/<budget>/<row>-seed<k>.json`` for the machine, the
@@ -94,10 +94,10 @@ def _best_checkpoint_folder(model: pathlib.Path, step: int) -> pathlib.Path:
 def study_run(folder, results) -> dict:
   """What a study's run folder says about its model (module docstring); ValueError naming the file.
 
-  A run of ``benchmarks.mechanisms`` (``run.json`` with ``budget``, ``row``,
+  A run of ``experiments.studies.mechanisms`` (``run.json`` with ``budget``, ``row``,
   ``seed``) or of another study whose ``run.json`` names its ``command``,
   ``record`` (its results JSON, for the machine) and ``study`` (what the run is
-  within it), e.g. ``benchmarks.physics_shift``.
+  within it), e.g. ``experiments.studies.physics_shift``.
   """
   from nlosjax.train import read_selection
   folder = pathlib.Path(folder)
@@ -109,7 +109,7 @@ def study_run(folder, results) -> dict:
       command, study, record = meta["command"], dict(meta["study"]), pathlib.Path(meta["record"])
     else:
       budget, row, seed = meta["budget"], meta["row"], int(meta["seed"])
-      command = f"python -m benchmarks.mechanisms --budgets {budget} --rows {row} --seeds {seed}"
+      command = f"python -m experiments.studies.mechanisms --budgets {budget} --rows {row} --seeds {seed}"
       study = {"budget": budget, "row": row, "seed": seed}
       record = pathlib.Path(results) / "mechanisms" / budget / f"{row}-seed{seed}.json"
   except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
@@ -178,7 +178,7 @@ def state_run(folder, results, preset: str = "cpu") -> dict:
           "steps_taken": int(selection["steps_taken"]), "stop_reason": selection["stop_reason"],
           "best_step": step, "machine": machine, "machine_source": _shown(record_path),
           "commit": machine.get("commit", "unknown"), "date": machine.get("date") or meta.get("written"),
-          "command": f"python -m benchmarks.mechanisms --budgets {budget} --rows {row} --seeds {seed}"
+          "command": f"python -m experiments.studies.mechanisms --budgets {budget} --rows {row} --seeds {seed}"
                      f" --state {_shown(folder.parent.parent)}",
           "study": {"budget": budget, "row": row, "seed": int(seed)}}
 

@@ -2,7 +2,7 @@
 
 The main job (``python -m experiments.train``) scores its models on this set
 beside its own test split (``results/table1_independent.md``), and
-``python -m benchmarks.independent_test`` scores any run on it.
+``python -m experiments.studies.independent_test`` scores any run on it.
 
 The training data come from :mod:`nlosjax.data.scenes` (letters and digits
 cut from font outlines, polygons, plates, boxes, spheres, tori, bars, and

@@ -1,9 +1,9 @@
-"""benchmarks.ablations: rows over several training seeds, paired with the full model seed by seed."""
+"""experiments.studies.ablations: rows over several training seeds, paired with the full model seed by seed."""
 
 import numpy as np
 import pytest
 
-from benchmarks import ablations as A
+from experiments.studies import ablations as A
 
 
 def fake_run(row, seed, psnr, seq):

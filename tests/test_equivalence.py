@@ -151,12 +151,13 @@ def test_a_module_moved_verbatim_is_judged_at_its_new_path(tmp_path, monkeypatch
   before = "b9dbfc3"                  # the last commit before MOVES' modules left nlosjax
   if results_header.git_output("cat-file", "-e", f"{before}^{{commit}}") is None:
     pytest.skip(f"this clone lacks commit {before} (a shallow clone)")
-  # The mechanism study's probe moved unchanged and the study's import of it was rewritten;
-  # neither lies in the check's closure, so only the move rule carries the file.
-  modules = ["nlosjax/models/probe.py", "benchmarks/mechanisms/study.py"]
+  # The mechanism study's probe moved unchanged, the study moved out of benchmarks/ and its
+  # import of the probe was rewritten; neither lies in the check's closure, so only the move
+  # rule carries the file.
+  modules = ["nlosjax/models/probe.py", "benchmarks/mechanisms/study.py"]     # as the base names them
   entry = _entry(modules, _digest_at(before, modules))
   _record(tmp_path, base=before)
-  assert "benchmarks/mechanisms/probe.py" not in provenance.code_modules(
+  assert "experiments/studies/mechanisms/probe.py" not in provenance.code_modules(
       ["benchmarks.equivalence", "benchmarks.equivalence_probe"])
   assert equivalence.carried_forward(entry, results=tmp_path) == f"carried forward from {before} by equivalence.md"
   monkeypatch.setattr(equivalence, "MOVES", {})
@@ -165,6 +166,11 @@ def test_a_module_moved_verbatim_is_judged_at_its_new_path(tmp_path, monkeypatch
   monkeypatch.setattr(equivalence, "MOVES", {"a/b/c.py": "d/e.py"})
   assert equivalence.as_moved("from a.b import c as x\nimport a.b.c\nfrom a.b.cd import y\n") == \
       "from d import e as x\nimport d.e\nfrom a.b.cd import y\n"
+  monkeypatch.setattr(equivalence, "MOVES", {"b/s/": "e/t/s/"})
+  assert equivalence.moved_path("b/s/x.py") == "e/t/s/x.py" and equivalence.moved_path("b/sx.py") == "b/sx.py"
+  assert equivalence.as_moved('"python -m b.s.cli; see b/s/state and ``b/s``"\nfrom b import s\n') == \
+      '"python -m e.t.s.cli; see e/t/s/state and ``e/t/s``"\nfrom e.t import s\n'
+  monkeypatch.setattr(equivalence, "MOVES", {"a/b/c.py": "d/e.py"})
   # A run of imports the linter re-sorted after the rename does what the base's did; other
   # reorderings of code do not count as the same.
   base = "def f():\n  from nlosjax import metrics\n  from a.b import c as P\n  from a import z\n  return P\n"

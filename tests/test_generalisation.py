@@ -1,8 +1,8 @@
-"""benchmarks.generalisation: the brightness and extent ratios, against frames worked by hand."""
+"""experiments.studies.generalisation: the brightness and extent ratios, against frames worked by hand."""
 
 import numpy as np
 
-from benchmarks import generalisation as G
+from experiments.studies import generalisation as G
 
 
 def test_ratios_of_a_hand_worked_frame():

@@ -67,7 +67,7 @@ def test_written_set_is_in_the_documented_layout_with_its_photon_budget(tmp_path
   with pytest.raises(ValueError, match="other detector ranges"):
     I.ensure_independent_set(path, {**DATA, "photons": (1.0, 2.0)})
   with h5py.File(path, "a") as f:
-    f.attrs["generator_version"] = "benchmarks.independent_test"
+    f.attrs["generator_version"] = "experiments.studies.independent_test"
   with pytest.raises(ValueError, match="delete the file"):
     I.ensure_independent_set(path, DATA)
 

@@ -1,4 +1,4 @@
-"""benchmarks.mechanisms: photon budgets, rows, resumable JSON records, the honest report, the SSM probe."""
+"""experiments.studies.mechanisms: photon budgets, rows, resumable JSON records, the honest report, the SSM probe."""
 
 import json
 import math
@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from benchmarks import mechanisms as M
 from experiments import configs
+from experiments.studies import mechanisms as M
 from tests.xla_options import xla_optimizations
 
 
@@ -108,7 +108,8 @@ def test_the_report_names_missing_runs_and_pairs_only_common_seeds(tmp_path):
                  fake_record("full", "no_ssm", s, full[s] - 1 + rng.normal(0, 0.01, 24), seq, frames))
   assert M.main(["--report-only", "--results", str(tmp_path)]) == 0
   text = (tmp_path / M.REPORT).read_text()
-  assert text.startswith("# Mechanisms") and "Produced by `python -m benchmarks.mechanisms --report-only" in text
+  assert text.startswith("# Mechanisms")
+  assert "Produced by `python -m experiments.studies.mechanisms --report-only" in text
   assert "**Missing runs (13 of 18)**" in text
   assert "full/ours_s-seed0" in text and "full/no_ssm-seed2" in text and "tenth/full-seed0" in text
   assert "No run of this budget has finished yet." in text
@@ -305,7 +306,7 @@ def test_a_run_with_another_recipe_than_its_rows_finished_runs_is_refused(tmp_pa
 def test_methods_without_training_are_paired_with_each_seed_of_the_learned_rows(tmp_path):
   """Each learned seed minus the one deterministic score of the method, frame by frame: the
   mean difference is the plain mean of those differences (equal frames per sequence)."""
-  from benchmarks.mechanisms.untrained import untrained_json
+  from experiments.studies.mechanisms.untrained import untrained_json
   rng = np.random.default_rng(1)
   seq, frames = np.repeat(np.arange(6), 4), np.tile(np.arange(1, 5), 6)
   full = {s: 20 + rng.normal(0, 1, 24) for s in M.SEEDS}

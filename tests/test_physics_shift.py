@@ -1,4 +1,4 @@
-"""benchmarks.physics_shift: the held-out renderer, the study's configs and its report.
+"""experiments.studies.physics_shift: the held-out renderer, the study's configs and its report.
 
 Independent references: a triple loop over points, scan points and the
 radiometric formula for the held-out renderer; a hand-made pair of records
@@ -12,8 +12,8 @@ import h5py
 import numpy as np
 import pytest
 
-from benchmarks.physics_shift import heldout, report, study
 from experiments import configs
+from experiments.studies.physics_shift import heldout, report, study
 
 
 def loop_returns(x, y, z, w, scan_x, scan_y, bin_length, T, power, cosines):

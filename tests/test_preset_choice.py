@@ -1,4 +1,4 @@
-"""``benchmarks.preset_choice``'s tables against means computed by hand from fixed per-frame scores."""
+"""``experiments.studies.preset_choice``'s tables against means computed by hand from fixed per-frame scores."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 
-from benchmarks import preset_choice
+from experiments.studies import preset_choice
 
 SEQUENCE = np.array([0, 0, 1, 1, 2, 2])
 #: per-frame PSNR of each (model label, data label); classic scores per data label.

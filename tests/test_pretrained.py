@@ -329,7 +329,7 @@ def _state_copy(tmp_path, row="lfe"):
   """A copy of the committed ``full/<row>-seed0`` run state and its record, as ``(state, results)``."""
   state = tmp_path / "state" / "full" / f"{row}-seed0"
   results = tmp_path / "results"
-  shutil.copytree(ROOT / "benchmarks" / "mechanisms" / "state" / "full" / f"{row}-seed0", state)
+  shutil.copytree(ROOT / "experiments" / "studies" / "mechanisms" / "state" / "full" / f"{row}-seed0", state)
   (results / "mechanisms" / "full").mkdir(parents=True)
   shutil.copy(ROOT / "benchmarks" / "results" / "mechanisms" / "full" / f"{row}-seed0.json",
               results / "mechanisms" / "full")
@@ -351,7 +351,7 @@ def test_export_reads_a_committed_run_state(tmp_path):
   assert run["kind"] == "committed run state" and run["variant"] == "lfe"
   assert run["step"] == record["best_step"] and run["stop_reason"] == record["stop_reason"]
   assert run["recorded_val_psnr"] == pytest.approx(record["best_val_psnr"], abs=1e-9)
-  assert run["command"].startswith("python -m benchmarks.mechanisms --budgets full --rows lfe --seeds 0")
+  assert run["command"].startswith("python -m experiments.studies.mechanisms --budgets full --rows lfe --seeds 0")
   mcfg = train.model_config_for(run["config"], inference.training_setup(run["config"]), "lfe")
   params, restored = export_weights.state_params(run, mcfg)
   assert restored["step"] == run["step"]

@@ -1,4 +1,4 @@
-"""benchmarks.realism: the input features and the held-out classifier.
+"""experiments.studies.realism: the input features and the held-out classifier.
 
 Independent references: inputs built by hand with a known background, return
 width, signal-to-background ratio and falloff exponent; classes drawn from
@@ -8,7 +8,7 @@ one distribution (chance) or two far apart (separable).
 import numpy as np
 import pytest
 
-from benchmarks import realism
+from experiments.studies import realism
 
 BIN_LENGTH = 0.02   # m of round-trip path per bin: a return at bin k is 0.01 k m away
 

@@ -1,10 +1,10 @@
-"""benchmarks.stopping_replay: candidate stopping rules replayed exactly on recorded validation curves."""
+"""experiments.studies.stopping_replay: candidate stopping rules replayed exactly on recorded validation curves."""
 
 import pathlib
 
 import numpy as np
 
-from benchmarks import stopping_replay as S
+from experiments.studies import stopping_replay as S
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 

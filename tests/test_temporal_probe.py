@@ -1,11 +1,11 @@
-"""benchmarks.temporal_probe: the stage-1 knock-out removes every SSM's influence, and only that."""
+"""experiments.studies.temporal_probe: the stage-1 knock-out removes every SSM's influence, and only that."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from benchmarks import temporal_probe as P
+from experiments.studies import temporal_probe as P
 from nlosjax.models.network import ModelConfig, STMambaNet
 from nlosjax.physics.setup import Setup
 from tests.xla_options import xla_optimizations

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from benchmarks import mechanisms as M
-from benchmarks import time_to_plateau as P
 from experiments import configs
+from experiments.studies import mechanisms as M
+from experiments.studies import time_to_plateau as P
 from nlosjax.train import with_defaults
 from tests.test_mechanisms import fake_record
 

@@ -6,7 +6,7 @@ has not been trained yet. It replaces ``real``'s data only if its model wins on
 ``real``'s validation split::
 
     python -m experiments.train --config experiments/configs/real_v4.py --workdir runs/real-v4
-    python -m benchmarks.preset_choice --model shipped=pretrained:real --model v4=runs/real-v4
+    python -m experiments.studies.preset_choice --model shipped=pretrained:real --model v4=runs/real-v4
 
 What changes against ``real`` (docs/decisions.md, "Real preset data", says why):
 the renderer is the physics mix (light-cone operator, transport renderer and point

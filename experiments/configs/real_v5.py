@@ -4,7 +4,7 @@ Not a preset, and not trained yet: like ``real_v4`` it replaces ``real``'s data
 only if its model wins on ``real``'s validation split::
 
     python -m experiments.train --config experiments/configs/real_v5.py --workdir runs/real-v5
-    python -m benchmarks.preset_choice --model shipped=pretrained:real --model v5=runs/real-v5
+    python -m experiments.studies.preset_choice --model shipped=pretrained:real --model v5=runs/real-v5
 
 What changes against ``real_v4``, in the order DENALI (CVPR 2026) found them to
 matter (global photon scale, then pulse width, then noise), and why

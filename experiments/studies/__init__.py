@@ -1,14 +1,28 @@
-"""Studies: what trains models to answer one question, one folder a study, apart from the library and the main job.
+"""Studies: what trains models to answer one question, apart from the library and the main job.
 
-Each study folder holds its definition and runner, and under ``state/`` the
-committed resumable state of each of its long runs (:mod:`nlosjax.train.run_state`),
-so a fresh clone continues a run where the last working stretch stopped. Datasets
-and full run folders live in the store (:mod:`experiments.store`), outside the work
-tree.
+Each study holds its definition and runner (``python -m experiments.studies.<name>``) and,
+for its long runs, under ``state/`` the committed resumable state of each run
+(:mod:`nlosjax.train.run_state`), so a fresh clone continues a run where the last working
+stretch stopped. Datasets and full run folders live in the store (:mod:`experiments.store`),
+outside the work tree. Reports go to ``benchmarks/results/`` beside the performance
+benchmarks', indexed by ``python -m benchmarks.index``.
 
-* :mod:`experiments.studies.real_preset` -- the ``real`` preset's candidate data
-  trained to their validation plateau, across working stretches.
-* :mod:`experiments.studies.csa` -- CSA's prior weight chosen on simulated
-  validation sequences (``tau-rel-help.patch``: ``--tau-rel``'s help corrected, to be
-  applied with the next rerun of the measured protocol, whose results it stales).
+* ``mechanisms`` -- does Ours use its SSMs and its neighbour frames (plateau-trained, with
+  intervals over seeds); ``mechanisms.probe`` bypasses SSMs of a trained network.
+* ``physics_shift`` -- the learned models on forward models they were not trained on.
+* ``generalisation``, ``independent_test`` -- off our own generator: object extent and
+  brightness, an independent renderer's test sequences.
+* ``real_preset`` -- the ``real`` preset's candidate data trained to their plateau, across
+  working stretches; ``preset_choice`` compares candidates on every validation split;
+  ``realism`` tells simulated inputs from measured ones.
+* ``csa`` -- CSA's prior weight chosen on simulated validation sequences
+  (``tau-rel-help.patch``: ``--tau-rel``'s help corrected, to be applied with the next rerun
+  of the measured protocol, whose results it stales).
+* ``ablations`` (the paper's Table 2), ``temporal_probe`` (does Ours read its neighbours),
+  ``time_to_plateau`` and ``stopping_replay`` (how long to train, when to stop).
+
+Still elsewhere: the measured-scan protocol (``experiments.real_undersampling``) and the
+alignment stage (``experiments.align``), and in ``benchmarks/`` the trade-off study and
+Table 1's seeds (their results paths and the main job's timing live there; they move with
+their next rerun).
 """

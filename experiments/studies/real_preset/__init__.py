@@ -21,7 +21,7 @@ validation PSNR so far, the measured time per step, and the hours left, as a ran
 from the fewest steps the plateau rule could still stop at to ``max_steps``.
 When every run is done, ``--candidates`` makes one workdir per candidate in the store,
 linking its runs' folders (:func:`~experiments.studies.real_preset.study.candidate_workdir`),
-and prints the ``python -m benchmarks.preset_choice`` command that compares the shipped
+and prints the ``python -m experiments.studies.preset_choice`` command that compares the shipped
 ``real`` weights with each candidate on every candidate's validation split, beside the
 classic methods (a study does not import the benchmarks; run the printed command)::
 

@@ -19,7 +19,7 @@ def main(argv=None) -> int:
                       help="resume even when the regenerated data's content digest differs from the state's")
   parser.add_argument("--candidates", action="store_true",
                       help="when the runs are done: make one workdir per candidate in the store and print "
-                           "the benchmarks.preset_choice command that compares them with the shipped weights")
+                           "the experiments.studies.preset_choice command that compares them with the shipped weights")
   parser.add_argument("--align", nargs="*", default=None, metavar="NAME",
                       help="run the alignment stage instead of training (default all: "
                            f"{' '.join(a.name for a in study.ALIGNMENTS)})")
@@ -30,7 +30,7 @@ def main(argv=None) -> int:
     models = ["--model shipped=pretrained:real"]
     for config in dict.fromkeys(r.config for r in study.RUNS):
       models.append(f"--model {pathlib.Path(config).stem}={study.candidate_workdir(config)}")
-    print("python -m benchmarks.preset_choice " + " ".join(models)
+    print("python -m experiments.studies.preset_choice " + " ".join(models)
           + f" --methods {' '.join(CLASSIC_METHODS)} --out benchmarks/results/preset_choice_real.md")
     return 0
   if args.hours is not None and not args.hours > 0:

@@ -45,7 +45,7 @@ RUNS = (
     # A second seed of the candidate preset_choice_real.md preferred for Ours-S, so its lead
     # over the shipped weights can carry an interval over seeds too.
     Run("v5-ours_s-seed1", "experiments/configs/real_v5.py", "ours_s", seed=1),
-    # The cpu preset's short schedule (benchmarks/time_to_plateau.py, SHORT: peak 3e-3, cosine
+    # The cpu preset's short schedule (experiments/studies/time_to_plateau.py, SHORT: peak 3e-3, cosine
     # over 400 steps), unchanged, on the v5 candidate: does it reach the plateau sooner here too?
     Run("v5-ours_s-short", "experiments/configs/real_v5.py", "ours_s", learning_rate=3e-3, max_steps=400),
     Run("v5-ours-short", "experiments/configs/real_v5.py", "ours", learning_rate=3e-3, max_steps=400),

@@ -10,7 +10,7 @@ from typing import Callable
 
 import numpy as np
 
-from benchmarks.mechanisms.design import (
+from experiments.studies.mechanisms.design import (
   LOSS_POINTS,
   PROBE,
   ROWS,
@@ -20,7 +20,7 @@ from benchmarks.mechanisms.design import (
   run_json,
   state_dir,
 )
-from benchmarks.mechanisms.records import machine, write_json
+from experiments.studies.mechanisms.records import machine, write_json
 
 
 def _subsample(rows: list[dict], n: int = LOSS_POINTS) -> list[dict]:
@@ -128,7 +128,7 @@ def probe_model(cfg: dict, data_path, mcfg, params, log: Callable[[str], None] =
   checkpoint (mean over the validation frames of the clamped intensity's PSNR).
   ``intact_psnr`` is computed by that very function, so it equals the run's
   best validation PSNR bit for bit. The bypassed passes run the probe's own
-  program (:func:`benchmarks.mechanisms.probe.probed_apply`, a different XLA program,
+  program (:func:`experiments.studies.mechanisms.probe.probed_apply`, a different XLA program,
   which may round differently in the last place, and which a process may have
   compiled under other XLA options than the validation forward it cached);
   each ``drop_db`` is measured against that program's pass with nothing
@@ -145,7 +145,7 @@ def probe_model(cfg: dict, data_path, mcfg, params, log: Callable[[str], None] =
   import jax.numpy as jnp
   from tqdm import tqdm
 
-  from benchmarks.mechanisms import probe as P
+  from experiments.studies.mechanisms import probe as P
   from nlosjax import metrics
   from nlosjax.evaluation import protocol
   from nlosjax.train import select_frames

@@ -1,6 +1,6 @@
 """The held-out renderer: dynamic test sequences from physics no training renderer shares code with.
 
-Written for :mod:`benchmarks.physics_shift` with NumPy and h5py only (no
+Written for :mod:`experiments.studies.physics_shift` with NumPy and h5py only (no
 :mod:`nlosjax.data`, no :mod:`nlosjax.physics`); the planar shapes come from
 :func:`experiments.independent_set.shape_mask` (stroke-font letters, charts,
 rings, crosses, ellipses, triangles, L-shapes), themselves written apart from
@@ -37,7 +37,7 @@ import numpy as np
 __all__ = ["CONDITIONS", "GENERATOR_VERSION", "point_returns", "make_sequence", "write_condition",
            "ensure_condition"]
 
-GENERATOR_VERSION = "benchmarks.physics_shift.heldout/1"
+GENERATOR_VERSION = "experiments.studies.physics_shift.heldout/1"
 
 #: Test conditions: name -> changes from the base condition (``depth``/``size`` in m;
 #: ``photons``/``ambient`` scale the preset's ranges).

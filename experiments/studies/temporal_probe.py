@@ -1,6 +1,6 @@
 """Does a trained Ours read its neighbour frames? ``benchmarks/results/temporal_probe.md``.
 
-    python -m benchmarks.temporal_probe [--checkpoint runs/table1] [--split val]
+    python -m experiments.studies.temporal_probe [--checkpoint runs/table1] [--split val]
                                         [--out benchmarks/results/temporal_probe.md]
 
 Runs the 3-frame model of a training run on one split's triplets four ways
@@ -131,7 +131,7 @@ def main(argv=None):
   if single is not None:
     single = {v: np.concatenate(o) for v, o in single.items()}
     learned["Ours-S"] = (single["middle frame"], np.concatenate(zeroed["Ours-S"]))
-  cmd = "python -m benchmarks.temporal_probe " + " ".join(sys.argv[1:] if argv is None else argv)
+  cmd = "python -m experiments.studies.temporal_probe " + " ".join(sys.argv[1:] if argv is None else argv)
   lines = ["# Does Ours read its neighbour frames?", ""] + provenance(cmd.strip()) + [
       "", f"Seed 0's Ours from `{run}`, {len(gt)} triplets of the `{args.split}` split of "
       f"`{config['data']['path']}`; intensity in [0, 1].", "",

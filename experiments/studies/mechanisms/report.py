@@ -7,7 +7,7 @@ import pathlib
 
 import numpy as np
 
-from benchmarks.mechanisms.design import (
+from experiments.studies.mechanisms.design import (
   COLUMNS,
   FIGURE,
   PAIRS,
@@ -18,8 +18,8 @@ from benchmarks.mechanisms.design import (
   VERDICTS,
   check_consistent,
 )
-from benchmarks.mechanisms.records import _array, load_runs
-from benchmarks.mechanisms.untrained import load_untrained, untrained_lines
+from experiments.studies.mechanisms.records import _array, load_runs
+from experiments.studies.mechanisms.untrained import load_untrained, untrained_lines
 from nlosjax import stats
 from nlosjax.stats import format_interval as cell
 
@@ -196,7 +196,7 @@ def plot_curves(runs: dict, budgets, rows, path: pathlib.Path) -> None:
 def report(runs: dict, design: dict, command: str, untrained: dict | None = None) -> str:
   """The Markdown report of the runs present, against the ``design`` (budgets, rows, seeds).
 
-  ``untrained``: ``budget -> record`` of :mod:`benchmarks.mechanisms.untrained` (a section per budget).
+  ``untrained``: ``budget -> record`` of :mod:`experiments.studies.mechanisms.untrained` (a section per budget).
   """
   untrained = untrained or {}
   from experiments.provenance import provenance

@@ -1,6 +1,6 @@
 """Realism audit: the real preset's simulated inputs beside the measured scans, as the network sees them.
 
-    python -m benchmarks.realism [--config real] [--designs base mix] [--data-dir DIR]
+    python -m experiments.studies.realism [--config real] [--designs base mix] [--data-dir DIR]
         [--sequences 16] [--out benchmarks/results/realism.md]
 
 Inputs are what the network reads: ``[T, h, w]`` counts of the preset's
@@ -259,7 +259,7 @@ def main(argv=None) -> int:
   out = pathlib.Path(args.out)
   figure = out.with_suffix(".png")
   plot(meas, sims, figure)
-  cmd = "python -m benchmarks.realism " + " ".join(argv)
+  cmd = "python -m experiments.studies.realism " + " ".join(argv)
   lines = ["# Realism audit: simulated inputs of the real preset beside the measured scans", ""]
   lines += provenance(cmd.strip()) + [""]
   lines += [f"Preset `{args.config}`: {T} bins of {bw * 1e12:.0f} ps, input every {stride}th scan point "

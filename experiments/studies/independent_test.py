@@ -1,6 +1,6 @@
 """Evaluate a trained run on test sequences made by an independent generator.
 
-    python -m benchmarks.independent_test [--checkpoint runs/default] [--sequences 8]
+    python -m experiments.studies.independent_test [--checkpoint runs/default] [--sequences 8]
         [--frames 8] [--seed 2026] [--data PATH] [--first-seed-only]
         [--out benchmarks/results/table1_independent.md]
 
@@ -58,7 +58,7 @@ def main(argv=None):
   evaluation = protocol.evaluate(config, data, trained, classic_settings=settings,
                                  model_thresholds=thresholds)
   table, comparisons = protocol.tabulate(evaluation, best_classic_method=best)
-  cmd = "python -m benchmarks.independent_test " + " ".join(sys.argv[1:] if argv is None else argv)
+  cmd = "python -m experiments.studies.independent_test " + " ".join(sys.argv[1:] if argv is None else argv)
   where = (f"the settings the run chose on its validation split (`{chosen}`)" if settings
            else "their defaults (the run recorded no validation choices)")
   seeds = ", ".join(f"{v} {k}" for v, k in n_seeds.items())

@@ -1,4 +1,4 @@
-"""The report of :mod:`benchmarks.physics_shift`, rebuilt from its JSON records alone.
+"""The report of :mod:`experiments.studies.physics_shift`, rebuilt from its JSON records alone.
 
 Per test set: each learned run's mean intensity PSNR and object recall with
 95 % bootstrap intervals over sequences, the classic methods' (the best one
@@ -13,7 +13,7 @@ import pathlib
 
 import numpy as np
 
-from benchmarks.physics_shift import heldout, study
+from experiments.studies.physics_shift import heldout, study
 from nlosjax import stats
 
 #: The goal margin over the best classic method on a held-out family or condition (dB).
@@ -146,9 +146,9 @@ def to_markdown(runs: dict, classic: dict, header: list[str], conditions) -> str
       "sequences whose forward model is drawn per sequence from every family of "
       "`nlosjax.data.dataset.physics.PhysicsMix` (light-cone operator, transport with visibility and "
       "cosines, point scatterers; falloff, impulse response, background, gain and time-zero offset "
-      "randomised); **wide** = the mix with wider scenes (`benchmarks.physics_shift.study.wide_scene`); "
+      "randomised); **wide** = the mix with wider scenes (`experiments.studies.physics_shift.study.wide_scene`); "
       "**without F** = the same mix without family F. Every learned run trains to the "
-      "validation plateau of `benchmarks.mechanisms` and picks its checkpoint and surface threshold on "
+      "validation plateau of `experiments.studies.mechanisms` and picks its checkpoint and surface threshold on "
       "its own training data's validation split. The classic methods' settings, and which of them is "
       "best, are chosen on the validation split of the design that left the set's family out (held-out "
       "families) or of the mix (held-out renderer). Nothing is chosen on a test set. Intervals: 95 % "
@@ -180,7 +180,7 @@ def to_markdown(runs: dict, classic: dict, header: list[str], conditions) -> str
   for f in study.FAMILIES:
     for design in study.CANDIDATES:
       lines.append(_row(f"{f} ({LABELS[design]})", compare(runs, classic, f"family:{f}", design)))
-  lines += ["", "## Held-out renderer (`benchmarks/physics_shift/heldout.py`, never trained on)", "",
+  lines += ["", "## Held-out renderer (`experiments/studies/physics_shift/heldout.py`, never trained on)", "",
             "Conditions (changes from objects at 0.5–1.5 m, 0.25–0.6 m across, no cosines, r⁻⁴, the "
             "preset's photon and ambient ranges): " + "; ".join(
                 f"`{k}` {json.dumps(v) if v else '(none)'}" for k, v in heldout.CONDITIONS.items()

@@ -1,12 +1,12 @@
 """The plateau rule replayed: would stopping sooner have kept the same validation score? (issue 62)
 
-    python -m benchmarks.stopping_replay [--results benchmarks/results]
+    python -m experiments.studies.stopping_replay [--results benchmarks/results]
 
 Every plateau-trained run we keep has its validation curve on file: the mechanism study's and
 the time-to-plateau records (``RESULTS/mechanisms/<budget>/*.json``,
 ``RESULTS/time_to_plateau/*.json``) and the committed states of the long-run studies
-(``validation_curve.json`` under ``experiments/studies/*/state`` and
-``benchmarks/physics_shift/state``). Those runs validated every 50 steps and stopped after 4
+(``validation_curve.json`` under ``experiments/studies/*/state``, the mechanism study's
+aside, read from its records). Those runs validated every 50 steps and stopped after 4
 validations without a gain above 0.05 dB (``nlosjax.train.StopRule``'s defaults).
 
 A rule that validates at a subset of those steps and stops no later sees exactly the same
@@ -31,7 +31,7 @@ import sys
 
 import numpy as np
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 NAME = "stopping_replay"
 #: The rule every replayed run was trained with (every, patience); candidates are replayed against it.
 RECORDED = (50, 4)
@@ -52,8 +52,9 @@ def curves(results: pathlib.Path, root: pathlib.Path = ROOT) -> dict[str, dict]:
           "points": [(int(p["step"]), float(p["val_psnr"]), float(p["time_s"]), float(p["val_s"]))
                      for p in r["validation_curve"]],
           "rule": r["config"]["train"]["stop"], "stop_reason": r.get("stop_reason")}
-  states = [*sorted((root / "experiments" / "studies").glob("*/state/**/validation_curve.json")),
-            *sorted((root / "benchmarks" / "physics_shift").glob("state/**/validation_curve.json"))]
+  studies = root / "experiments" / "studies"
+  states = sorted(p for p in studies.glob("*/state/**/validation_curve.json")
+                  if p.relative_to(studies).parts[0] != "mechanisms")     # its runs are read above
   for path in states:
     c = json.loads(path.read_text())
     if c.get("stop_reason") is None:                 # a run still training
@@ -169,7 +170,8 @@ def main(argv=None) -> int:
   if not runs:
     raise SystemExit(f"{NAME}: no validation curve under {results}")
   rows = compare(runs)
-  command = ("python -m benchmarks.stopping_replay " + " ".join(sys.argv[1:] if argv is None else argv)).strip()
+  command = ("python -m experiments.studies.stopping_replay "
+             + " ".join(sys.argv[1:] if argv is None else argv)).strip()
   text = report(rows, runs, command)
   (results / f"{NAME}.md").write_text(text)
   print(text)

@@ -1,12 +1,12 @@
 """Time to the validation plateau: the study's schedule against a shorter, hotter one (issue 62).
 
-    python -m benchmarks.time_to_plateau [--rows full ours_s] [--seeds 0 1 2]
+    python -m experiments.studies.time_to_plateau [--rows full ours_s] [--seeds 0 1 2]
                                          [--workdir runs/time_to_plateau] [--results benchmarks/results]
                                          [--report-only]
 
-The mechanism study (:mod:`benchmarks.mechanisms`) trains each row of the ``cpu`` preset to its
+The mechanism study (:mod:`experiments.studies.mechanisms`) trains each row of the ``cpu`` preset to its
 validation plateau: peak learning rate 1e-3, a cosine schedule over 3000 steps, the plateau rule
-(:data:`benchmarks.mechanisms.design.STUDY_STOP`). Its records at the preset's photons
+(:data:`experiments.studies.mechanisms.design.STUDY_STOP`). Its records at the preset's photons
 (``RESULTS/mechanisms/full/<row>-seed<s>.json``) are this comparison's ``study`` side. The
 ``short`` side (:data:`SHORT`) trains the same row from the same seed on the same data, model,
 loss, stopping rule and evaluation, changing two numbers: the peak learning rate and the cosine
@@ -33,9 +33,17 @@ import sys
 
 import numpy as np
 
-from benchmarks.mechanisms.design import COLUMNS, ROWS, STUDY_OPTIM, STUDY_STOP, run_config, run_dir, study_optim
-from benchmarks.mechanisms.records import _array, load_runs, write_json
-from benchmarks.mechanisms.report import same_frames, stack_scores
+from experiments.studies.mechanisms.design import (
+  COLUMNS,
+  ROWS,
+  STUDY_OPTIM,
+  STUDY_STOP,
+  run_config,
+  run_dir,
+  study_optim,
+)
+from experiments.studies.mechanisms.records import _array, load_runs, write_json
+from experiments.studies.mechanisms.report import same_frames, stack_scores
 
 #: The short schedule: peak learning rate and cosine horizon (= the most steps); all else the study's.
 SHORT = {"learning_rate": 3e-3, "max_steps": 400}
@@ -57,7 +65,7 @@ def record_path(results: pathlib.Path, row: str, seed: int) -> pathlib.Path:
 
 def run_short(base: dict, row: str, seed: int, workdir: pathlib.Path, results: pathlib.Path) -> dict:
   """Train (or reload) one short-schedule run, score it on test; writes and returns its record."""
-  from benchmarks.mechanisms.study import run_record, train_and_score
+  from experiments.studies.mechanisms.study import run_record, train_and_score
   from nlosjax import train as T
   cfg = short_config(base, row, seed)
   data_path = pathlib.Path(cfg["data"]["path"])
@@ -214,14 +222,14 @@ def main(argv=None) -> int:
   parser.add_argument("--rows", nargs="+", choices=list(ROWS), default=list(DEFAULT_ROWS))
   parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
   parser.add_argument("--workdir", default=f"runs/{NAME}")
-  parser.add_argument("--results", default=str(pathlib.Path(__file__).resolve().parent / "results"))
+  parser.add_argument("--results", default=str(pathlib.Path(__file__).resolve().parents[2] / "benchmarks" / "results"))
   parser.add_argument("--report-only", action="store_true")
   args, base, overrides = parse_config(parser, argv)
-  from benchmarks.mechanisms.records import code_at_start
+  from experiments.studies.mechanisms.records import code_at_start
   from nlosjax.train import with_defaults
   code_at_start()                          # the commit and code this process loads, for the records
   base = with_defaults(base)
-  base["train"]["optim"] = study_optim(base, overrides)   # the study side's, as benchmarks.mechanisms runs it
+  base["train"]["optim"] = study_optim(base, overrides)   # the study side's, as experiments.studies.mechanisms runs it
   results = pathlib.Path(args.results)
   if not args.report_only:
     for row in args.rows:
@@ -234,7 +242,7 @@ def main(argv=None) -> int:
   short = load_short(results)
   if not short:
     raise SystemExit(f"{NAME}: no short-schedule record under {results / NAME}")
-  command = "python -m benchmarks.time_to_plateau " + " ".join(sys.argv[1:] if argv is None else argv)
+  command = "python -m experiments.studies.time_to_plateau " + " ".join(sys.argv[1:] if argv is None else argv)
   text = report(study, short, command.strip(), real_preset_pairs())
   (results / f"{NAME}.md").write_text(text)
   print(text)

@@ -1,4 +1,4 @@
-"""The runs of :mod:`benchmarks.physics_shift`: configs, training to the plateau, scoring, JSON records.
+"""The runs of :mod:`experiments.studies.physics_shift`: configs, training to the plateau, scoring, JSON records.
 
 Designs (:data:`DESIGNS`), every one trained here: ``base`` on the preset's
 scenes rendered by the transport renderer alone, without a physics mix (the
@@ -6,7 +6,7 @@ preset's own data where it has none); ``mix`` on sequences whose forward model
 is drawn from every family of :class:`nlosjax.data.dataset.physics.PhysicsMix`;
 ``wide`` on the mix with wider scenes; ``no_<family>`` on every family but
 one; ``wide_base`` on the preset's renderer with the wider scenes. Each learned
-run trains to the plateau rule of :mod:`benchmarks.mechanisms`
+run trains to the plateau rule of :mod:`experiments.studies.mechanisms`
 and writes ``RESULTS/physics_shift/<design>-<variant>.json``; each classic
 method's per-frame scores on a test set, with settings tuned on a design's
 validation split, go to ``RESULTS/physics_shift/classic-<design>-<set>.json``.
@@ -114,7 +114,7 @@ def family_set_config(base: dict, family: str, physics: dict | None = None) -> d
 
 def heldout_path(base: dict, condition: str) -> pathlib.Path:
   """The held-out renderer's file of ``condition`` at the preset's capture."""
-  from benchmarks.physics_shift import heldout
+  from experiments.studies.physics_shift import heldout
   version = heldout.GENERATOR_VERSION.rsplit("/", 1)[1]
   stem = pathlib.PurePosixPath(base["data"]["path"]).stem.split("-")[0]
   return pathlib.Path(base["data"]["path"]).with_name(f"heldout{version}-{stem}-{condition}.h5")
@@ -124,7 +124,7 @@ def test_sets(base: dict, conditions, physics=None) -> dict:
   """``set name -> (path, config to read it with[, split])``: each family's set, each held-out condition,
   and the validation splits of the candidates' data (``val:base``, ``val:mix``, ``val:wide``), on which
   the candidates are compared to choose the preset's data."""
-  from benchmarks.physics_shift import heldout
+  from experiments.studies.physics_shift import heldout
   from nlosjax import train as T
   sets = {}
   for design in CANDIDATES:
@@ -188,7 +188,7 @@ def classic_record(cfg: dict, val_path, settings: dict, sets: dict, name: str, l
 
 def run_meta(cfg: dict, design: str, variant: str, preset: str, results) -> dict:
   """The run folder's ``run.json``: what ``experiments.export_weights`` reads of a study run."""
-  return {"config": cfg, "command": f"python -m benchmarks.physics_shift --config {preset} --designs {design} "
+  return {"config": cfg, "command": f"python -m experiments.studies.physics_shift --config {preset} --designs {design} "
                                     f"--variants {variant}",
           "record": str(run_path(results, design, variant)),
           "study": {"study": "physics_shift", "design": design, "variant": variant}}
@@ -203,8 +203,8 @@ def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=pri
   sub-folder) and is resumed from when ahead of ``folder``; ``deadline`` (``time.time()``, with
   ``state``): pause there, raising :class:`nlosjax.train.TrainingPaused`.
   """
-  from benchmarks.mechanisms.records import write_json
-  from benchmarks.mechanisms.study import _subsample
+  from experiments.studies.mechanisms.records import write_json
+  from experiments.studies.mechanisms.study import _subsample
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
   cfg = copy.deepcopy(cfg)
@@ -244,7 +244,7 @@ def run_design(base: dict, design: str, variant: str, sets: dict, stop: dict, wo
   (the run is restored, not trained again) and added. ``state``, ``deadline``: as
   :func:`train_run` (the run's folder is :func:`state_dir`).
   """
-  from benchmarks.mechanisms import machine, write_json
+  from experiments.studies.mechanisms import machine, write_json
   t0 = time.perf_counter()
   path = run_path(results, design, variant)
   old = json.loads(path.read_text()) if path.exists() else None
@@ -290,8 +290,8 @@ def classic_path(results, design: str, name: str) -> pathlib.Path:
 def run_classic(base: dict, design: str, name: str, sets: dict, results, preset: str, physics=None,
                 log=print) -> dict:
   """The classic methods on set ``name`` with settings tuned on ``design``'s validation split."""
-  from benchmarks.mechanisms import machine, write_json
   from experiments.main_job import tune_classic
+  from experiments.studies.mechanisms import machine, write_json
   from nlosjax import train as T
   cfg = design_config(base, design, physics)
   val_path = pathlib.Path(cfg["data"]["path"])

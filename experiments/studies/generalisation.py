@@ -1,9 +1,9 @@
 """Do learned models keep objects at their true extent and brightness off their own generator?
 
-    python -m benchmarks.generalisation --model LABEL=RUN [--model LABEL=RUN ...]
+    python -m experiments.studies.generalisation --model LABEL=RUN [--model LABEL=RUN ...]
         [--sequences 8] [--frames 8] [--seed 2026] [--out benchmarks/results/generalisation.md]
 
-``RUN`` is a finished run of :mod:`benchmarks.mechanisms` (a folder with
+``RUN`` is a finished run of :mod:`experiments.studies.mechanisms` (a folder with
 ``run.json`` and ``model/``, e.g. ``runs/mechanisms/full/full-seed0``) or
 ``pretrained:NAME/VARIANT`` (weights shipped in the package,
 :func:`nlosjax.inference.load_pretrained`). Every model is scored, beside the
@@ -211,7 +211,7 @@ def main(argv=None) -> int:
       sets[f"test split of {label}'s data"] = (p, cfg)    # read with the config it was made with
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)
-  cmd = "python -m benchmarks.generalisation " + " ".join(argv)
+  cmd = "python -m experiments.studies.generalisation " + " ".join(argv)
   text = ["# Objects at their true extent and brightness, off the training generator", ""]
   text += provenance(cmd.strip()) + [""]
   text += ["Models: " + "; ".join(f"`{k}` = `{v}`" for k, v in specs.items()) + ". Choices on the "

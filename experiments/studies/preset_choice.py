@@ -1,6 +1,6 @@
 """Which data should a preset train on? Candidate models compared on every candidate's validation split.
 
-    python -m benchmarks.preset_choice --model LABEL=SOURCE --model LABEL=SOURCE [...]
+    python -m experiments.studies.preset_choice --model LABEL=SOURCE --model LABEL=SOURCE [...]
         [--variants ours ours_s] [--methods lct rsd ...] [--out benchmarks/results/preset_choice.md]
 
 ``SOURCE`` is ``pretrained:NAME`` (the weights shipped as ``NAME-<variant>``)
@@ -94,7 +94,7 @@ def main(argv=None) -> int:
   first = labels[0]
 
   lines = ["# Preset choice: candidate models on every candidate's validation split", ""]
-  lines += provenance("python -m benchmarks.preset_choice " + " ".join(argv)) + [""]
+  lines += provenance("python -m experiments.studies.preset_choice " + " ".join(argv)) + [""]
   lines += ["Candidates: " + "; ".join(f"`{k}` = `{v}` (data `{splits[k][0]}`)" for k, v in sources.items())
             + ". Mean intensity PSNR (dB) on each validation split with a 95 % bootstrap interval over "
             f"sequences; differences to `{first}` paired by frame. A candidate is preferred where it is "

@@ -1,4 +1,4 @@
-"""``python -m benchmarks.mechanisms``: the command line (resumable runs, ``--report-only``, ``--tiny``)."""
+"""``python -m experiments.studies.mechanisms``: the command line (resumable runs, ``--report-only``, ``--tiny``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from benchmarks.mechanisms.design import (
+from experiments.studies.mechanisms.design import (
   BUDGETS,
   EXTRA_ROWS,
   MAIN_ROWS,
@@ -23,25 +23,21 @@ from benchmarks.mechanisms.design import (
   study_optim,
   study_stop,
 )
-from benchmarks.mechanisms.records import _array, code_at_start
-from benchmarks.mechanisms.report import write_report
-from benchmarks.mechanisms.study import probe_run_dir, run_one
+from experiments.studies.mechanisms.records import _array, code_at_start
+from experiments.studies.mechanisms.report import write_report
+from experiments.studies.mechanisms.study import probe_run_dir, run_one
 
 
 def tiny_base(workdir: pathlib.Path) -> dict:
-  """The tiny config of ``tests/tiny_run.py`` with its data under ``workdir``."""
-  try:
-    from tests.tiny_run import tiny_config
-  except ImportError as e:
-    raise SystemExit(f"--tiny needs the repository's tests/ package on the path ({e}); run from the "
-                     "repository root") from None
+  """The tiny config of :mod:`experiments.tiny_run` with its data under ``workdir``."""
+  from experiments.tiny_run import tiny_config
   return tiny_config(pathlib.Path(workdir) / "data" / "tiny.h5", stop=dict(TINY_STOP))
 
 
 def score_untrained_budgets(base: dict, budgets, results: pathlib.Path) -> None:
-  """``--untrained``: each budget's JSON of :mod:`benchmarks.mechanisms.untrained` (kept where present)."""
-  from benchmarks.mechanisms.records import machine, write_json
-  from benchmarks.mechanisms.untrained import score_untrained, untrained_json
+  """``--untrained``: each budget's JSON of :mod:`experiments.studies.mechanisms.untrained` (kept where present)."""
+  from experiments.studies.mechanisms.records import machine, write_json
+  from experiments.studies.mechanisms.untrained import score_untrained, untrained_json
   for budget in budgets:
     path = untrained_json(results, budget)
     if path.exists():
@@ -73,11 +69,11 @@ def main(argv=None) -> int:
                            "validation) on each budget's test frames, then rewrite the report")
   parser.add_argument("--probe", metavar="RUN_DIR", default=None,
                       help="probe the SSMs of a finished run folder, store it in its JSON, rewrite the report")
-  parser.add_argument("--tiny", action="store_true", help="the tiny config of tests/tiny_run.py (a smoke run)")
+  parser.add_argument("--tiny", action="store_true", help="the tiny config of experiments/tiny_run.py (a smoke run)")
   parser.add_argument("--state", default=None, metavar="DIR",
                       help="export each run's resumable state to DIR/<budget>/<row>-seed<k> at every "
                            "validation (commit it: a fresh clone resumes from it; e.g. "
-                           "benchmarks/mechanisms/state)")
+                           "experiments/studies/mechanisms/state)")
   parser.add_argument("--hours", type=float, default=None,
                       help="with --state: pause the run in progress after this many hours, its state exported")
   argv = sys.argv[1:] if argv is None else list(argv)
@@ -86,7 +82,7 @@ def main(argv=None) -> int:
     parser.error("--hours needs --state DIR (where the paused state goes)")
   from experiments.cli import override_key
   keep_loss = tuple(k[2] for k, _ in map(override_key, overrides) if k[:2] == ("train", "loss") and len(k) == 3)
-  command = "python -m benchmarks.mechanisms " + " ".join(argv)
+  command = "python -m experiments.studies.mechanisms " + " ".join(argv)
   workdir = pathlib.Path(args.workdir or ("runs/mechanisms-tiny" if args.tiny else "runs/mechanisms"))
   results = pathlib.Path(args.results or (workdir / "results" if args.tiny else "benchmarks/results"))
   if args.tiny:

@@ -1,12 +1,12 @@
 """Mechanisms: does Ours use its SSMs and its neighbour frames, every model trained until learning stops?
 
-    python -m benchmarks.mechanisms [--config cpu] [--budgets full tenth] [--rows full ours_s no_ssm]
+    python -m experiments.studies.mechanisms [--config cpu] [--budgets full tenth] [--rows full ours_s no_ssm]
                                     [--extra-rows] [--seeds 0 1 2] [--max-runs N] [--time-limit-s S]
                                     [--workdir runs/mechanisms] [--results benchmarks/results]
                                     [--report-only] [--untrained] [--probe RUN_DIR] [--tiny]
                                     [--state DIR [--hours H]] [--config.section.key=value ...]
 
-Rows (:data:`ROWS`, built with :func:`benchmarks.ablations.row_config`):
+Rows (:data:`ROWS`, built with :func:`experiments.studies.ablations.row_config`):
 ``full`` (Ours, three frames), ``ours_s`` (Ours-S, the middle frame alone) and
 ``no_ssm`` (Ours with every SSM replaced by the identity, all else equal);
 ``--extra-rows`` adds ``bidirectional`` (the temporal SSM runs both ways) and
@@ -42,18 +42,18 @@ finishes) run a subset. Runs go seed by seed, so every row has seed 0 first.
 ``--state DIR`` also exports each run's resumable state (:mod:`nlosjax.train.run_state`,
 with its data's digest and fingerprint) to ``DIR/<budget>/<row>-seed<k>/model`` at every
 validation: committed, it lets a fresh clone on another machine resume the run
-(``benchmarks/mechanisms/state/`` holds the study's); ``--hours H`` pauses the run in
+(``experiments/studies/mechanisms/state/`` holds the study's); ``--hours H`` pauses the run in
 progress after H hours, exported, and the same command continues it.
 
 After the full row's seed 0 of a budget, the SSM probe (:func:`probe_model`)
 runs on that model and goes into its JSON: the validation PSNR with each SSM's
 output replaced by its input at inference (no retraining), with all of them
 replaced, and the mean SiLU gate of every block
-(:mod:`benchmarks.mechanisms.probe`). ``--probe RUN_DIR`` probes any finished run
+(:mod:`experiments.studies.mechanisms.probe`). ``--probe RUN_DIR`` probes any finished run
 folder (``WORKDIR/<budget>/<row>-seed<k>``) and stores it in that run's JSON.
 
 ``--untrained`` scores Table 1's methods without training on each budget's test frames
-(:mod:`benchmarks.mechanisms.untrained`: the classic five tuned on validation as in the main
+(:mod:`experiments.studies.mechanisms.untrained`: the classic five tuned on validation as in the main
 job, CSA with its l1 weight and falloff chosen on validation frames) into
 ``RESULTS/mechanisms/untrained-<budget>.json``; the report pairs each with every seed of
 ``full`` and ``ours_s``.
@@ -64,13 +64,13 @@ nothing else): per row and budget the mean test intensity PSNR, SSIM, object
 depth RMSE and object recall with 95 % bootstrap intervals over sequences and
 seeds, the paired differences full - no_ssm and full - ours_s (same frames,
 seeds present in both rows), the steps every run took, the runs still missing,
-and the probe. ``--tiny`` runs the tiny config of ``tests/tiny_run.py`` (two
+and the probe. ``--tiny`` runs the tiny config of ``experiments/tiny_run.py`` (two
 runs of a few steps, seconds each once compiled) into ``--workdir`` (default
 ``runs/mechanisms-tiny``) and ``--results`` (default ``runs/mechanisms-tiny/results``).
 """
 
-from benchmarks.mechanisms.cli import main, tiny_base
-from benchmarks.mechanisms.design import (
+from experiments.studies.mechanisms.cli import main, tiny_base
+from experiments.studies.mechanisms.design import (
     BUDGET_LOSS,
     BUDGETS,
     COLUMNS,
@@ -100,9 +100,9 @@ from benchmarks.mechanisms.design import (
     study_optim,
     study_stop,
 )
-from benchmarks.mechanisms.records import code_at_start, load_runs, machine, write_json
-from benchmarks.mechanisms.report import barely_trained, empty_output, plot_curves, summarise, write_report
-from benchmarks.mechanisms.study import (
+from experiments.studies.mechanisms.records import code_at_start, load_runs, machine, write_json
+from experiments.studies.mechanisms.report import barely_trained, empty_output, plot_curves, summarise, write_report
+from experiments.studies.mechanisms.study import (
     probe_model,
     probe_run_dir,
     run_one,

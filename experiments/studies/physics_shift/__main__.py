@@ -1,4 +1,4 @@
-"""``python -m benchmarks.physics_shift``: the command line of the study (:mod:`benchmarks.physics_shift`)."""
+"""``python -m experiments.studies.physics_shift``: the study's command line."""
 
 from __future__ import annotations
 
@@ -6,14 +6,14 @@ import pathlib
 import sys
 import time
 
-from benchmarks import physics_shift
-from benchmarks.physics_shift import heldout, report, study
+from experiments.studies import physics_shift
+from experiments.studies.physics_shift import heldout, report, study
 
 
 def main(argv=None) -> int:
-  from benchmarks.mechanisms import STUDY_STOP, code_at_start, study_optim
   from experiments.cli import config_parser, parse_config
   from experiments.provenance import provenance
+  from experiments.studies.mechanisms import STUDY_STOP, code_at_start, study_optim
   code_at_start()
   parser = config_parser(physics_shift.__doc__.split("\n\n")[0])
   parser.add_argument("--designs", nargs="+", choices=list(study.DESIGNS), default=list(study.DESIGNS))
@@ -74,7 +74,7 @@ def main(argv=None) -> int:
         break
       trained += new
   runs, classic = report.load(results)
-  command = "python -m benchmarks.physics_shift " + " ".join(argv)
+  command = "python -m experiments.studies.physics_shift " + " ".join(argv)
   text = report.to_markdown(runs, classic, provenance(command.strip()), args.conditions)
   out = results / "physics_shift.md"
   out.write_text(text)

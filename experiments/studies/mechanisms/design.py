@@ -6,11 +6,11 @@ import copy
 import json
 import pathlib
 
-from benchmarks.ablations import ROWS as ABLATION_ROWS
-from benchmarks.ablations import row_config
-from benchmarks.mechanisms.records import load_runs
+from experiments.studies.ablations import ROWS as ABLATION_ROWS
+from experiments.studies.ablations import row_config
+from experiments.studies.mechanisms.records import load_runs
 
-#: row -> (row of benchmarks.ablations.ROWS it is built from, variant trained, label).
+#: row -> (row of experiments.studies.ablations.ROWS it is built from, variant trained, label).
 ROWS = {
     "full": ("full", "ours", "Ours"),
     "ours_s": ("full", "ours_s", "Ours-S (middle frame only)"),
@@ -43,7 +43,7 @@ SEEDS = (0, 1, 2)
 STUDY_STOP = {"rule": "plateau", "every": 50, "patience": 4, "min_delta_db": 0.05, "max_steps": 3000}
 #: The optimiser entries of every run over the config's ``train.optim``: the peak learning rate
 #: (AdamW, cosine over ``max_steps``) the study's runs were trained with. It was the cpu preset's
-#: until the preset's main job took the short schedule of ``benchmarks/time_to_plateau.py``.
+#: until the preset's main job took the short schedule of ``experiments/studies/time_to_plateau.py``.
 STUDY_OPTIM = {"learning_rate": 1e-3}
 #: ``--tiny``: a few steps, validating every 2.
 TINY_STOP = {"rule": "plateau", "every": 2, "patience": 1, "min_delta_db": 0.05, "max_steps": 6}
@@ -96,7 +96,7 @@ def study_stop(base: dict) -> dict:
   """The run's ``train.stop``: :data:`STUDY_STOP` with the config's own ``train.stop`` entries over it."""
   stop = {**STUDY_STOP, **base.get("train", {}).get("stop", {})}
   if stop["rule"] != "plateau":
-    raise SystemExit(f"benchmarks.mechanisms trains to the validation plateau; train.stop.rule "
+    raise SystemExit(f"experiments.studies.mechanisms trains to the validation plateau; train.stop.rule "
                      f"{stop['rule']!r} is not allowed")
   return stop
 

@@ -1,6 +1,6 @@
 """The paper's Table 2 ablations at the CPU preset, with one shared training budget.
 
-    python -m benchmarks.ablations [--config cpu] [--steps 150] [--seeds 3] [--workdir runs/ablations]
+    python -m experiments.studies.ablations [--config cpu] [--steps 150] [--seeds 3] [--workdir runs/ablations]
                                    [--only full no_pf ...] [--out benchmarks/results/table2.md]
                                    [--config.section.key=value ...]
 
@@ -227,7 +227,7 @@ def main(argv=None):
     results[row].append(r)
     tqdm.write(f"{row} seed {seed}: test PSNR {np.mean(r['test']['scores']['psnr']):.2f} dB "
                f"({r['train_s']:.0f} s)")
-  cmd = "python -m benchmarks.ablations " + " ".join(sys.argv[1:] if argv is None else argv)
+  cmd = "python -m experiments.studies.ablations " + " ".join(sys.argv[1:] if argv is None else argv)
   summary = summarise(results)
   text = to_markdown(results, summary, cmd.strip(), args.steps, base)
   out = pathlib.Path(args.out)

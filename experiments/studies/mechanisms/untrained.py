@@ -105,16 +105,18 @@ PAIRED_WITH = ("full", "ours_s")
 def untrained_lines(record: dict, learned: dict, budget: str) -> list[str]:
   """The report's section for one budget: each method's row and its paired differences.
 
-  ``learned``: ``row -> [run record per seed]`` of the budget (:func:`~benchmarks.mechanisms.records.load_runs`).
+  ``learned``: ``row -> [run record per seed]`` of the budget
+  (:func:`~experiments.studies.mechanisms.records.load_runs`).
   """
-  from benchmarks.mechanisms.design import COLUMNS, ROWS
-  from benchmarks.mechanisms.records import _array
+  from experiments.studies.mechanisms.design import COLUMNS, ROWS
+  from experiments.studies.mechanisms.records import _array
   from nlosjax import stats
   from nlosjax.evaluation import scores
   from nlosjax.evaluation.report import METHOD_LABELS
   from nlosjax.stats import format_interval as cell
   methods = record["methods"]
-  lines = [f"### Methods without training, `{budget}` budget (`python -m benchmarks.mechanisms --untrained`)", "",
+  lines = [f"### Methods without training, `{budget}` budget "
+           "(`python -m experiments.studies.mechanisms --untrained`)", "",
            "Table 1's other rows on the same test frames: the classic methods on the input interpolated to"
            " the full grid, options and surface threshold tuned on the validation split"
            " (`nlosjax.evaluation.baselines.tune`); CSA on the sparse scan itself, its l1 weight and falloff"
