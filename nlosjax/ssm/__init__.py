@@ -7,14 +7,15 @@ Public API::
     bidirectional_scan   forward + reverse scans of one sequence, combined as Vision Mamba does
     resolve_method       the method "auto" picks for a shape and backend
     SelectiveSSM         Mamba's selective SSM (conv, projections of dt, B, C; scan), the one SSM
+    MixerWidths          the widths every Mamba-style mixer shares (d_model, d_state, d_conv, expand, dt_rank)
     MambaMixer           Flax linen Mamba v1 mixer (projections and gate around a SelectiveSSM)
     mamba_dt_bias_init, s4d_real_a_log_init   Mamba's initialisers
 """
 
-from nlosjax.ssm.mamba import MambaMixer, SelectiveSSM, mamba_dt_bias_init, s4d_real_a_log_init
+from nlosjax.ssm.mamba import MambaMixer, MixerWidths, SelectiveSSM, mamba_dt_bias_init, s4d_real_a_log_init
 from nlosjax.ssm.scan import METHODS, bidirectional_scan, resolve_method, selective_scan
 
 __all__ = [
-    "selective_scan", "bidirectional_scan", "resolve_method", "METHODS", "MambaMixer", "SelectiveSSM",
+    "selective_scan", "bidirectional_scan", "resolve_method", "METHODS", "MambaMixer", "MixerWidths", "SelectiveSSM",
     "mamba_dt_bias_init", "s4d_real_a_log_init",
 ]
