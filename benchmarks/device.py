@@ -44,16 +44,16 @@ Parts, in this order (``benchmarks/device_parts.py``):
 * **scan kernels**: ``benchmarks.scan.bench_shape`` (imported) at its default shapes and at the
   paper model's temporal and spatial SSM shapes (training batch 4), every method forward and
   forward+backward, ratios to the exp floor of the same run, and what ``auto`` resolves to.
-* **paper scale**: the paper preset's Ours (``ModelConfig.paper()``, 128 x 128 x 512): one train
-  step at the preset's batch (or the largest the plan fits): time, and the device's
-  ``peak_bytes_in_use`` (less what was held before the step besides its arguments) against the
-  dry run's plan for this device (``nlosjax.plan``: ``compile_train_step`` and its
-  ``memory_analysis()``); one more step under ``jax.profiler``: each HLO op's device time
-  and share by category (``benchmarks/op_profile.py``), and the step's achieved FLOP/s
-  against the device's float32 and TF32 peaks; then inference at batch 1, 2, 4, ... until a
-  failure, the budget or 1024.
 * **classic**: ms per frame of FBP, LCT, f-k, phasor and RSD at 128 x 128 x 512 against each
   method's FFT floor (``benchmarks.physics.fft_floor``), timed alternately.
+* **paper scale** (last: the longest): the paper preset's Ours (``ModelConfig.paper()``, 128 x 128
+  x 512): inference at batch 1 first, then one train step at the preset's batch (or the largest
+  the plan fits): time, and the device's ``peak_bytes_in_use`` (less what was held before the
+  step besides its arguments) against the dry run's plan for this device (``nlosjax.plan``:
+  ``compile_train_step`` and its ``memory_analysis()``); one more step under ``jax.profiler``: each HLO op's device time
+  and share by category (``benchmarks/op_profile.py``), and the step's achieved FLOP/s
+  against the device's float32 and TF32 peaks; then inference at batch 2, 4, ... until a
+  failure, the budget or 1024.
 * then a log note where a future mechanism study's rows would go (not implemented).
 
 Goals, judged by ``--collect``: paper-scale inference >= 30 frames/s at batch 1 on one

@@ -1,4 +1,4 @@
-"""Reconstruct the shipped measured scan with every classic method: the main job until training lands.
+"""Reconstruct the shipped measured scan with every classic method: a first look, no training, no weights.
 
     python -m experiments.demo [--out runs/demo] [--scan FILE]
 

@@ -4,7 +4,8 @@
       data/<file>.h5         datasets, regenerated from their spec where absent
       runs/<study>/<run>/    full run folders (orbax checkpoints, logs)
 
-Only the studies (:mod:`experiments.studies`) and commands told so read it: the
+Only the long-run studies (``experiments.studies.real_preset``, ``csa``) and commands told so
+read it: the
 README's two commands and the test suite never do, so a fresh clone still makes and
 tests everything from scratch. What must survive a new machine is not here but in
 the repository: each long run's small exported state

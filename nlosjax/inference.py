@@ -1,10 +1,10 @@
 """Restore a trained network (ST-Mamba or USM) for inference, and move it to another capture.
 
-:func:`load_trained` reads the parameters of the latest checkpoint written by
-``python -m experiments.train`` (``WORKDIR/<variant>/checkpoints``, orbax) and
-rebuilds the model config from the run's ``config.json``; it needs no
-optimizer state and no training data. :func:`for_capture` moves the
-trained network to a measured capture: the same parameters, the physics layer
+:func:`load_trained` reads the parameters of the checkpoint a run chose on validation
+(its ``selection.json``; else the latest) written by ``python -m experiments.train``
+(``WORKDIR/<variant>/checkpoints``, orbax) and rebuilds the model config from the run's
+``config.json``; it needs no optimizer state and no training data. :func:`for_capture`
+moves the trained network to a measured capture: the same parameters, the physics layer
 rebuilt for the capture's wall, grid and bins (the network's parameter tree
 does not depend on the Setup; see :mod:`nlosjax.models.network`), with time
 rebinned so the network sees bins of about its training width.
@@ -83,7 +83,7 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
   recorded model config (``repr``) must match it, the restored parameter
   tree must have the shapes that config initialises, and the recorded
   parameter-tree fingerprint (when present) must match, else ValueError.
-  Unlike :func:`nlosjax.train.load_trained` (resuming-grade: rebuilds and
+  Unlike resuming a run (:func:`nlosjax.train.train_model`, which rebuilds and
   compiles the full train state and checks the optimizer and loss settings),
   this reads only the parameters and compiles nothing.
 

@@ -93,7 +93,7 @@ def get_config() -> dict:
       "checkpoint_every": 50,      # steps
       "eval_batch_size": 8,
       "variants": ("ours_s", "ours"),   # add "usm" to train the learned baseline too
-      # Every checkpoint from step 150 is kept; the one with the best validation PSNR is evaluated.
+      # The last five checkpoints (steps 200-400) are kept; the one with the best validation PSNR is evaluated.
       "keep_checkpoints": 5,
       "select_checkpoint": "val",
       "optim": {

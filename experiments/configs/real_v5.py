@@ -1,7 +1,8 @@
 """Candidate real-capture data (v5): ``real_v4`` with the measured scans' photon scale, pulse and scanner.
 
-Not a preset, and not trained yet: like ``real_v4`` it replaces ``real``'s data
-only if its model wins on ``real``'s validation split::
+Not a preset: like ``real_v4`` it replaces ``real``'s data only if its model wins on
+``real``'s validation split (trained to its plateau by ``experiments.studies.real_preset``,
+compared in ``benchmarks/results/preset_choice_real.md``)::
 
     python -m experiments.train --config experiments/configs/real_v5.py --workdir runs/real-v5
     python -m experiments.studies.preset_choice --model shipped=pretrained:real --model v5=runs/real-v5

@@ -11,7 +11,7 @@ the preset's bin width, under-scanned at every one of the ``stride^2``
 offsets. Simulated: the middle frames of ``--sequences`` test sequences of
 each design's data (``base``: the preset's; ``mix``: the preset with its
 forward model drawn from :class:`nlosjax.data.dataset.physics.PhysicsMix`),
-written to ``runs/data/<stem>-audit.h5`` if absent.
+written to ``runs/data/<stem>-<design>-audit-<digest>.h5`` if absent.
 
 Per input (:func:`features`): counts per scan point (log10 of the mean, and
 their spread), signal-to-background ratio, width of the first return, the

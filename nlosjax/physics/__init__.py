@@ -5,8 +5,8 @@ Public API::
     Setup                      frozen capture geometry (metres, seconds, bins)
     render, render_points      albedo volume -> noise-free transient (fast LCT form; brute force)
     add_spad_noise             SPAD detector model (paper Eq. 2)
-    reconstruct                transient -> volume with "fbp" | "lct" | "fk" | "phasor" | "rsd"
-    fbp, lct, fk, phasor, rsd  the same methods as plain functions
+    reconstruct                transient -> volume with "fbp" | "lct" | "fk" | "phasor" | "rsd" | "csa"
+    fbp, lct, fk, phasor, rsd, csa   the same methods as plain functions (csa: iterative)
     illumination_wavelet       the phasor-field wavelet P(t) for a Setup
     intensity_depth            volume -> intensity image [0, 1] and depth map (metres)
     checked                    jit a function with its input checks compiled in (``checks``)

@@ -8,7 +8,8 @@ returns from that range (``setup.time_bins``) and computes only its depth
 bins, so cost falls with the range. All are jit-compiled, batched over the
 leading axes with ``vmap``, and build their operators once per Setup.
 
-``lct``, ``fbp`` and ``phasor`` take ``variant``. ``"public"`` (the default)
+``lct``, ``fbp`` and ``phasor`` take ``variant`` (``fk`` too, for its lateral
+frequencies: its docstring). ``"public"`` (the default)
 is the public algorithm's operators: O'Toole's resampling matrix and
 one-voxel cone PSF on the full ``(2T, 2H, 2W)`` circular box (every time bin
 read; a depth range only crops), so a Wiener ``snr`` carries over from the
@@ -48,7 +49,7 @@ nlos3d, LFE/USM):
 Each method lives in its own module of :mod:`nlosjax.physics.methods`
 (``lct.py``, ``fbp.py``, ``fk.py``, ``phasor.py``, ``rsd.py``, ``csa.py``, each with its
 private helpers; ``fbp`` and ``phasor`` build on ``lct``'s cached operators).
-This module holds the :func:`reconstruct` dispatch and re-exports the five
+This module holds the :func:`reconstruct` dispatch and re-exports the six
 functions and the helpers tests and benchmarks import from here
 (``neg_log_filter``, ``wavelet_matrix``, ``_rsd_plan``, ...: ``x as x``
 imports); "the module docstring" in the methods' docstrings is this one.

@@ -2,7 +2,7 @@
 
     python -m experiments.studies.real_preset --status             # done, left, hours left
     python -m experiments.studies.real_preset --hours 1.5          # train for 1.5 h, then pause
-    python -m experiments.studies.real_preset --runs v4-ours_s --hours 1
+    python -m experiments.studies.real_preset --runs v5-ours_s --hours 1
 
 Each run (:data:`~experiments.studies.real_preset.study.RUNS`) is one candidate data
 config and one variant trained by :func:`nlosjax.train.train_model` under the plateau
@@ -23,7 +23,7 @@ When every run is done, ``--candidates`` makes one workdir per candidate in the 
 linking its runs' folders (:func:`~experiments.studies.real_preset.study.candidate_workdir`),
 and prints the ``python -m experiments.studies.preset_choice`` command that compares the shipped
 ``real`` weights with each candidate on every candidate's validation split, beside the
-classic methods (a study does not import the benchmarks; run the printed command)::
+classic methods (another study's command; run the printed line)::
 
     python -m experiments.studies.real_preset --candidates
 
