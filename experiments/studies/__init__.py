@@ -17,8 +17,9 @@ folders in the store (:mod:`experiments.store`), outside the work tree; the othe
   working stretches; ``preset_choice`` compares candidates on every validation split;
   ``realism`` tells simulated inputs from measured ones.
 * ``csa`` -- CSA's prior weight chosen on simulated validation sequences
-  (``tau-rel-help.patch``: ``--tau-rel``'s help corrected, to be applied with the next rerun
-  of the measured protocol, whose results it stales).
+  (``help-fixes.patch``: two command-line help texts corrected, ``--tau-rel``'s default and
+  ``--synthetic``'s; to be applied with the next rerun of the measured protocol, whose
+  results files their code digests stale).
 * ``ablations`` (the paper's Table 2), ``temporal_probe`` (does Ours read its neighbours),
   ``time_to_plateau`` and ``stopping_replay`` (how long to train, when to stop).
 
