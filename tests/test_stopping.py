@@ -195,7 +195,7 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
 @pytest.mark.full
 def test_the_default_rule_is_unchanged(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=MAX_STEPS, optim=OPTIM)
-  assert cfg["train"]["stop"] == {"rule": "steps"}
+  assert T.StopRule.from_config(cfg["train"]["stop"]) == T.StopRule() and T.StopRule().rule == "steps"
   default_cfg = {**cfg, "train": {k: v for k, v in cfg["train"].items() if k != "stop"}}
   explicit = tiny_config(data_path, steps=MAX_STEPS, optim=OPTIM, stop={"rule": "steps"})
   _, a = T.train_model(default_cfg, data_path, tmp_path / "a", "ours_s", log=quiet)
