@@ -24,8 +24,7 @@ The clone starts with an empty compilation cache (its own ``.cache/xla``; a
 ``NLOSJAX_CACHE_DIR`` or ``JAX_COMPILATION_CACHE_DIR`` of this shell is not passed on),
 as a newcomer's does; the job's hit-rate line is kept with its row.
 
-``python -m benchmarks.table1`` quotes this file's time and commit in
-``table1.md``. Needs ``git`` and network access to the package index; refuses
+Needs ``git`` and network access to the package index; refuses
 to run with uncommitted edits to tracked code, since the clone would not have
 them.
 """

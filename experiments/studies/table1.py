@@ -1,6 +1,6 @@
 """Table 1 at the CPU preset over several training seeds: ``benchmarks/results/table1.md``.
 
-    python -m benchmarks.table1 [--seeds 3] [--config cpu] [--workdir runs/table1]
+    python -m experiments.studies.table1 [--seeds 3] [--config cpu] [--workdir runs/table1]
                                 [--out benchmarks/results/table1.md] [overrides ...]
 
 Runs the main job (:func:`experiments.main_job.train_and_evaluate`, the code
@@ -12,7 +12,9 @@ the object-aware table, the temporal-consistency table, the paired
 differences with their verdicts, the choices made on the validation split),
 and beside it ``table1.json`` (the table, the comparisons and the validation
 choices) and the figures.
-Resumable: a rerun reuses the workdir's finished models.
+Resumable: a rerun reuses the workdir's finished models. Superseded by the plateau-trained
+mechanism study (``benchmarks/results/archive/README.md``); kept to rerun the paper's table
+at a fixed step count. The main job's own time is ``benchmarks/results/main_job.md``'s.
 """
 
 from __future__ import annotations
@@ -23,19 +25,6 @@ import pathlib
 import shutil
 import sys
 import time
-
-
-def _main_job_line() -> str:
-  """Where the README's main job stands against its budget (``benchmarks/results/main_job.json``)."""
-  from benchmarks.main_job import read_time
-  t = read_time()
-  if t is None:
-    return "- The main job from a fresh clone: not measured (`python -m benchmarks.main_job`)"
-  return (f"- The main job (README command 1, 1 seed) from a fresh clone, slowest CPU model measured "
-          f"({t['cpu']}): {t['main_job_s']:.0f} s "
-          f"= {t['main_job_s'] / 60:.1f} min of its {t['budget_s'] // 60}-minute budget, at commit "
-          f"{t['commit']} on {t['date'][:10]}, load {t['load_before']} before "
-          "(`python -m benchmarks.main_job`, `benchmarks/results/main_job.md`)")
 
 
 def main(argv=None):
@@ -53,7 +42,7 @@ def main(argv=None):
   config = apply_overrides(load_config(args.config), overrides)
   config.setdefault("train", {})["seeds"] = args.seeds
   t0 = time.perf_counter()
-  cmd = "python -m benchmarks.table1 " + " ".join(sys.argv[1:] if argv is None else argv)
+  cmd = "python -m experiments.studies.table1 " + " ".join(sys.argv[1:] if argv is None else argv)
   facts = provenance(cmd.strip())          # the commit the run starts from
   workdir = pathlib.Path(args.workdir)
   train_and_evaluate(config, workdir)
@@ -63,8 +52,7 @@ def main(argv=None):
   head = [f"# Table 1 at the `{args.config}` preset, {args.seeds} training seed(s)", ""]
   head += facts
   head += [f"- Wall time of this command: {(time.perf_counter() - t0) / 60:.1f} min "
-           "(a rerun reuses finished models)"]
-  head += [_main_job_line(), ""]
+           "(a rerun reuses finished models)", ""]
   out.write_text("\n".join(head) + "\n" + (results / "table.md").read_text())
   bundle = {name: json.loads((results / f"{name}.json").read_text())
             for name in ("table", "comparisons", "validation")}
