@@ -20,11 +20,13 @@ folders in the store (:mod:`experiments.store`), outside the work tree; the othe
   (``help-fixes.patch``: two command-line help texts corrected, ``--tau-rel``'s default and
   ``--synthetic``'s; to be applied with the next rerun of the measured protocol, whose
   results files their code digests stale).
-* ``ablations`` (the paper's Table 2), ``temporal_probe`` (does Ours read its neighbours),
-  ``time_to_plateau`` and ``stopping_replay`` (how long to train, when to stop).
+* ``ablations`` (the paper's Table 2), ``table1`` (Table 1 over seeds at a fixed step count),
+  ``temporal_probe`` (does Ours read its neighbours), ``time_to_plateau`` and
+  ``stopping_replay`` (how long to train, when to stop).
 
 Still elsewhere: the measured-scan protocol (``experiments.real_undersampling``) and the
-alignment stage (``experiments.align``), and in ``benchmarks/`` the trade-off study and
-Table 1's seeds (their results paths and the main job's timing live there; they move with
-their next rerun).
+alignment stage (``experiments.align``), which move with their next rerun (their code fixes the
+scans' folder from the file's own place, and a move stales their results); and in
+``benchmarks/`` the trade-off study, which measures speed against accuracy of every
+reconstruction knob beside the other performance benchmarks.
 """
