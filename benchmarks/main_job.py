@@ -74,15 +74,6 @@ def read_times(path=ROOT / "benchmarks" / "results" / "main_job.json") -> dict[s
   return {data.get("cpu", "AMD EPYC"): data}
 
 
-def read_time(path=ROOT / "benchmarks" / "results" / "main_job.json") -> dict | None:
-  """The slowest measurement over the CPU models (``main_job.json``), or None where none was made."""
-  times = read_times(path)
-  if not times:
-    return None
-  cpu, t = max(times.items(), key=lambda kv: kv[1]["main_job_s"])
-  return {**t, "cpu": cpu}
-
-
 def model_of(cpu: str) -> str:
   """The entry of ``CPU_MODELS`` that ``cpu`` (a model name) belongs to, else ``cpu`` itself."""
   return next((m for m in CPU_MODELS if cpu.startswith(m)), cpu)
