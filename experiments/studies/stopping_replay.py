@@ -31,7 +31,9 @@ import sys
 
 import numpy as np
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
+from experiments import provenance
+
+ROOT = provenance.ROOT
 NAME = "stopping_replay"
 #: The rule every replayed run was trained with (every, patience); candidates are replayed against it.
 RECORDED = (50, 4)
@@ -130,7 +132,6 @@ def compare(runs: dict[str, dict]) -> list[dict]:
 
 
 def report(rows: list[dict], runs: dict[str, dict], command: str) -> str:
-  from experiments import provenance
   lines = ["# The plateau rule replayed on every kept validation curve", ""]
   lines += provenance.provenance(command) + [""]
   n = sum(1 for r in runs.values() if (int(r["rule"]["every"]), int(r["rule"]["patience"])) == RECORDED)

@@ -33,6 +33,7 @@ import sys
 
 import numpy as np
 
+from experiments import provenance
 from experiments.studies.mechanisms.design import (
   COLUMNS,
   ROWS,
@@ -84,7 +85,6 @@ def _mean(r: dict, metric: str) -> float:
 
 def report(study: dict, short: dict, command: str, real: list | None = None) -> str:
   """The markdown report of ``(row, seed) -> record`` of both sides; ``real``: :func:`real_preset_pairs`."""
-  from experiments import provenance
   from nlosjax.evaluation import scores
   from nlosjax.stats import format_interval as cell
   lines = ["# Time to the validation plateau: the study's schedule against a short one", ""]
@@ -222,7 +222,7 @@ def main(argv=None) -> int:
   parser.add_argument("--rows", nargs="+", choices=list(ROWS), default=list(DEFAULT_ROWS))
   parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
   parser.add_argument("--workdir", default=f"runs/{NAME}")
-  parser.add_argument("--results", default=str(pathlib.Path(__file__).resolve().parents[2] / "benchmarks" / "results"))
+  parser.add_argument("--results", default=str(provenance.ROOT / "benchmarks" / "results"))
   parser.add_argument("--report-only", action="store_true")
   args, base, overrides = parse_config(parser, argv)
   from experiments.studies.mechanisms.records import code_at_start
