@@ -1,6 +1,6 @@
 """Results carried forward: does a code change move any number the results files are made of?
 
-    python -m benchmarks.equivalence --base COMMIT [COMMIT ...] [--out FILE ...]
+    python -m benchmarks.equivalence --base COMMIT [COMMIT ...] [--out FILE ...] [--probe measured]
 
 Runs the fixed probes of :mod:`benchmarks.equivalence_probe` (tiny datasets of every
 renderer family, three train steps of Ours-S, Ours and USM, the evaluation protocol,
@@ -29,6 +29,12 @@ the old path compares the base's code with today's at the new one, and every imp
 old dotted name, written with the new name, counts as the same code; so does a function or
 class renamed everywhere (:data:`RENAMED`).
 
+``--probe measured`` runs :mod:`benchmarks.equivalence_probe_measured` instead (the
+measured-scan protocol's command line, end to end on a small scan) and writes records of its
+own (``equivalence_measured.md``, ``equivalence_measured_<COMMIT>.md``): its closure holds the
+protocol, so a results file of the protocol is carried by one of them; a base older than the
+protocol's numbers fails only those records, not the main ones.
+
 Records against several bases may stand side by side (``equivalence.md`` for the first
 base named, ``equivalence_<COMMIT>.md`` for the others; :func:`records`): a file is carried
 when one of them carries it, so files current at different commits can all be carried.
@@ -53,6 +59,10 @@ from experiments import provenance
 
 HERE = pathlib.Path(__file__).resolve().parent
 PROBE = HERE / "equivalence_probe.py"
+#: The probe scripts by ``--probe`` name: ``main`` (the library, the main job, the shipped
+#: networks), ``measured`` (the measured-scan protocol's command line on a small scan,
+#: :mod:`benchmarks.equivalence_probe_measured`), each with records of its own.
+PROBES = {"main": PROBE, "measured": HERE / "equivalence_probe_measured.py"}
 #: Largest ``max|new - old| / max|old|`` of one probe array that counts as rounding.
 TOLERANCE = 1e-5
 NAME = "equivalence"
@@ -62,7 +72,10 @@ NAME = "equivalence"
 MOVES = {
     "nlosjax/main_job.py": "experiments/main_job.py",
     "nlosjax/models/probe.py": "experiments/studies/mechanisms/probe.py",
-    "nlosjax/train/align.py": "experiments/alignment.py",
+    "nlosjax/train/align.py": "experiments/studies/alignment.py",
+    "experiments/alignment.py": "experiments/studies/alignment.py",
+    "experiments/align.py": "experiments/studies/align.py",
+    "experiments/real_undersampling/": "experiments/studies/real_undersampling/",
     **{f"benchmarks/{name}/": f"experiments/studies/{name}/" for name in ("mechanisms", "physics_shift")},
     **{f"benchmarks/{name}.py": f"experiments/studies/{name}.py"
        for name in ("generalisation", "realism", "ablations", "preset_choice", "time_to_plateau",
@@ -172,11 +185,11 @@ def use_todays_weights(tree: pathlib.Path) -> list[str]:
   return changed
 
 
-def run_probe(tree: pathlib.Path, out: pathlib.Path, *, log=print) -> dict:
-  """Run today's probe script on ``tree``'s packages; returns its arrays (and its JSON under ``"_meta"``)."""
+def run_probe(tree: pathlib.Path, out: pathlib.Path, *, log=print, probe: pathlib.Path = PROBE) -> dict:
+  """Run today's ``probe`` script on ``tree``'s packages; returns its arrays (and its JSON under ``"_meta"``)."""
   env = {**os.environ, "PYTHONPATH": str(tree)}
   script = out.with_name(f"{out.stem}_probe.py")          # run from a folder of its own: no
-  script.write_text(PROBE.read_text())                      # benchmarks/ module shadows anything
+  script.write_text(probe.read_text())                      # benchmarks/ module shadows anything
   t0 = time.perf_counter()
   got = subprocess.run([sys.executable, str(script), str(out)], cwd=tree, env=env, capture_output=True,
                        text=True)
@@ -245,15 +258,15 @@ def changed_modules(base: str) -> list[str]:
 
 
 def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], seconds: dict,
-          command: str, weights: tuple[str, ...] = ()) -> dict:
-  modules = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe"])
+          command: str, weights: tuple[str, ...] = (), probe: pathlib.Path = PROBE) -> dict:
+  modules = provenance.code_modules(["benchmarks.equivalence", f"benchmarks.{probe.stem}"])
   passed = all(r["passed"] for r in rows)
   record = {"base": base, "head": provenance.git_commit(), "tolerance": TOLERANCE, "passed": passed,
             "changed": changed, "closure": modules, "probes": rows, "seconds": seconds,
             "weights_since_base": list(weights)}
   lines = [f"# Results carried forward: the code at {base[:12]} and today's, side by side", "",
            *provenance.provenance(command), "",
-           f"Every probe of `benchmarks/equivalence_probe.py` run on commit `{base[:12]}`'s tree and on "
+           f"Every probe of `benchmarks/{probe.name}` run on commit `{base[:12]}`'s tree and on "
            f"this one (probe times: base {seconds['base']:.0f} s, today {seconds['today']:.0f} s). "
            f"A probe passes when every array is within {TOLERANCE:g} of the base value, relative to "
            "the base array's largest magnitude (float32 rounding); `identical` counts arrays equal "
@@ -331,9 +344,11 @@ def _carries(entry, results: pathlib.Path, name: str, files) -> bool:
   return all(today[m] in closure for m in moved)
 
 
-def record_name(base: str, first: bool) -> str:
-  """A record's results file name: ``equivalence.md`` for the first base named, ``equivalence_<base>.md`` after."""
-  return f"{NAME}.md" if first else f"{NAME}_{base}.md"
+def record_name(base: str, first: bool, probe: str = "main") -> str:
+  """A record's results file name: ``equivalence.md`` for the first base named, ``equivalence_<base>.md`` after;
+  ``equivalence_<probe>.md`` and ``equivalence_<probe>_<base>.md`` for a probe other than ``main``."""
+  stem = NAME if probe == "main" else f"{NAME}_{probe}"
+  return f"{stem}.md" if first else f"{stem}_{base}.md"
 
 
 def main(argv=None) -> int:
@@ -343,16 +358,21 @@ def main(argv=None) -> int:
   p.add_argument("--out", nargs="+", default=None,
                  help="one results file per base (default: equivalence.md for the first, "
                       "equivalence_<BASE>.md for the others)")
+  p.add_argument("--probe", choices=tuple(PROBES), default="main",
+                 help="which probe script runs (PROBES); each writes records of its own")
   args = p.parse_args(argv)
-  outs = args.out or [str(HERE / "results" / record_name(b, i == 0)) for i, b in enumerate(args.base)]
+  probe = PROBES[args.probe]
+  outs = args.out or [str(HERE / "results" / record_name(b, i == 0, args.probe))
+                      for i, b in enumerate(args.base)]
   if len(outs) != len(args.base):
     p.error(f"--out names {len(outs)} files for {len(args.base)} bases")
   command = f"python -m benchmarks.equivalence --base {' '.join(args.base)}" + \
-      (f" --out {' '.join(args.out)}" if args.out else "")
+      (f" --out {' '.join(args.out)}" if args.out else "") + \
+      (f" --probe {args.probe}" if args.probe != "main" else "")
   passed = True
   with tempfile.TemporaryDirectory() as d:
     t0 = time.perf_counter()
-    new = run_probe(provenance.ROOT, pathlib.Path(d) / "today.npz")
+    new = run_probe(provenance.ROOT, pathlib.Path(d) / "today.npz", probe=probe)
     today = time.perf_counter() - t0
     for name, out in zip(args.base, outs):
       base = subprocess.run(["git", "rev-parse", name], cwd=provenance.ROOT, capture_output=True,
@@ -363,13 +383,13 @@ def main(argv=None) -> int:
       try:
         weights = use_todays_weights(tree)
         t0 = time.perf_counter()
-        old = run_probe(tree, pathlib.Path(d) / f"base-{base[:12]}.npz")
+        old = run_probe(tree, pathlib.Path(d) / f"base-{base[:12]}.npz", probe=probe)
         seconds = {"base": time.perf_counter() - t0, "today": today}
       finally:
         subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=provenance.ROOT,
                        capture_output=True)
       rows = compare(old, new)
-      record = write(pathlib.Path(out), base, rows, changed_modules(base), seconds, command, weights)
+      record = write(pathlib.Path(out), base, rows, changed_modules(base), seconds, command, weights, probe)
       for r in rows:
         print(f"  {r['probe']}: {r['identical']}/{r['arrays']} identical, worst {r['worst']:.2e}"
               f"{'' if r['passed'] else '  FAILED'}")

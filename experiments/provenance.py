@@ -2,7 +2,7 @@
 
 One place for the ``/proc`` reading that every results file's header needs:
 the benchmarks (``benchmarks/*.py``) and the experiments that write results
-(``experiments.real_undersampling``) import it from here, so arrows run
+(``experiments.studies.real_undersampling``) import it from here, so arrows run
 downward (``nlosjax`` <- ``experiments`` <- ``benchmarks``).
 
 Each header also carries a ``- Code:`` line: a digest of the project's modules that

@@ -18,9 +18,9 @@ Methods: ``fbp``, ``lct``, ``fk``, ``phasor``, ``rsd`` (``nlosjax.physics``) and
 capture: the same parameters, the physics layer rebuilt for the capture's
 wall, grid and bins, time summed to about the trained bin width; a video is
 reconstructed frame by frame, "Ours" reading each frame with its neighbours);
-``ours``, ``ours_s`` and ``usm`` are ``model`` with ``--variant ours``,
-``ours_s`` or ``usm`` (USM: the baseline of the same run, trained when the
-run's ``train.variants`` holds ``"usm"``).
+each variant's name (``ours``, ``ours_s``, ``usm``, ...; :data:`nlosjax.variants.VARIANTS`)
+is ``model`` with that ``--variant`` (a baseline is in a run when its ``train.variants``
+holds it).
 
 The network's weights: ``--checkpoint`` (a training run of ``python -m
 experiments.train``: workdir, variant folder or checkpoints folder), else the
@@ -56,8 +56,11 @@ import time
 
 import numpy as np
 
-METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "csa", "model", "ours", "ours_s", "usm")
-LEARNED = ("model", "ours", "ours_s", "usm")
+from nlosjax.variants import VARIANTS
+
+#: The learned methods: ``model`` (the variant named by ``--variant``) and each variant by name.
+LEARNED = ("model", *VARIANTS)
+METHODS = ("fbp", "lct", "fk", "phasor", "rsd", "csa", *LEARNED)
 #: Shipped weights used when neither --checkpoint nor --pretrained is given.
 DEFAULT_PRETRAINED = "real"
 #: Options each classic method takes (the CLI passes only those given).
@@ -114,7 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
   g.add_argument("--oversample", type=int, default=None,
                  help="lct, fbp, phasor with --operators refined: v-bins per time bin")
   g.add_argument("--tau-rel", type=float, default=None,
-                 help="csa: l1 weight as a share of max(A^T b) (0.1)")
+                 help="csa: l1 weight as a share of max(A^T b) (the library's 0.05; the measured"
+                      " protocol takes 0.1 at stride 4, 0.03 at stride 8)")
   g.add_argument("--iterations", type=int, default=None, help="csa: the most FISTA steps (200)")
   g = p.add_argument_group("model options")
   g.add_argument("--checkpoint", default=None,
@@ -123,9 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
   g.add_argument("--pretrained", default=None, metavar="NAME",
                  help=f"weights shipped in the package when no --checkpoint is given (default"
                       f" {DEFAULT_PRETRAINED!r}; nlosjax.inference.pretrained_names() lists them)")
-  g.add_argument("--variant", choices=("ours", "ours_s", "usm"), default=None,
+  g.add_argument("--variant", choices=tuple(VARIANTS), default=None,
                  help="--method model: which trained variant (default: with --checkpoint the first"
-                      " trained of ours, ours_s, usm; shipped weights: ours)")
+                      f" trained of {', '.join(VARIANTS)}; shipped weights: ours)")
   g.add_argument("--adapt", action="store_true",
                  help="fit a small part of the network (nlosjax.adaptation.DEFAULT_TRAINABLE) to this"
                       " capture before reconstructing: the forward model of its volume is made to"
@@ -343,8 +347,8 @@ def reconstruct_model(transient, setup, args, log):
   frames = np.asarray(underscan(adapted.prepare(transient), mcfg.stride))
   fitted = None
   if args.adapt:
-    if info["variant"] == "usm":
-      raise ValueError("--adapt fits an ST-Mamba network (ours, ours_s), not USM")
+    if VARIANTS[info["variant"]].family != "stmamba":
+      raise ValueError(f"--adapt fits an ST-Mamba network, not {VARIANTS[info['variant']].label}")
     from nlosjax.adaptation import adapt
     fitted = adapt(adapted.model_config, params, frames, steps=args.adapt_steps,
                    holdout=args.adapt_holdout, falloff=args.falloff or "diffuse")
@@ -424,7 +428,7 @@ def main(argv=None) -> dict:
       raise ValueError(f"--adapt fits a network; --method {args.method} is a classic method")
     if args.scan_stride is not None and args.scan_stride < 1:
       raise ValueError(f"--scan-stride must be >= 1, got {args.scan_stride}")
-    if args.method in ("ours", "ours_s", "usm"):
+    if args.method in VARIANTS:
       if args.variant not in (None, args.method):
         raise ValueError(f"--method {args.method} reconstructs with the {args.method} variant, not"
                          f" --variant {args.variant}")

@@ -1,4 +1,4 @@
-"""experiments.alignment: the second stage's loss and loop on a tiny run.
+"""experiments.studies.alignment: the second stage's loss and loop on a tiny run.
 
 Independent references: the synthetic term against the paper's loss computed
 directly from the model's outputs; the feature rows against the layer's shape;
@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments import alignment as A
+from experiments.studies import alignment as A
 from nlosjax import losses
 from nlosjax import train as T
 from tests.tiny_run import make_tiny_dataset, tiny_config

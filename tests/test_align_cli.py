@@ -1,4 +1,4 @@
-"""python -m experiments.align end to end, the training stage replaced by a recorder.
+"""python -m experiments.studies.align end to end, the training stage replaced by a recorder.
 
 Independent references: the shipped weights as nlosjax.inference.load_pretrained reads them
 (the CLI must hand each fold exactly those parameters), and the leave-one-scan-out count
@@ -9,8 +9,8 @@ import jax
 import numpy as np
 import pytest
 
-from experiments import align as cli
-from experiments import alignment as stage
+from experiments.studies import align as cli
+from experiments.studies import alignment as stage
 from nlosjax import inference
 from nlosjax import train as T
 from nlosjax.evaluation import protocol

@@ -118,7 +118,7 @@ def test_several_bases_run_todays_probe_once_and_write_a_record_each(tmp_path, m
   probed, worktrees = [], []
   arrays = {"data/lct/x": np.arange(3.0)}
 
-  def fake_probe(tree, out, *, log=print):
+  def fake_probe(tree, out, *, log=print, probe=equivalence.PROBE):
     probed.append(pathlib.Path(tree).name)
     return dict(arrays)
 

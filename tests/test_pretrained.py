@@ -253,7 +253,7 @@ def test_reconstruct_uses_the_shipped_weights(tmp_path, capsys):
 
 @pytest.mark.full
 def test_real_undersampling_loads_every_shipped_variant_of_a_name():
-  from experiments import real_undersampling as R
+  from experiments.studies import real_undersampling as R
   with pytest.raises(ValueError, match=r"cpu \(ours\)"):
     R.load_models(pretrained="nope", log=lambda s: None)
   trained = R.load_models(pretrained="cpu", log=lambda s: None)

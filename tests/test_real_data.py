@@ -210,8 +210,8 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
   score; at a network trained on 2 x 16 ps it scores phasor on the scan summed in pairs by hand."""
   import dataclasses
 
-  from experiments import real_undersampling as R
-  from experiments.real_undersampling import report
+  from experiments.studies import real_undersampling as R
+  from experiments.studies.real_undersampling import report
   from nlosjax import metrics
   from nlosjax.evaluation import baselines as B
   from nlosjax.models.network import ModelConfig
@@ -258,7 +258,7 @@ def test_binned_classic_scores_the_classic_methods_on_the_networks_time_bins(sca
 
 
 def test_training_data_is_found_from_a_workdir_a_variant_folder_or_its_checkpoints(tmp_path):
-  from experiments.real_undersampling import training_data
+  from experiments.studies.real_undersampling import training_data
   (tmp_path / "config.json").write_text(json.dumps({"data": {"path": "runs/data/mine.h5"}}))
   (tmp_path / "ours_s" / "checkpoints").mkdir(parents=True)
   for where in (tmp_path, tmp_path / "ours_s", tmp_path / "ours_s" / "checkpoints"):
@@ -288,7 +288,7 @@ def test_every_variant_of_the_real_preset_can_build_its_loss_wavelet():
 
 
 def test_time_lines_separate_the_compiling_first_call_from_the_compiled_ones():
-  from experiments.real_undersampling import report
+  from experiments.studies.real_undersampling import report
   times = {"a": (9.0, 1.0), "b": (1.0, 2.0), "c": (3.0, 4.0), "d": (2.0, 8.0)}
   results = {"strides": [4], "methods": ["lct", "ours"],
              "scenes": {sc: {"scores": {("lct", 4): {"time_s": t, "again_s": a},
@@ -305,8 +305,8 @@ def test_time_lines_separate_the_compiling_first_call_from_the_compiled_ones():
 def test_ablated_models_zero_exactly_the_named_parts_and_skip_networks_without_them():
   import jax
 
-  from experiments import real_undersampling as R
-  from experiments.real_undersampling import ablation as R_ablation
+  from experiments.studies import real_undersampling as R
+  from experiments.studies.real_undersampling import ablation as R_ablation
   from nlosjax import inference
   mcfg, params, _ = inference.load_pretrained("real", "ours_s")
   usm_like = {"decoder": {"kernel": np.ones((2, 2), np.float32)}}
@@ -339,8 +339,8 @@ def test_ablated_models_zero_exactly_the_named_parts_and_skip_networks_without_t
 
 
 def test_adapted_models_and_their_table():
-  from experiments import real_undersampling as R
-  from experiments.real_undersampling import ablation as R_ablation
+  from experiments.studies import real_undersampling as R
+  from experiments.studies.real_undersampling import ablation as R_ablation
   marker = object()
   out = R.adapted_models({"ours": ("cfg", marker), "usm": ("ucfg", None)})
   assert out == {"ours|adapted": ("cfg", marker, True)}
@@ -373,7 +373,7 @@ def test_adapted_models_and_their_table():
 
 def test_the_all_zero_floor_is_the_closed_form_psnr_of_each_reference_and_has_a_row():
   """A reference of constant value c scores 10 log10(1 / c^2) dB against the all-zero image."""
-  from experiments.real_undersampling import protocol, report
+  from experiments.studies.real_undersampling import protocol, report
   consts = dict(zip(protocol.REFERENCES, (0.5, 0.25, 0.1, 0.2, 0.4)))
   refs = {"a": {r: np.full((4, 4), c, np.float32) for r, c in consts.items()},
           "b": {r: np.full((4, 4), c / 2, np.float32) for r, c in consts.items()}}
@@ -392,7 +392,7 @@ def test_the_all_zero_floor_is_the_closed_form_psnr_of_each_reference_and_has_a_
 
 
 def test_align_reads_every_offset_of_each_scan_at_the_networks_bins():
-  from experiments import align
+  from experiments.studies import align
   from nlosjax import inference
   from nlosjax.data import io
   mcfg, _, _ = inference.load_pretrained("real", "ours")
@@ -411,7 +411,7 @@ def test_align_reads_every_offset_of_each_scan_at_the_networks_bins():
 def test_figures_take_the_reports_name_so_a_second_report_keeps_the_firsts(tmp_path):
   """``write_figures`` names its files after the report's stem: ``real_public.md`` beside
   ``real.md`` must not overwrite ``real_<scene>.png``."""
-  from experiments import real_undersampling as ru
+  from experiments.studies import real_undersampling as ru
   img = np.linspace(0.0, 1.0, 64 * 64, dtype=np.float32).reshape(64, 64)
   score = {"psnr": 15.0, "ssim": 0.5}
   results = {"strides": [4], "methods": ["lct", "ours"],
@@ -427,8 +427,8 @@ def test_figures_take_the_reports_name_so_a_second_report_keeps_the_firsts(tmp_p
 def test_aligned_run_scores_each_scan_only_with_its_finished_fold_and_names_the_lam(tmp_path, monkeypatch):
   import pathlib
 
-  from experiments.align import fold_folder
-  from experiments.real_undersampling import ablation as R_ablation
+  from experiments.studies.align import fold_folder
+  from experiments.studies.real_undersampling import ablation as R_ablation
   from nlosjax.pretrained import flatten_params
   params = {"dense": {"kernel": np.arange(4, dtype=np.float32).reshape(2, 2)}}
   for scene, lam, rule, layer in (("a", 12.5, {"rule": "balanced"}, "extract"), ("b", 1.0, None, None)):
@@ -467,7 +467,7 @@ def jax_tree_plus(tree, value):
 
 def test_csa_in_the_protocol_reads_the_masked_scan_with_its_strides_prior_and_counts_as_untrained(
     monkeypatch):
-  from experiments.real_undersampling import protocol, report
+  from experiments.studies.real_undersampling import protocol, report
   from nlosjax.physics.setup import Setup
   setup = Setup(wall_size=0.6, grid=(16, 16), bin_width=64e-12, num_bins=64)
   x = np.random.default_rng(1).poisson(0.5, (64, 16, 16)).astype(np.float32)

@@ -131,8 +131,8 @@ def test_alignment_folds_accumulate_across_stretches_and_machines(tmp_path, monk
 
   import numpy as np
 
-  from experiments import align as cli
-  from experiments import alignment as stage
+  from experiments.studies import align as cli
+  from experiments.studies import alignment as stage
   from nlosjax.evaluation import protocol
   monkeypatch.setenv(store.ENV, str(tmp_path / "home"))
   monkeypatch.setattr(study, "STATE_DIR", tmp_path / "repo" / "state")

@@ -1,7 +1,7 @@
 """Real-capture preset: the cpu preset's model trained on the geometry of the shipped measured scans.
 
 For reconstructing measured confocal captures: the shipped ``real`` weights, which
-``experiments.reconstruct`` and ``experiments.real_undersampling`` load by default,
+``experiments.reconstruct`` and ``experiments.studies.real_undersampling`` load by default,
 were trained with it. It keeps the cpu model and batch (with the peak learning rate of 1e-3 the
 cpu preset had when these weights were trained) and moves the data to the
 measured regime: a 0.6 m wall scanned at 64 x 64 points (16 x 16 input), 128 bins of
@@ -9,7 +9,7 @@ measured regime: a 0.6 m wall scanned at 64 x 64 points (16 x 16 input), 128 bin
 away, trained until validation stops improving.
 
     python -m experiments.train --config real --workdir runs/real
-    python -m experiments.real_undersampling --checkpoint runs/real
+    python -m experiments.studies.real_undersampling --checkpoint runs/real
 
 It takes hours on 2 CPU cores: the data's transport rendering at 4x the cpu preset's
 scan points (not measured), then training to the validation plateau (the shipped run

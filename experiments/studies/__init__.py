@@ -24,8 +24,8 @@ folders in the store (:mod:`experiments.store`), outside the work tree; the othe
   ``temporal_probe`` (does Ours read its neighbours), ``time_to_plateau`` and
   ``stopping_replay`` (how long to train, when to stop).
 
-Still elsewhere: the measured-scan protocol (``experiments.real_undersampling``) and the
-alignment stage (``experiments.align``), which move with their next rerun (their code fixes the
+Still elsewhere: the measured-scan protocol (``experiments.studies.real_undersampling``) and the
+alignment stage (``experiments.studies.align``), which move with their next rerun (their code fixes the
 scans' folder from the file's own place, and a move stales their results); and in
 ``benchmarks/`` the trade-off study, which measures speed against accuracy of every
 reconstruction knob beside the other performance benchmarks.

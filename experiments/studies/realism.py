@@ -232,7 +232,7 @@ def plot(meas: dict, sims: dict, path: pathlib.Path) -> None:
 def main(argv=None) -> int:
   from experiments.cli import config_parser, parse_config
   from experiments.provenance import provenance
-  from experiments.real_undersampling import default_files
+  from experiments.studies.real_undersampling import default_files
   from nlosjax.physics.setup import SPEED_OF_LIGHT
   parser = config_parser(__doc__.split("\n\n")[0])
   parser.set_defaults(config="real")

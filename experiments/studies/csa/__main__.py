@@ -80,7 +80,7 @@ def report(results, *, command, path, sequences, frames, strides, taus) -> str:
            " under-scanned at the points `stride // 2 + stride i`. CSA reconstructs the masked"
            " scan (`nlosjax.physics.methods.csa.csa`, 200 FISTA steps at most, tol 1e-4); the"
            " classic methods the scan interpolated back to 64 x 64 with their default options, as"
-           " `experiments.real_undersampling` runs them. Intensity PSNR (dB) against the simulator's"
+           " `experiments.studies.real_undersampling` runs them. Intensity PSNR (dB) against the simulator's"
            " ground truth; mean [95 % interval over sequences]. No measured scan is read.", "",
            "| method | " + " | ".join(f"{64 // s} × {64 // s}" for s in strides) + " |",
            "|---|" + "---|" * len(strides)]

@@ -27,7 +27,7 @@ classic methods (another study's command; run the printed line)::
 
     python -m experiments.studies.real_preset --candidates
 
-``--align [NAME ...]`` runs the alignment stage (:mod:`experiments.align`, leave one
+``--align [NAME ...]`` runs the alignment stage (:mod:`experiments.studies.align`, leave one
 scan out) from each variant's winner on validation
 (:data:`~experiments.studies.real_preset.study.ALIGNMENTS`), fold by fold, into
 ``<store>/runs/real_preset/align/<variant>-without-<scan>/``; each finished fold's ``params.npz`` and
@@ -37,11 +37,11 @@ fold starts (a fold is about 15 minutes of 2 cores). ``--status`` shows the fold
 the hours left::
 
     python -m experiments.studies.real_preset --align --hours 1.5
-    python -m experiments.real_undersampling --adapt --no-timing --out benchmarks/results/real_adapt.md \
+    python -m experiments.studies.real_undersampling --adapt --no-timing --out benchmarks/results/real_adapt.md \
         --aligned <store>/runs/real_preset/align <store>/runs/real_preset/align-balanced
 
 The ``*-balanced`` alignments (``lam`` set per fold from the training side: the MMD
-term's gradient as large as the synthetic loss's; ``experiments.align --lam balanced``)
+term's gradient as large as the synthetic loss's; ``experiments.studies.align --lam balanced``)
 keep their folds in ``align-balanced/`` (store and ``state/``), one table each. The
 ``*-layer`` alignments also choose, per fold, the layer they align (``--layer auto``: where the
 fold's training scans' features stand furthest from the synthetic ones, a choice recorded in

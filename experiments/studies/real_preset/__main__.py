@@ -23,7 +23,7 @@ def main(argv=None) -> int:
   parser.add_argument("--align", nargs="*", default=None, metavar="NAME",
                       help="run the alignment stage instead of training (default all: "
                            f"{' '.join(a.name for a in study.ALIGNMENTS)})")
-  parser.add_argument("--data-dir", default=None, help="folder of measured .mat scans (as experiments.align's)")
+  parser.add_argument("--data-dir", default=None, help="folder of measured .mat scans (as experiments.studies.align's)")
   args = parser.parse_args(argv)
   if args.candidates:
     from nlosjax.evaluation.baselines import CLASSIC_METHODS
@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     runs = study.select(args.runs)
   except ValueError as e:
     parser.error(str(e))
-  from experiments.real_undersampling import default_files, scene_name
+  from experiments.studies.real_undersampling import default_files, scene_name
   files = default_files(args.data_dir)
   if not args.status:
     from experiments import xla_cache

@@ -226,10 +226,10 @@ def run_alignments(files, names=None, *, hours: float | None = None,
                    log: Callable[[str], None] = print) -> list[dict]:
   """Align the named :data:`ALIGNMENTS` (default all, in order) until done or ``hours`` have passed.
 
-  ``files``: the measured scans (``experiments.real_undersampling.default_files``). As
+  ``files``: the measured scans (``experiments.studies.real_undersampling.default_files``). As
   :func:`run_study`, the first unfinished fold always starts. Returns each alignment's status.
   """
-  from experiments.real_undersampling import scene_name
+  from experiments.studies.real_undersampling import scene_name
   unknown = set(names or ()) - {a.name for a in ALIGNMENTS}
   if unknown:
     raise ValueError(f"unknown alignment(s) {sorted(unknown)}; the study's: {[a.name for a in ALIGNMENTS]}")
@@ -262,11 +262,11 @@ def select(names) -> list[Run]:
 
 @dataclasses.dataclass(frozen=True)
 class Alignment:
-  """The alignment stage (:mod:`experiments.align`, leave one scan out) of one shipped network.
+  """The alignment stage (:mod:`experiments.studies.align`, leave one scan out) of one shipped network.
 
   ``source``: ``pretrained:NAME``, the weights shipped as ``NAME-<variant>`` (so a fresh
   clone has them); their training data are made in the store from the provenance's config.
-  ``lam``: ``experiments.align``'s ``--lam`` (a number or ``"balanced"``); ``folder``: the
+  ``lam``: ``experiments.studies.align``'s ``--lam`` (a number or ``"balanced"``); ``folder``: the
   workdir's name in the store and in ``state/`` (the alignments of one ``lam`` and layer rule
   share one, so one ``--aligned`` scores them together); ``layer``: its ``--layer`` (a layer or
   ``"auto"``).
@@ -286,7 +286,7 @@ class Alignment:
 #: learning rate are the CLI's defaults, fixed before any score was seen. At ``lam = 1`` the
 #: MMD term stayed 0.000-0.1 against a synthetic loss of about 2 (the stage was inert), so
 #: the ``balanced`` pair sets ``lam`` per fold from the training side alone: the MMD
-#: gradient as large as the synthetic one at the start (``experiments.align --lam balanced``).
+#: gradient as large as the synthetic one at the start (``experiments.studies.align --lam balanced``).
 ALIGNMENTS = (
     Alignment("align-ours_s", "pretrained:real", "ours_s"),
     Alignment("align-ours", "pretrained:real", "ours"),
@@ -294,18 +294,18 @@ ALIGNMENTS = (
     Alignment("align-ours-balanced", "pretrained:real", "ours", "balanced", "align-balanced"),
     # The first block's features of measured and simulated inputs differ by no more than the
     # MMD's own noise (real_adapt.md), so these align, per fold, the layer where the fold's
-    # training scans stand furthest off (experiments.align --layer auto), lam balanced there.
+    # training scans stand furthest off (experiments.studies.align --layer auto), lam balanced there.
     Alignment("align-ours_s-layer", "pretrained:real", "ours_s", "balanced", "align-layer", "auto"),
     Alignment("align-ours-layer", "pretrained:real", "ours", "balanced", "align-layer", "auto"),
 )
 
 
 def alignment_workdir(a: Alignment) -> pathlib.Path:
-  """``<store>/runs/real_preset/<a.folder>``: ``experiments.align``'s ``--workdir``, one folder a fold.
+  """``<store>/runs/real_preset/<a.folder>``: ``experiments.studies.align``'s ``--workdir``, one folder a fold.
 
   One folder for the alignments of one ``folder`` (one ``lam`` and layer rule; the folds are named
   by variant and scan),
-  so one ``python -m experiments.real_undersampling --aligned`` scores them together.
+  so one ``python -m experiments.studies.real_undersampling --aligned`` scores them together.
   """
   return store.run_path(STUDY, a.folder)
 
@@ -325,7 +325,7 @@ def sync_alignment(a: Alignment) -> list[str]:
   """
   import shutil
 
-  from experiments.align import fold_files
+  from experiments.studies.align import fold_files
   done = set()
   work, state = alignment_workdir(a), alignment_state(a)
   for src_root, dst_root in ((state, work), (work, state)):
@@ -347,12 +347,12 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
                   log: Callable[[str], None] = print) -> tuple[bool, bool]:
   """Align ``a`` fold by fold until every scan is done or ``deadline``: ``(done, started a fold)``.
 
-  :func:`experiments.align.align_folds` (as ``python -m experiments.align --checkpoint
+  :func:`experiments.studies.align.align_folds` (as ``python -m experiments.studies.align --checkpoint
   <source> --variants <variant>``) with the store's workdir and data, ``deadline`` checked
   before each fold starts (with ``start_one``, not before the first), and each finished fold
   copied into the committed state.
   """
-  from experiments import align as cli
+  from experiments.studies import align as cli
   from nlosjax import train
   from nlosjax.evaluation import protocol
   config, trained = cli.load_source(a.source, [a.variant])
@@ -378,7 +378,7 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
 
 
 def _fold_seconds(a: Alignment, scenes) -> tuple[list[str], list[float]]:
-  from experiments.align import fold_files
+  from experiments.studies.align import fold_files
   state = alignment_state(a)
   done = [s for s in scenes if fold_files(state / f"{a.variant}-without-{s}")]
   return done, [json.loads((state / f"{a.variant}-without-{s}" / "align.json").read_text())["seconds"]

@@ -13,7 +13,7 @@ under-scanned inputs ``[M, F, T, h, w]`` (static scans: one frame repeated);
 each step reads ``measured_batch`` of them. Steps, learning rate and ``lam``
 are fixed beforehand: nothing is chosen on the measured inputs' scores, and
 a caller that scores a scan must leave that scan's inputs out of
-``measured`` (``experiments.align``).
+``measured`` (``experiments.studies.align``).
 
 ``lam`` may be set from the training side alone: :func:`term_gradient_norms` measures
 each term's gradient norm at the starting parameters on synthetic training batches and

@@ -1,18 +1,18 @@
 """The second training stage on unlabelled measured scans, leave one scan out.
 
-    python -m experiments.align --checkpoint runs/real [--variants ours ours_s] [--data-dir DIR]
+    python -m experiments.studies.align --checkpoint runs/real [--variants ours ours_s] [--data-dir DIR]
         [--steps 100] [--lam 1.0 | --lam balanced] [--layer st_mamba0 | --layer auto]
         [--learning-rate 1e-4] [--workdir runs/align] [--data FILE]
 
-For each measured scan (``--data-dir``, the scans of ``experiments.real_undersampling``)
+For each measured scan (``--data-dir``, the scans of ``experiments.studies.real_undersampling``)
 and each variant of the trained run ``--checkpoint`` (a workdir of
 ``python -m experiments.train``, or ``pretrained:NAME`` for the weights shipped as
 ``NAME-<variant>``): the run's network trained on
-:func:`experiments.alignment.align` with the run's synthetic data and the measured
+:func:`experiments.studies.alignment.align` with the run's synthetic data and the measured
 inputs of every *other* scan (each under-scanned at all ``stride^2`` offsets of
 the trained stride, time summed to the trained bins), into
 ``WORKDIR/<variant>-without-<scene>/`` (``params.npz``, ``align.json``). So a
-scan's score (``python -m experiments.real_undersampling --aligned WORKDIR``)
+scan's score (``python -m experiments.studies.real_undersampling --aligned WORKDIR``)
 comes from a network that never read that scan. Steps, ``lam`` and the
 learning rate are fixed before any score is seen. A finished fold (its folder
 holds ``params.npz`` and ``align.json``) is skipped, so the command resumes. The synthetic data are the
@@ -22,14 +22,14 @@ generated from the run config's data spec first (``nlosjax.train.ensure_dataset`
 ``--lam balanced`` sets each fold's ``lam`` from the training side alone: the MMD term's
 gradient as large as the synthetic loss's, in the median over 8 synthetic training
 batches, at the starting parameters, with that fold's measured inputs
-(:func:`experiments.alignment.balanced_lam`); the norms and the ``lam`` are recorded in the
+(:func:`experiments.studies.alignment.balanced_lam`); the norms and the ``lam`` are recorded in the
 fold's ``align.json`` (``"lam_rule"``).
 
 ``--layer auto`` chooses each fold's aligned layer from the training side too: among the
 network's layers that keep a feature vector per time step and scan point (extraction,
 ST-Mamba and cross blocks), the one whose features of the fold's measured inputs stand the
 most noise widths away from those of 8 synthetic training batches
-(:func:`experiments.alignment.layer_separation`); the separations and the choice are recorded
+(:func:`experiments.studies.alignment.layer_separation`); the separations and the choice are recorded
 (``"layer_rule"``), and a balanced ``lam`` is measured at that layer.
 """
 
@@ -42,7 +42,11 @@ from typing import Callable
 
 import numpy as np
 
-from experiments.real_undersampling.protocol import default_files, fold_files, fold_folder, scene_name
+from experiments.studies.real_undersampling.protocol import default_files, fold_files, fold_folder, scene_name
+from nlosjax.variants import VARIANTS
+
+#: The variants aligned by default: the ST-Mamba networks (the stage fits their features).
+STMAMBA = [name for name, v in VARIANTS.items() if v.family == "stmamba"]
 
 
 def measured_inputs(files, model_config) -> dict:
@@ -83,7 +87,7 @@ def fold_lam(lam: float | str, config: dict, data_path, model_config, params, me
   (the MMD term at ``layer``)."""
   if lam != "balanced":
     return float(lam), None
-  from experiments.alignment import balanced_lam, term_gradient_norms
+  from experiments.studies.alignment import balanced_lam, term_gradient_norms
   norms = term_gradient_norms(config, data_path, model_config, params, measured, batches=BALANCED_BATCHES,
                               layer=layer)
   value = balanced_lam(norms, BALANCED_SHARE)
@@ -93,7 +97,7 @@ def fold_lam(lam: float | str, config: dict, data_path, model_config, params, me
 
 
 #: ``--layer auto``: the synthetic training inputs the layer is chosen against (batches of the
-#: training split), and the separation's estimates (:func:`experiments.alignment.layer_separation`).
+#: training split), and the separation's estimates (:func:`experiments.studies.alignment.layer_separation`).
 AUTO_LAYER_BATCHES, AUTO_LAYER_DRAWS = 8, 16
 
 
@@ -103,7 +107,7 @@ def fold_layer(layer: str, config: dict, data_path, model_config, params, measur
   ``measured`` (the fold's training scans) stand furthest from the synthetic training inputs'."""
   if layer != "auto":
     return layer, None
-  from experiments.alignment import chosen_layer, layer_separation
+  from experiments.studies.alignment import chosen_layer, layer_separation
   from nlosjax.train import make_loader, select_frames
   loader = make_loader(config, data_path, "train", batch_size=int(config["train"]["batch_size"]),
                        shuffle=True, seed=0)
@@ -129,14 +133,14 @@ def align_folds(config: dict, data_path, model_config, params, inputs: dict, wor
   """Leave one scan out: for each scan of ``inputs``, ``params`` aligned on the *other* scans' inputs.
 
   ``inputs``: ``scene -> [n, F, T, h, w]`` (:func:`measured_inputs`); each fold trains
-  :func:`experiments.alignment.align` into :func:`fold_folder` ``(workdir, variant, scene)``;
+  :func:`experiments.studies.alignment.align` into :func:`fold_folder` ``(workdir, variant, scene)``;
   finished folds (:func:`fold_files`) are skipped. ``lam``: a number, or ``"balanced"``
   (:func:`fold_lam`, measured per fold). ``layer``: the aligned layer, or ``"auto"``
   (:func:`fold_layer`, chosen per fold on the fold's training scans). ``before_fold(scene)`` returning False
   stops before that fold (a deadline); ``after_fold(folder)`` runs after each one trained.
   Returns ``(every fold finished, at least one trained now)``.
   """
-  from experiments.alignment import align
+  from experiments.studies.alignment import align
   started = False
   for scene in inputs:
     folder = fold_folder(workdir, variant, scene)
@@ -184,7 +188,8 @@ def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--checkpoint", required=True,
                       help="a run of python -m experiments.train (its workdir), or pretrained:NAME")
-  parser.add_argument("--variants", nargs="+", default=["ours", "ours_s"])
+  parser.add_argument("--variants", nargs="+", default=STMAMBA,
+                      help=f"the variants to align (default: the ST-Mamba ones, {' '.join(STMAMBA)})")
   parser.add_argument("--data-dir", default=None, help="folder of measured .mat scans")
   parser.add_argument("--steps", type=int, default=100)
   parser.add_argument("--lam", type=lam_arg, default=1.0,

@@ -7,10 +7,10 @@ import time
 
 import numpy as np
 
+from experiments.provenance import ROOT as REPO
 from nlosjax.evaluation.baselines import CLASSIC_METHODS
 from nlosjax.evaluation.report import METHOD_LABELS
 
-REPO = pathlib.Path(__file__).resolve().parents[2]
 CLASSIC = CLASSIC_METHODS
 VARIANTS = ("ours_s", "ours", "usm")
 LABELS = METHOD_LABELS
@@ -54,7 +54,7 @@ def scene_name(path: pathlib.Path) -> str:
 
 
 def fold_folder(workdir, variant: str, scene: str) -> pathlib.Path:
-  """``<workdir>/<variant>-without-<scene>``: one leave-one-scan-out fold (``experiments.align``)."""
+  """``<workdir>/<variant>-without-<scene>``: one leave-one-scan-out fold (``experiments.studies.align``)."""
   return pathlib.Path(workdir) / f"{variant}-without-{scene}"
 
 

@@ -1,4 +1,4 @@
-"""``python -m experiments.real_undersampling``: the command line (the protocol: the package docstring)."""
+"""``python -m experiments.studies.real_undersampling``: the command line (the protocol: the package docstring)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import pathlib
 import sys
 import time
 
-from experiments.real_undersampling import __doc__ as package_doc
-from experiments.real_undersampling.ablation import ablated_models, adapted_models, aligned_run
-from experiments.real_undersampling.figures import write_figures
-from experiments.real_undersampling.protocol import (
+from experiments.studies.real_undersampling import __doc__ as package_doc
+from experiments.studies.real_undersampling.ablation import ablated_models, adapted_models, aligned_run
+from experiments.studies.real_undersampling.figures import write_figures
+from experiments.studies.real_undersampling.protocol import (
   DEFAULT_PRETRAINED,
   REPO,
   binned_classic,
@@ -20,12 +20,12 @@ from experiments.real_undersampling.protocol import (
   run,
   synthetic_check,
 )
-from experiments.real_undersampling.report import pretrained_data, training_data, write_report
-from experiments.real_undersampling.timing import time_cli, time_warm
+from experiments.studies.real_undersampling.report import pretrained_data, training_data, write_report
+from experiments.studies.real_undersampling.timing import time_cli, time_warm
 
 
 def main(argv=None):
-  parser = argparse.ArgumentParser(prog="python -m experiments.real_undersampling",
+  parser = argparse.ArgumentParser(prog="python -m experiments.studies.real_undersampling",
                                    description=package_doc.split("\n\n")[0])
   parser.add_argument("--data-dir", default=None,
                       help="folder of real .mat scans (default ../shared/data/real, else the shipped scan)")
@@ -42,20 +42,20 @@ def main(argv=None):
   parser.add_argument("--json", default=None, help="also write the scores as JSON here")
   parser.add_argument("--synthetic", default=None,
                       help="dataset file for the in-domain check (default: the data.path of the"
-                           " checkpoint's config.json, else runs/data/cpu.h5; 'none' to skip;"
-                           " skipped if absent)")
+                           " checkpoint's config.json, or of the shipped weights' without --checkpoint;"
+                           " 'none' to skip; skipped if absent)")
   parser.add_argument("--notes", default=None, help="a Markdown file whose text is added after the tables")
   parser.add_argument("--no-ablation", action="store_true",
                       help="skip the networks with their learned residuals zeroed (ablated_models)")
   parser.add_argument("--adapt", action="store_true",
                       help="also fit each network to each scan before reconstructing it (adapted_models)")
   parser.add_argument("--aligned", nargs="+", default=None, metavar="WORKDIR",
-                      help="also score each scan with the networks of python -m experiments.align --workdir"
+                      help="also score each scan with the networks of python -m experiments.studies.align --workdir"
                            " WORKDIR that left it out (aligned_run); several workdirs (e.g. two lam"
                            " settings) get one table each")
   args = parser.parse_args(argv)
   t0 = time.perf_counter()
-  command = "python -m experiments.real_undersampling " + " ".join(
+  command = "python -m experiments.studies.real_undersampling " + " ".join(
       sys.argv[1:] if argv is None else argv)
   from experiments.provenance import provenance
   facts = provenance(command.strip())              # the commit the run starts from

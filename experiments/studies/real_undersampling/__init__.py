@@ -1,8 +1,8 @@
 """Under-scanning on measured scans: every method on 16 x 16 and 8 x 8 subsets of real 64 x 64 scans.
 
-    python -m experiments.real_undersampling                      # -> benchmarks/results/real.md
-    python -m experiments.real_undersampling --data-dir DIR --checkpoint runs/real --out FILE.md
-    python -m experiments.real_undersampling --pretrained cpu --no-timing
+    python -m experiments.studies.real_undersampling                      # -> benchmarks/results/real.md
+    python -m experiments.studies.real_undersampling --data-dir DIR --checkpoint runs/real --out FILE.md
+    python -m experiments.studies.real_undersampling --pretrained cpu --no-timing
 
 Protocol (the paper's under-scanning experiment, on measured data):
 
@@ -74,9 +74,9 @@ Writes the Markdown report (``--out``, say ``real.md``) and, beside it, ``real_<
 report's stem (``real_public.md`` writes ``real_public_<scene>.png``).
 """
 
-from experiments.real_undersampling.ablation import ablated_models, adapted_models
-from experiments.real_undersampling.figures import write_figures
-from experiments.real_undersampling.protocol import (
+from experiments.studies.real_undersampling.ablation import ablated_models, adapted_models
+from experiments.studies.real_undersampling.figures import write_figures
+from experiments.studies.real_undersampling.protocol import (
                                                      CLASSIC,
                                                      ITERATIVE,
                                                      LABELS,
@@ -90,7 +90,7 @@ from experiments.real_undersampling.protocol import (
                                                      run,
                                                      scene_name,
 )
-from experiments.real_undersampling.report import pretrained_data, training_data, write_report
+from experiments.studies.real_undersampling.report import pretrained_data, training_data, write_report
 
 __all__ = ["CLASSIC", "ITERATIVE", "LABELS", "OPTIONS", "REFERENCES", "UNTRAINED", "ablated_models", "adapted_models",
            "binned_classic", "classic_intensity", "default_files", "load_models", "pretrained_data", "run",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from experiments.real_undersampling.protocol import (
+from experiments.studies.real_undersampling.protocol import (
   LABELS,
   REFERENCES,
   UNTRAINED,
@@ -59,7 +59,7 @@ def ablated_models(trained: dict) -> dict:
 
 
 def aligned_run(files, strides, results, workdir) -> dict:
-  """Each scan scored by the networks of ``python -m experiments.align --workdir WORKDIR`` that left it out.
+  """Each scan scored by the networks of ``python -m experiments.studies.align --workdir WORKDIR`` that left it out.
 
   Returns the :func:`run` results of ``"<variant>|aligned"`` (scenes without such a network are
   absent), with ``"workdir"`` (its folder's name) and ``"lam"`` (the sorted distinct ``lam`` of
@@ -104,7 +104,7 @@ ADAPTATION_TEXT = ("Each network fitted to each scan before reconstructing it (`
                    " intensity PSNR (dB), mean over the references, as trained → fitted, per scan and mean{detail};"
                    " last column the seconds per scan the fitted network took, fitting included:")
 ALIGNED_TEXT = ("Each network after the second training stage on unlabelled measured inputs"
-                " (`python -m experiments.align`: the synthetic loss plus the MMD² of one layer's features to"
+                " (`python -m experiments.studies.align`: the synthetic loss plus the MMD² of one layer's features to"
                 " measured inputs, the layer named per fold below), one network per scan, trained on the *other*"
                 " scans' inputs only: intensity PSNR (dB), mean over the references, as trained → aligned"
                 " without that scan, per scan and mean{detail}; last column the seconds per scan:")

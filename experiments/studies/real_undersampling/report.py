@@ -7,8 +7,8 @@ import pathlib
 
 import numpy as np
 
-from experiments.real_undersampling.ablation import ablation_lines, adaptation_lines, aligned_lines
-from experiments.real_undersampling.protocol import (
+from experiments.studies.real_undersampling.ablation import ablation_lines, adaptation_lines, aligned_lines
+from experiments.studies.real_undersampling.protocol import (
   CAPTURE_BIN_WIDTH,
   CSA_TAU_REL,
   DEFAULT_PRETRAINED,
@@ -195,7 +195,7 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
       f"- Wall time: {elapsed / 60:.1f} min; numpy {np.__version__}",
       "- Scans: " + ", ".join(f"`{pathlib.Path(e['file']).name}`" for e in results["scenes"].values()) +
       " (O'Toole et al. 2018, 64 × 64 × 512 after the published preparation, 16 ps bins)",
-      "- Protocol: see the docstring of `experiments/real_undersampling/__init__.py`: references = each"
+      "- Protocol: see the docstring of `experiments/studies/real_undersampling/__init__.py`: references = each"
       " classic method on the full 64 × 64 scan, a method scored against every reference but its"
       " own; sparse scans = scan points `stride // 2 + stride i`;"
       " classic methods on the sparse scan interpolated to 64 × 64 (LCT snr 0.8 and FBP with"

@@ -6,7 +6,7 @@ import pathlib
 
 import numpy as np
 
-from experiments.real_undersampling.protocol import ITERATIVE, LABELS, REFERENCES, over_scenes
+from experiments.studies.real_undersampling.protocol import ITERATIVE, LABELS, REFERENCES, over_scenes
 
 
 def write_figures(results, out_dir: pathlib.Path, prefix: str = "real") -> list[str]:

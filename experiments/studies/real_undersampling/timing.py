@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from experiments.real_undersampling.protocol import OPTIONS, REPO
+from experiments.studies.real_undersampling.protocol import OPTIONS, REPO
 
 _TWIN_SCRIPT = r"""
 import json, sys, time
