@@ -356,11 +356,17 @@ def code_digest(paths: Iterable[str], read: Callable[[str], str] | None = None) 
 
 
 def command_roots(extra: Iterable[str] = ()) -> list[str]:
-  """This process's project modules: ``__main__``'s, every loaded one, ``extra`` and their subprocesses'."""
+  """This process's project modules: ``__main__``'s, every loaded one, ``extra`` and their subprocesses'.
+
+  ``python -m pkg`` runs ``pkg/__main__.py`` as ``__main__``: both ``pkg`` and ``pkg.__main__``
+  are roots (the command line's own code counts; before, only the package's ``__init__`` did).
+  """
   roots = set(extra)
   main = getattr(sys.modules.get("__main__"), "__spec__", None)
   if main is not None and main.name:
-    roots.add(main.name[:-len(".__main__")] if main.name.endswith(".__main__") else main.name)
+    roots.add(main.name)
+    if main.name.endswith(".__main__"):
+      roots.add(main.name[:-len(".__main__")])
   roots.update(name for name in list(sys.modules) if name.split(".")[0] in PACKAGES)
   for r in list(roots):
     roots.update(SUBPROCESS_ROOTS.get(r, ()))

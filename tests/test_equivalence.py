@@ -183,3 +183,44 @@ def test_a_module_moved_verbatim_is_judged_at_its_new_path(tmp_path, monkeypatch
   monkeypatch.setattr(equivalence, "RENAMED", {"adapt_to_capture": "for_capture"})
   assert equivalence.same_moved_code("v = cio.adapt_to_capture(m, s)\n", "v = cio.for_capture(m, s)\n", "x.py")
   assert not equivalence.same_moved_code("v = cio.adapt_to_capture(m, s)\n", "v = cio.for_capture(m, t)\n", "x.py")
+
+
+def test_the_measured_probe_keeps_every_table_number_but_the_seconds():
+  """The report's tables, read as the measured probe reads them: a hand-written report."""
+  from benchmarks import equivalence_probe_measured as M
+  report = "\n".join([
+      "# Title 64 x 64", "",
+      "| method | vs FBP 64 × 64 | mean |", "|---|---|---|",
+      "| LCT | 15.82 / 0.498 | **15.82 / 0.498** |", "| Zero | 5.90 / – | 5.90 / – |", "",
+      "Seconds per scan 12.5", "",
+      "| method | 16 × 16 first | 16 × 16 per frame | 8 × 8 first |", "|---|---|---|---|",
+      "| CSA | 10.23 | 9.74 | 9.91 |", "",
+      "| network | input | exit_sign | s per scan |", "|---|---|---|---|",
+      "| Ours | 16 × 16 | 14.17 → 14.92 | 14.5 |"])
+  out = {}
+  M.table_arrays(report, out)
+  assert sorted(out) == ["measured/report/00-00", "measured/report/00-01", "measured/report/01-00",
+                         "measured/report/02-00"]
+  np.testing.assert_array_equal(out["measured/report/00-00"], [15.82, 0.498, 15.82, 0.498])
+  np.testing.assert_array_equal(out["measured/report/00-01"], [5.90, 5.90])
+  assert out["measured/report/01-00"].size == 0                  # a table of seconds alone
+  np.testing.assert_array_equal(out["measured/report/02-00"], [16, 16, 14.17, 14.92])
+  scores = {}
+  M.json_arrays({"exit_sign": {"fbp@4": {"psnr": 12.5, "time_s": 3.0, "vs": {"lct": {"ssim": 0.5}}}},
+                 "list": [1, 2.5], "none": None, "flag": True, "warm": {"x": 1.0}}, "measured/scores", scores)
+  assert sorted(scores) == ["measured/scores/exit_sign/fbp@4/psnr", "measured/scores/exit_sign/fbp@4/vs/lct/ssim",
+                            "measured/scores/list"]
+  np.testing.assert_array_equal(scores["measured/scores/list"], [1, 2.5])
+
+
+def test_the_measured_probe_finds_the_protocol_and_writes_records_of_its_own():
+  from benchmarks import equivalence_probe_measured as M
+  cli = M.protocol_cli()
+  assert cli is not None and cli.__name__ == "experiments.studies.real_undersampling.__main__"
+  assert equivalence.PROBES["measured"].name == "equivalence_probe_measured.py"
+  assert equivalence.record_name("abc", True, "measured") == "equivalence_measured.md"
+  assert equivalence.record_name("abc", False, "measured") == "equivalence_measured_abc.md"
+  # Its records are records: the index carries a file by them as by the main ones.
+  closure = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe_measured"])
+  assert "experiments/studies/real_undersampling/protocol.py" in closure
+  assert "experiments/reconstruct.py" in closure

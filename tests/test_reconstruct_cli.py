@@ -364,3 +364,24 @@ def test_triplets_replicate_the_ends():
   got = cio.triplets(frames, 3)[:, :, 0, 0, 0]
   np.testing.assert_array_equal(got, [[0, 0, 1], [0, 1, 2], [1, 2, 3], [2, 3, 3]])
   np.testing.assert_array_equal(cio.triplets(frames[:1], 3)[:, :, 0, 0, 0], [[0, 0, 0]])
+
+
+def test_every_registered_variant_is_a_method_and_adapt_refuses_a_baseline(tmp_path, capsys):
+  """``--method lfe`` / ``ik`` name the shipped baselines (the registry's names, not a list of
+  three): LFE moves to the capture; I-K, whose kernel is sized by its training setup, is refused
+  with the reason; ``--adapt`` fits ST-Mamba networks only."""
+  rng = np.random.default_rng(8)
+  setup = Setup(wall_size=1.0, grid=(16, 16), bin_width=16e-12, num_bins=256)
+  x = rng.poisson(1.0, (256, 16, 16)).astype(np.float32)
+  x[100:110, 4:12, 4:12] += 30.0
+  path = io.save_capture(tmp_path / "still.h5", x, setup)
+  res = run_cli([path, "--method", "lfe", "--pretrained", "cpu", "--out", tmp_path / "lfe"])
+  assert np.isfinite(res["volume"]).all() and 0.0 <= res["intensity"].min() <= res["intensity"].max() <= 1.0
+  with h5py.File(tmp_path / "lfe" / "volume.h5", "r") as f:
+    assert json.loads(f.attrs["model"])["variant"] == "lfe"
+  with pytest.raises(SystemExit):
+    run_cli([path, "--method", "lfe", "--pretrained", "cpu", "--adapt", "--out", tmp_path / "a"])
+  assert "fits an ST-Mamba network, not LFE" in capsys.readouterr().err
+  with pytest.raises(SystemExit):
+    run_cli([path, "--method", "ik", "--pretrained", "cpu", "--out", tmp_path / "ik"])
+  assert "cannot move to a capture" in capsys.readouterr().err

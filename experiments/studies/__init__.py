@@ -16,17 +16,15 @@ folders in the store (:mod:`experiments.store`), outside the work tree; the othe
 * ``real_preset`` -- the ``real`` preset's candidate data trained to their plateau, across
   working stretches; ``preset_choice`` compares candidates on every validation split;
   ``realism`` tells simulated inputs from measured ones.
-* ``csa`` -- CSA's prior weight chosen on simulated validation sequences
-  (``help-fixes.patch``: two command-line help texts corrected, ``--tau-rel``'s default and
-  ``--synthetic``'s; to be applied with the next rerun of the measured protocol, whose
-  results files their code digests stale).
+* ``csa`` -- CSA's prior weight chosen on simulated validation sequences.
+* ``real_undersampling`` -- the measured-scan protocol: every method on measured scans
+  under-scanned to 16 x 16 and 8 x 8, scored against each classic full-scan reference;
+  ``align`` (its command line) and ``alignment`` (the stage) fit a network's features to
+  measured inputs, one fold per left-out scan.
 * ``ablations`` (the paper's Table 2), ``table1`` (Table 1 over seeds at a fixed step count),
   ``temporal_probe`` (does Ours read its neighbours), ``time_to_plateau`` and
   ``stopping_replay`` (how long to train, when to stop).
 
-Still elsewhere: the measured-scan protocol (``experiments.studies.real_undersampling``) and the
-alignment stage (``experiments.studies.align``), which move with their next rerun (their code fixes the
-scans' folder from the file's own place, and a move stales their results); and in
-``benchmarks/`` the trade-off study, which measures speed against accuracy of every
-reconstruction knob beside the other performance benchmarks.
+Still elsewhere: in ``benchmarks/`` the trade-off study, which measures speed against accuracy
+of every reconstruction knob beside the other performance benchmarks.
 """

@@ -49,9 +49,7 @@ import numpy as np
 
 from nlosjax.models import physics_layer
 from nlosjax.models.lfe import LFEConfig, interpolate_scan
-from nlosjax.models.network import input_scale
-from nlosjax.models.usm import Extraction, minmax_normalise, project_and_render
-from nlosjax.physics import _validate
+from nlosjax.models.usm import project_and_render, scaled_input, transformed_features
 from nlosjax.physics.operators import lct_apply, lct_filter, to_depth
 from nlosjax.physics.setup import Setup
 
@@ -196,15 +194,9 @@ class IKNet(nn.Module):
   @nn.compact
   def __call__(self, frames):
     cfg = self.config
-    cfg.check_frames(frames)
-    _validate.check_counts(frames, "frames")
-    x = jnp.asarray(frames, jnp.float32)[:, 0]                          # [B, T, h, w]
-    scale = input_scale(x, cfg.input_norm)
-    dense = interpolate_scan(x / scale[:, None, None, None], cfg.setup.grid, cfg.stride)
-    feats = Extraction(cfg.extract_width, name="extract")(minmax_normalise(dense, (1, 2, 3)))
-    transform = _transform(cfg, name="transform")
-    a, b = transform.window()
-    vol = minmax_normalise(transform(feats[:, a:b], time_offset=a), (1, 2, 3))   # [B, Zc, h2, w2, C]
+    x, scale = scaled_input(cfg, frames)                                # [B, T, h, w], [B]
+    dense = interpolate_scan(x, cfg.setup.grid, cfg.stride)
+    vol = transformed_features(dense, cfg.extract_width, _transform(cfg, name="transform"))
     intensity, depth, volume = project_and_render(vol, cfg.render_widths, cfg.coarse_setup, cfg.setup)
     return {"transient": dense, "volume": volume, "feature_volume": vol,
             "intensity": jnp.clip(intensity, 0.0, 1.0), "depth": depth, "scale": scale}

@@ -49,8 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from nlosjax.models import blocks, physics_layer
-from nlosjax.models.network import INPUT_NORMS, ScanInputConfig, input_scale
-from nlosjax.models.usm import Extraction, HalfResolutionShapes, minmax_normalise, project_and_render
+from nlosjax.models.network import INPUT_NORMS, ScanInputConfig
+from nlosjax.models.usm import HalfResolutionShapes, project_and_render, scaled_input, transformed_features
 from nlosjax.physics import _validate
 from nlosjax.physics.operators import check_falloff
 from nlosjax.physics.setup import Setup
@@ -163,18 +163,13 @@ class LFENet(nn.Module):
   @nn.compact
   def __call__(self, frames):
     cfg = self.config
-    cfg.check_frames(frames)
-    _validate.check_counts(frames, "frames")
-    x = jnp.asarray(frames, jnp.float32)[:, 0]                          # [B, T, h, w]
-    scale = input_scale(x, cfg.input_norm)
-    dense = interpolate_scan(x / scale[:, None, None, None], cfg.setup.grid, cfg.stride)
-    feats = Extraction(cfg.extract_width, name="extract")(minmax_normalise(dense, (1, 2, 3)))
+    x, scale = scaled_input(cfg, frames)                                # [B, T, h, w], [B]
+    dense = interpolate_scan(x, cfg.setup.grid, cfg.stride)
     coarse = cfg.coarse_setup
     transform = physics_layer.FeatureTransform(
         coarse, cfg.physics, snr=cfg.lct_snr, falloff=cfg.falloff, cycles=cfg.wavelet_cycles,
         sampling_coeff=cfg.wavelet_sampling, name="transform")
-    a, b = transform.window()
-    vol = minmax_normalise(transform(feats[:, a:b], time_offset=a), (1, 2, 3))   # [B, Zc, h2, w2, C]
+    vol = transformed_features(dense, cfg.extract_width, transform)     # [B, Zc, h2, w2, C]
     intensity, depth, volume = project_and_render(vol, cfg.render_widths, coarse, cfg.setup)
     return {"transient": dense, "volume": volume, "feature_volume": vol,
             "intensity": jnp.clip(intensity, 0.0, 1.0), "depth": depth, "scale": scale}

@@ -406,6 +406,33 @@ class Rendering(nn.Module):
     return (base + y)[..., 0]
 
 
+def scaled_input(config: ScanInputConfig, frames) -> tuple[jax.Array, jax.Array]:
+  """The input USM, LFE and I-K share: ``frames [B, 1, T, h, w]`` counts -> ``(x, scale)``.
+
+  Checks the shape and dtype (``config.check_frames``) and, outside ``jit``, the counts
+  (no NaN, none negative); ``x [B, T, h, w]`` float32 is the frame in units of its
+  per-sample ``scale [B]`` (:func:`nlosjax.models.network.input_scale`, ``config.input_norm``).
+  """
+  config.check_frames(frames)
+  _validate.check_counts(frames, "frames")
+  x = jnp.asarray(frames, jnp.float32)[:, 0]                          # [B, T, h, w]
+  scale = input_scale(x, config.input_norm)
+  return x / scale[:, None, None, None], scale
+
+
+def transformed_features(transient: jax.Array, extract_width: int, transform) -> jax.Array:
+  """The features USM, LFE and I-K share: ``transient [B, T, H, W]`` -> ``[B, Zc, H/2, W/2, C]``.
+
+  Min-max normalised, through :class:`Extraction` (submodule ``extract`` of the calling
+  module, so call it inside a compact ``__call__``), the feature transform ``transform``
+  (a :class:`~nlosjax.models.physics_layer.FeatureTransform` of the calling module) on its
+  time window, min-max normalised again.
+  """
+  feats = Extraction(extract_width, name="extract")(minmax_normalise(transient, (1, 2, 3)))
+  a, b = transform.window()
+  return minmax_normalise(transform(feats[:, a:b], time_offset=a), (1, 2, 3))
+
+
 def project_and_render(vol: jax.Array, render_widths: tuple[int, int], coarse: Setup, setup: Setup):
   """The heads USM and LFE share: ``vol [B, Zc, h2, w2, C]`` on ``coarse`` -> ``(intensity, depth, volume)``.
 
@@ -458,20 +485,12 @@ class USMNet(nn.Module):
   @nn.compact
   def __call__(self, frames):
     cfg = self.config
-    cfg.check_frames(frames)
-    _validate.check_counts(frames, "frames")
-    H, W = cfg.setup.grid
-    x = jnp.asarray(frames, jnp.float32)[:, 0]                          # [B, T, h, w]
-    scale = input_scale(x, cfg.input_norm)
-    x = x / scale[:, None, None, None]
-    transient = TransientRecovery(cfg, name="trn")(zero_fill(x, (H, W), cfg.stride), x)
-    feats = Extraction(cfg.extract_width, name="extract")(minmax_normalise(transient, (1, 2, 3)))
+    x, scale = scaled_input(cfg, frames)                                # [B, T, h, w], [B]
+    transient = TransientRecovery(cfg, name="trn")(zero_fill(x, cfg.setup.grid, cfg.stride), x)
     coarse = cfg.coarse_setup
     transform = physics_layer.FeatureTransform(coarse, "lct", snr=cfg.lct_snr, falloff=cfg.falloff,
-                                        name="lct")
-    a, b = transform.window()
-    vol = transform(feats[:, a:b], time_offset=a)                       # [B, Zc, h2, w2, C]
-    vol = minmax_normalise(vol, (1, 2, 3))
+                                               name="lct")
+    vol = transformed_features(transient, cfg.extract_width, transform)   # [B, Zc, h2, w2, C]
     for i, (width, k) in enumerate(cfg.refine):
       vol = _lrelu(conv.Conv3D(width, (k, k, k), name=f"refine{i}")(vol))
       vol = ResConv3D(name=f"refine{i}_res")(vol)
