@@ -265,7 +265,7 @@ def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], se
             "changed": changed, "closure": modules, "probes": rows, "seconds": seconds,
             "weights_since_base": list(weights)}
   lines = [f"# Results carried forward: the code at {base[:12]} and today's, side by side", "",
-           *provenance.provenance(command), "",
+           *provenance.provenance(command, modules), "",
            f"Every probe of `benchmarks/{probe.name}` run on commit `{base[:12]}`'s tree and on "
            f"this one (probe times: base {seconds['base']:.0f} s, today {seconds['today']:.0f} s). "
            f"A probe passes when every array is within {TOLERANCE:g} of the base value, relative to "

@@ -172,15 +172,20 @@ def versions_text(*packages: str) -> str:
   return ", ".join([f"Python {platform.python_version()}"] + found)
 
 
-def provenance(command: str) -> list[str]:
-  """Markdown lines every results file starts with: command, date, machine, commit, code digest."""
+def provenance(command: str, modules: Iterable[str] | None = None) -> list[str]:
+  """Markdown lines every results file starts with: command, date, machine, commit, code digest.
+
+  ``modules``: the project modules the command may run (default: :func:`code_modules` of
+  :func:`command_roots`, this process's); a writer whose code runs in a subprocess it chooses
+  by its arguments names them (``benchmarks.equivalence --probe``).
+  """
   import datetime
 
   return [f"Produced by `{command}`.", "",
           f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
           f"- Machine: {machine_text()}; {versions_text()}",
           f"- Commit: {git_commit()}",
-          code_line(),
+          code_line(modules),
           f"- Load average (1, 5, 15 min) when written: {load_average(', ')}"]
 
 
@@ -225,8 +230,7 @@ def run_record(command: str) -> dict:
 PACKAGES = ("nlosjax", "experiments", "benchmarks")
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # Commands that run other project entry points in a subprocess (their imports are not ours).
-SUBPROCESS_ROOTS = {"benchmarks.main_job": ("experiments.train",),
-                    "benchmarks.equivalence": ("benchmarks.equivalence_probe",)}
+SUBPROCESS_ROOTS = {"benchmarks.main_job": ("experiments.train",)}
 # Modules every writer imports that write a header, not a number: a change to them leaves
 # every results file's numbers as they were, so they are not part of any digest.
 NOT_CODE = frozenset({"experiments/provenance.py"})

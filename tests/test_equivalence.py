@@ -224,3 +224,15 @@ def test_the_measured_probe_finds_the_protocol_and_writes_records_of_its_own():
   closure = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe_measured"])
   assert "experiments/studies/real_undersampling/protocol.py" in closure
   assert "experiments/reconstruct.py" in closure
+
+
+def test_a_records_header_names_the_closure_of_the_probe_it_ran(tmp_path):
+  """The index carries a file by the modules a record's header lists: the measured probe's
+  record lists the protocol, the main one does not (it never ran it)."""
+  seconds = {"base": 1.0, "today": 1.0}
+  for probe, holds in (("measured", True), ("main", False)):
+    out = tmp_path / equivalence.record_name("abc", True, probe)
+    equivalence.write(out, "abc" * 4, [], [], seconds, "cmd", probe=equivalence.PROBES[probe])
+    listed = results_header.read_entry(out).modules
+    assert ("experiments/studies/real_undersampling/protocol.py" in listed) is holds
+    assert set(listed) == set(json.loads(out.with_suffix(".json").read_text())["closure"])
