@@ -305,43 +305,68 @@ def records(results: pathlib.Path) -> list[str]:
 
 def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
   """``"carried forward from <base> by <record>.md"`` where the rule above holds for ``entry``
-  with one of the :func:`records`, else None.
+  with the :func:`records` against one base, else None.
+
+  The records against one base (the main probe's and the measured probe's) together cover the
+  union of their closures, each of them current and passed: a file whose changed modules lie
+  partly in one probe's closure and partly in the other's is carried by both, named together.
 
   ``entry``: a :class:`benchmarks.results_header.Entry` that is stale today.
   """
   if entry.name in records(results) or not entry.digest:
     return None
   files = provenance.project_files() if files is None else files
+  by_base: dict[str, list[str]] = {}
   for name in records(results):
-    if _carries(entry, results, name, files):
-      base = json.loads((results / f"{name}.json").read_text())["base"]
-      return f"carried forward from {base[:7]} by {name}.md"
+    record = _valid_record(results, name, files)
+    if record is not None:
+      by_base.setdefault(record["base"], []).append(name)
+  for base, names in by_base.items():
+    closures = {name: _closure(results, name) for name in names}
+    needed = _changed_since(entry, base, files)
+    if needed is None:
+      continue                             # not current at the base: nothing to carry
+    for name in names:                     # one record alone, where one does
+      if needed <= closures[name]:
+        return f"carried forward from {base[:7]} by {name}.md"
+    if needed <= set().union(*closures.values()):
+      used = [n for n in names if needed & closures[n]]
+      return f"carried forward from {base[:7]} by " + " + ".join(f"{n}.md" for n in used)
   return None
 
 
-def _carries(entry, results: pathlib.Path, name: str, files) -> bool:
-  from benchmarks.results_header import GitFiles as _GitFiles
+def _valid_record(results: pathlib.Path, name: str, files) -> dict | None:
+  """``name``'s JSON where it passed and its own header is current today, else None."""
   from benchmarks.results_header import read_entry
   record = json.loads((results / f"{name}.json").read_text())
   own = read_entry(results / f"{name}.md")
   if not record.get("passed") or any(m not in files for m in own.modules) \
      or provenance.code_digest(own.modules) != own.digest:
-    return False
-  base = record["base"]
+    return None
+  return record
+
+
+def _closure(results: pathlib.Path, name: str) -> set[str]:
+  from benchmarks.results_header import read_entry
+  return set(read_entry(results / f"{name}.md").modules)
+
+
+def _changed_since(entry, base: str, files) -> set[str] | None:
+  """Today's paths of ``entry``'s modules whose code changed since ``base`` (moves and renames
+  aside), or None where ``entry`` was not current at ``base``."""
+  from benchmarks.results_header import GitFiles as _GitFiles
   show = _GitFiles()
   try:
     if any(show(base, m) is None for m in entry.modules):
-      return False
+      return None
     if provenance.code_digest(entry.modules, lambda p: show(base, p)) != entry.digest:
-      return False                         # not current at the base: nothing to carry
-    closure = set(own.modules)
+      return None
     today = {m: moved_path(m) for m in entry.modules}
-    moved = [m for m in entry.modules
-             if not same_moved_code(show(base, m),
-                                    (provenance.ROOT / today[m]).read_text() if today[m] in files else None, m)]
+    return {today[m] for m in entry.modules
+            if not same_moved_code(show(base, m),
+                                   (provenance.ROOT / today[m]).read_text() if today[m] in files else None, m)}
   finally:
     show.close()
-  return all(today[m] in closure for m in moved)
 
 
 def record_name(base: str, first: bool, probe: str = "main") -> str:

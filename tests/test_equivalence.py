@@ -79,6 +79,25 @@ def test_a_file_current_at_the_base_whose_changes_the_check_ran_is_carried_forwa
   assert equivalence.carried_forward(carried, results=tmp_path) is None
 
 
+def test_records_against_one_base_cover_the_union_of_their_closures(tmp_path):
+  """A file whose changes lie partly in the main probe's closure, partly in the measured probe's,
+  is carried only with both records at the base, and by no record that failed."""
+  if results_header.git_output("cat-file", "-e", f"{BASE}^{{commit}}") is None:
+    pytest.skip(f"this clone lacks commit {BASE} (a shallow clone)")
+  both = ["nlosjax/train/loop.py", "experiments/train.py"]            # both changed since BASE
+  entry = _entry(both, _digest_at(BASE, both))
+  _record(tmp_path, leave_out=("experiments/train.py",))
+  assert equivalence.carried_forward(entry, results=tmp_path) is None
+  _record(tmp_path, leave_out=("nlosjax/train/loop.py",), name="equivalence_measured")
+  assert equivalence.carried_forward(entry, results=tmp_path) == \
+      f"carried forward from {BASE} by equivalence.md + equivalence_measured.md"
+  _record(tmp_path, leave_out=("nlosjax/train/loop.py",), name="equivalence_measured", passed=False)
+  assert equivalence.carried_forward(entry, results=tmp_path) is None
+  # Records against another base never join: the union is of one base's records.
+  _record(tmp_path, leave_out=("nlosjax/train/loop.py",), name="equivalence_measured", base="0" * 40)
+  assert equivalence.carried_forward(entry, results=tmp_path) is None
+
+
 def test_the_base_tree_runs_todays_weights_and_names_those_shipped_since(tmp_path):
   src = provenance.ROOT / "nlosjax" / "weights"
   names = sorted(p.name for p in src.iterdir() if p.is_dir())
