@@ -43,11 +43,11 @@ def find_checkpoints(path, variant: str | None = None) -> tuple[pathlib.Path, st
   """Locate a trained variant: ``(workdir, variant, checkpoints folder)``.
 
   Args:
-    path: a main-job workdir (``config.json`` plus ``ours``/``ours_s``/``usm``),
+    path: a main-job workdir (``config.json`` plus a folder per trained variant),
       one variant's folder (``WORKDIR/ours``) or its ``checkpoints`` folder.
-    variant: ``"ours"``, ``"ours_s"`` or ``"usm"``; required only when ``path``
-      is a workdir holding several (default there: the first trained of
-      ``"ours"``, ``"ours_s"``, ``"usm"``).
+    variant: a name of :data:`nlosjax.variants.VARIANTS`; required only when ``path``
+      is a workdir holding several (default there: the first trained in the registry's
+      order, ``"ours"`` first).
   Raises:
     ValueError: naming ``path`` when it is not a trained run or the variant is missing.
   """

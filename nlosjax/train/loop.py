@@ -128,14 +128,14 @@ def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, f
                 validate: Callable[[Any, Any], float] | None = None,
                 log: Callable[[str], None] = print,
                 export: StateExport | None = None) -> tuple[Any, TrainState]:
-  """Train one variant (``"ours"``, ``"ours_s"`` or ``"usm"``), resuming from ``workdir/<folder>``.
+  """Train one variant (a name of :data:`nlosjax.variants.VARIANTS`), resuming from ``workdir/<folder>``.
 
   Args:
     config: the run config (:class:`~nlosjax.train.config.RunConfig`, or the dict it reads);
       the seed is ``train.seed``.
     data_path: the dataset file.
     workdir: the run folder.
-    variant: ``"ours"``, ``"ours_s"`` or ``"usm"`` (:data:`VARIANT_FRAMES`).
+    variant: a name of :data:`nlosjax.variants.VARIANTS` (``"ours"``, ``"ours_s"``, ``"usm"``, ``"lfe"``, ``"ik"``).
     folder: sub-folder of this model (default ``variant``).
     validate: ``(model_config, params) -> score`` on the validation split
       (higher is better; the validation intensity PSNR in dB). With
