@@ -14,7 +14,9 @@ How ``python -m benchmarks.index`` uses it (:func:`carried_forward`): a results 
 that is stale today is **carried forward** when this file is current, every probe
 passed, the results file was current at ``COMMIT`` (its code digest recomputed on that
 commit's files), and every module of the file whose code changed since ``COMMIT`` lies
-in this command's own import closure (the code the probes ran). The numbers stay the
+in this command's own import closure (the code the probes ran), or in the union of the
+closures of the records against ``COMMIT`` (below). A record that compared no array at all
+fails. The numbers stay the
 ones measured, with their commit; the index names this check beside them. A change that
 moves a probe beyond the tolerance carries nothing: those files are regenerated, or a
 study's seed is retrained at the new code and shown to land inside its interval.
@@ -32,12 +34,14 @@ class renamed everywhere (:data:`RENAMED`).
 ``--probe measured`` runs :mod:`benchmarks.equivalence_probe_measured` instead (the
 measured-scan protocol's command line, end to end on a small scan) and writes records of its
 own (``equivalence_measured.md``, ``equivalence_measured_<COMMIT>.md``): its closure holds the
-protocol, so a results file of the protocol is carried by one of them; a base older than the
-protocol's numbers fails only those records, not the main ones.
+protocol, so a results file of the protocol is carried by one of them, alone or with the main
+record against the same base. A base without the protocol writes no array, and its measured
+record fails; any failed record stops its base from carrying anything.
 
 Records against several bases may stand side by side (``equivalence.md`` for the first
 base named, ``equivalence_<COMMIT>.md`` for the others; :func:`records`): a file is carried
-when one of them carries it, so files current at different commits can all be carried.
+when the records against one base carry it, so files current at different commits can all be
+carried.
 Today's probe runs once for all the bases.
 """
 
@@ -197,8 +201,9 @@ def run_probe(tree: pathlib.Path, out: pathlib.Path, *, log=print, probe: pathli
     raise RuntimeError(f"the probe failed on {tree}:\n{got.stderr[-3000:]}")
   log(f"probe on {tree}: {time.perf_counter() - t0:.0f} s")
   meta = json.loads(out.with_suffix(".json").read_text())
-  if pathlib.Path(meta["nlosjax"]).resolve() != (tree / "nlosjax").resolve():
-    raise RuntimeError(f"the probe on {tree} imported nlosjax from {meta['nlosjax']}")
+  for package in ("nlosjax", "experiments"):                  # the tree's code, not another's
+    if pathlib.Path(meta[package]).resolve() != (tree / package).resolve():
+      raise RuntimeError(f"the probe on {tree} imported {package} from {meta[package]}")
   with np.load(out) as f:
     arrays = {k: f[k] for k in f.files}
   return {**arrays, "_meta": meta}
@@ -260,7 +265,9 @@ def changed_modules(base: str) -> list[str]:
 def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], seconds: dict,
           command: str, weights: tuple[str, ...] = (), probe: pathlib.Path = PROBE) -> dict:
   modules = provenance.code_modules(["benchmarks.equivalence", f"benchmarks.{probe.stem}"])
-  passed = all(r["passed"] for r in rows)
+  # Nothing compared is nothing shown: a base without the probed code (the measured protocol
+  # before it existed) writes no array, and its record carries nothing.
+  passed = all(r["passed"] for r in rows) and sum(r["arrays"] for r in rows) > 0
   record = {"base": base, "head": provenance.git_commit(), "tolerance": TOLERANCE, "passed": passed,
             "changed": changed, "closure": modules, "probes": rows, "seconds": seconds,
             "weights_since_base": list(weights)}
@@ -280,10 +287,13 @@ def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], se
     added = ", ".join(f"`{a.split('/', 2)[-1]}`" for a in r["added"][:4]) + \
         (f" and {len(r['added']) - 4} more" if len(r["added"]) > 4 else "")
     lines.append(f"| {r['probe']} | {r['arrays']} | {r['identical']} | {worst} | {mark} | {added} |")
-  lines += ["", f"**Verdict: {'every probe passed' if passed else 'a probe moved beyond rounding'}.** "
+  verdict = ("every probe passed" if passed else "a probe moved beyond rounding"
+             if sum(r["arrays"] for r in rows) else "nothing was compared")
+  lines += ["", f"**Verdict: {verdict}.** "
             + ("A results file current at the base commit, whose changed modules all lie in this "
-               "command's import closure, is carried forward by `python -m benchmarks.index`."
-               if passed else "Nothing is carried forward."), "",
+               "command's import closure (or in the union with the other records against this base), "
+               "is carried forward by `python -m benchmarks.index`."
+               if passed else "Nothing is carried forward from this base."), "",
             f"Modules whose code changed since `{base[:12]}` ({len(changed)}):", ""]
   inside = set(modules)
   lines += [f"- `{m}`" + ("" if m in inside else " (outside this check's closure)") for m in changed]
@@ -310,6 +320,9 @@ def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
   The records against one base (the main probe's and the measured probe's) together cover the
   union of their closures, each of them current and passed: a file whose changed modules lie
   partly in one probe's closure and partly in the other's is carried by both, named together.
+  A base against which any record failed carries nothing: a closure is static (the measured
+  probe's holds the training code it imports but never runs), so one probe's pass must not
+  stand in for another's failure.
 
   ``entry``: a :class:`benchmarks.results_header.Entry` that is stale today.
   """
@@ -317,11 +330,16 @@ def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
     return None
   files = provenance.project_files() if files is None else files
   by_base: dict[str, list[str]] = {}
+  failed: set[str] = set()
   for name in records(results):
-    record = _valid_record(results, name, files)
-    if record is not None:
+    record = json.loads((results / f"{name}.json").read_text())
+    if not record.get("passed"):
+      failed.add(record["base"])           # a probe moved against this base: it carries nothing
+    elif _valid_record(results, name, files) is not None:
       by_base.setdefault(record["base"], []).append(name)
   for base, names in by_base.items():
+    if base in failed:
+      continue
     closures = {name: _closure(results, name) for name in names}
     needed = _changed_since(entry, base, files)
     if needed is None:

@@ -152,6 +152,7 @@ def probe_main_job(cfg: dict, tmp: pathlib.Path, out: dict) -> None:
 def main(argv=None) -> int:
   argv = sys.argv[1:] if argv is None else argv
   target = pathlib.Path(argv[0])
+  import experiments
   import nlosjax
   out: dict[str, np.ndarray] = {}
   times = {}
@@ -176,7 +177,8 @@ def main(argv=None) -> int:
   times["pretrained"] = time.perf_counter() - t0
   np.savez(target, **out)
   target.with_suffix(".json").write_text(json.dumps(
-      {"nlosjax": str(pathlib.Path(nlosjax.__file__).parent), "seconds": times}, indent=1) + "\n")
+      {"nlosjax": str(pathlib.Path(nlosjax.__file__).parent),
+       "experiments": str(pathlib.Path(experiments.__file__).parent), "seconds": times}, indent=1) + "\n")
   return 0
 
 

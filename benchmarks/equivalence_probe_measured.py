@@ -94,13 +94,34 @@ def table_arrays(text: str, out: dict) -> None:
       continue                                                   # the separator row
     numbers = [float(n) for h, c in zip(header, cells) if not TIME_COLUMN.search(h)
                for n in NUMBER.findall(c)]
-    out[f"measured/report/{table:02d}-{row:02d}"] = np.asarray(numbers, np.float64)
+    if numbers:                                                  # a row of seconds alone: nothing
+      out[f"measured/report/{table:02d}-{row:02d}"] = np.asarray(numbers, np.float64)
     row += 1
+
+
+def repository_arrays(cli) -> dict[str, np.ndarray]:
+  """Where the protocol finds the repository and its scans, as numbers (1: yes).
+
+  ``measured/repository/root``: its ``REPO`` is the tree it runs from (the probe runs with the
+  tree as its working folder); ``.../shared_scans``: its default scans are the
+  ``shared/data/real`` folder beside the tree when one exists, else the shipped scan.
+  """
+  protocol = sys.modules[f"{cli.__package__}.protocol"]
+  tree = pathlib.Path.cwd().resolve()
+  shared = tree.parent / "shared" / "data" / "real"
+  expected = sorted(shared.glob("*.mat")) if shared.is_dir() else []
+  found = [pathlib.Path(f).resolve() for f in protocol.default_files(None)]
+  from nlosjax.data import io as scan_io
+  return {"measured/repository/root": np.float64(pathlib.Path(protocol.REPO).resolve() == tree),
+          "measured/repository/shared_scans": np.float64(
+              found == [f.resolve() for f in expected] if expected
+              else found == [pathlib.Path(scan_io.shipped_scan_path()).resolve()])}
 
 
 def main(argv=None) -> int:
   argv = sys.argv[1:] if argv is None else argv
   target = pathlib.Path(argv[0])
+  import experiments
   import nlosjax
   out: dict[str, np.ndarray] = {}
   t0 = time.perf_counter()
@@ -116,9 +137,11 @@ def main(argv=None) -> int:
       for section, value in json.loads((tmp / "scores.json").read_text()).items():
         json_arrays(value, f"measured/{section}", out)
       table_arrays((tmp / "real.md").read_text(), out)
+    out.update(repository_arrays(cli))
   np.savez(target, **out)
   target.with_suffix(".json").write_text(json.dumps(
-      {"nlosjax": str(pathlib.Path(nlosjax.__file__).parent), "protocol": cli is not None,
+      {"nlosjax": str(pathlib.Path(nlosjax.__file__).parent),
+       "experiments": str(pathlib.Path(experiments.__file__).parent), "protocol": cli is not None,
        "seconds": {"measured": time.perf_counter() - t0}}, indent=1) + "\n")
   return 0
 

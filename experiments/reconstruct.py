@@ -14,8 +14,8 @@ content: O'Toole LCT ``rect_data``/``width`` (.mat v5), Stanford f-k ``meas``
 ``--tofgrid``), NLOST ``data``, nlosjax HDF5 captures and datasets.
 
 Methods: ``fbp``, ``lct``, ``fk``, ``phasor``, ``rsd`` (``nlosjax.physics``) and
-``model`` (the trained ST-Mamba of ``python -m experiments.train``, moved to the
-capture: the same parameters, the physics layer rebuilt for the capture's
+``model`` (a network trained by ``python -m experiments.train``, ST-Mamba or a
+baseline, moved to the capture: the same parameters, the physics layer rebuilt for the capture's
 wall, grid and bins, time summed to about the trained bin width; a video is
 reconstructed frame by frame, "Ours" reading each frame with its neighbours);
 each variant's name (``ours``, ``ours_s``, ``usm``, ...; :data:`nlosjax.variants.VARIANTS`)

@@ -93,6 +93,12 @@ def test_records_against_one_base_cover_the_union_of_their_closures(tmp_path):
       f"carried forward from {BASE} by equivalence.md + equivalence_measured.md"
   _record(tmp_path, leave_out=("nlosjax/train/loop.py",), name="equivalence_measured", passed=False)
   assert equivalence.carried_forward(entry, results=tmp_path) is None
+  # A failed record stops its base: the other's static closure must not stand in for it.
+  _record(tmp_path, leave_out=(), name="equivalence_measured")
+  assert equivalence.carried_forward(entry, results=tmp_path) is not None
+  _record(tmp_path, passed=False)
+  assert equivalence.carried_forward(entry, results=tmp_path) is None
+  _record(tmp_path, leave_out=("experiments/train.py",))
   # Records against another base never join: the union is of one base's records.
   _record(tmp_path, leave_out=("nlosjax/train/loop.py",), name="equivalence_measured", base="0" * 40)
   assert equivalence.carried_forward(entry, results=tmp_path) is None
@@ -218,11 +224,10 @@ def test_the_measured_probe_keeps_every_table_number_but_the_seconds():
       "| Ours | 16 × 16 | 14.17 → 14.92 | 14.5 |"])
   out = {}
   M.table_arrays(report, out)
-  assert sorted(out) == ["measured/report/00-00", "measured/report/00-01", "measured/report/01-00",
-                         "measured/report/02-00"]
+  assert sorted(out) == ["measured/report/00-00", "measured/report/00-01", "measured/report/02-00"]
   np.testing.assert_array_equal(out["measured/report/00-00"], [15.82, 0.498, 15.82, 0.498])
   np.testing.assert_array_equal(out["measured/report/00-01"], [5.90, 5.90])
-  assert out["measured/report/01-00"].size == 0                  # a table of seconds alone
+  assert "measured/report/01-00" not in out                     # a table of seconds alone
   np.testing.assert_array_equal(out["measured/report/02-00"], [16, 16, 14.17, 14.92])
   scores = {}
   M.json_arrays({"exit_sign": {"fbp@4": {"psnr": 12.5, "time_s": 3.0, "vs": {"lct": {"ssim": 0.5}}}},
@@ -230,6 +235,16 @@ def test_the_measured_probe_keeps_every_table_number_but_the_seconds():
   assert sorted(scores) == ["measured/scores/exit_sign/fbp@4/psnr", "measured/scores/exit_sign/fbp@4/vs/lct/ssim",
                             "measured/scores/list"]
   np.testing.assert_array_equal(scores["measured/scores/list"], [1, 2.5])
+
+
+def test_a_record_that_compared_nothing_fails(tmp_path):
+  """A base without the probed code writes no array: every row is added since, none compared,
+  and the record must not pass (it would carry files by a closure it never ran)."""
+  rows = equivalence.compare({}, {"measured/scores/x": np.arange(3.0)})
+  assert rows[0]["passed"] and rows[0]["arrays"] == 0
+  record = equivalence.write(tmp_path / "equivalence_measured.md", "abc" * 4, rows, [], {"base": 1.0, "today": 1.0},
+                             "cmd", probe=equivalence.PROBES["measured"])
+  assert not record["passed"] and "nothing was compared" in (tmp_path / "equivalence_measured.md").read_text()
 
 
 def test_the_measured_probe_finds_the_protocol_and_writes_records_of_its_own():

@@ -434,7 +434,7 @@ def transformed_features(transient: jax.Array, extract_width: int, transform) ->
 
 
 def project_and_render(vol: jax.Array, render_widths: tuple[int, int], coarse: Setup, setup: Setup):
-  """The heads USM and LFE share: ``vol [B, Zc, h2, w2, C]`` on ``coarse`` -> ``(intensity, depth, volume)``.
+  """The heads USM, LFE and I-K share: ``vol [B, Zc, h2, w2, C]`` on ``coarse`` -> ``(intensity, depth, volume)``.
 
   Projection (max over depth: ``C`` intensity features; ``(Z - 1 - argmax) / (Z - 1)``:
   ``C`` depth features, no gradient through argmax), the two :class:`Rendering` heads

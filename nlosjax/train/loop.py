@@ -135,7 +135,7 @@ def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, f
       the seed is ``train.seed``.
     data_path: the dataset file.
     workdir: the run folder.
-    variant: a name of :data:`nlosjax.variants.VARIANTS` (``"ours"``, ``"ours_s"``, ``"usm"``, ``"lfe"``, ``"ik"``).
+    variant: a name of :data:`nlosjax.variants.VARIANTS`.
     folder: sub-folder of this model (default ``variant``).
     validate: ``(model_config, params) -> score`` on the validation split
       (higher is better; the validation intensity PSNR in dB). With
