@@ -267,7 +267,8 @@ def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], se
   modules = provenance.code_modules(["benchmarks.equivalence", f"benchmarks.{probe.stem}"])
   # Nothing compared is nothing shown: a base without the probed code (the measured protocol
   # before it existed) writes no array, and its record carries nothing.
-  passed = all(r["passed"] for r in rows) and sum(r["arrays"] for r in rows) > 0
+  compared = sum(r["arrays"] for r in rows)
+  passed = all(r["passed"] for r in rows) and compared > 0
   record = {"base": base, "head": provenance.git_commit(), "tolerance": TOLERANCE, "passed": passed,
             "changed": changed, "closure": modules, "probes": rows, "seconds": seconds,
             "weights_since_base": list(weights)}
@@ -288,7 +289,7 @@ def write(out: pathlib.Path, base: str, rows: list[dict], changed: list[str], se
         (f" and {len(r['added']) - 4} more" if len(r["added"]) > 4 else "")
     lines.append(f"| {r['probe']} | {r['arrays']} | {r['identical']} | {worst} | {mark} | {added} |")
   verdict = ("every probe passed" if passed else "a probe moved beyond rounding"
-             if sum(r["arrays"] for r in rows) else "nothing was compared")
+             if compared else "nothing was compared")
   lines += ["", f"**Verdict: {verdict}.** "
             + ("A results file current at the base commit, whose changed modules all lie in this "
                "command's import closure (or in the union with the other records against this base), "
@@ -329,44 +330,39 @@ def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
   if entry.name in records(results) or not entry.digest:
     return None
   files = provenance.project_files() if files is None else files
-  by_base: dict[str, list[str]] = {}
+  by_base: dict[str, dict[str, set[str]]] = {}     # base -> {record: its closure}
   failed: set[str] = set()
   for name in records(results):
     record = json.loads((results / f"{name}.json").read_text())
     if not record.get("passed"):
       failed.add(record["base"])           # a probe moved against this base: it carries nothing
-    elif _valid_record(results, name, files) is not None:
-      by_base.setdefault(record["base"], []).append(name)
-  for base, names in by_base.items():
+      continue
+    closure = _current_closure(results, name, files)
+    if closure is not None:
+      by_base.setdefault(record["base"], {})[name] = closure
+  for base, closures in by_base.items():
     if base in failed:
       continue
-    closures = {name: _closure(results, name) for name in names}
     needed = _changed_since(entry, base, files)
     if needed is None:
       continue                             # not current at the base: nothing to carry
-    for name in names:                     # one record alone, where one does
-      if needed <= closures[name]:
+    for name, closure in closures.items():  # one record alone, where one does
+      if needed <= closure:
         return f"carried forward from {base[:7]} by {name}.md"
     if needed <= set().union(*closures.values()):
-      used = [n for n in names if needed & closures[n]]
+      used = [n for n in closures if needed & closures[n]]
       return f"carried forward from {base[:7]} by " + " + ".join(f"{n}.md" for n in used)
   return None
 
 
-def _valid_record(results: pathlib.Path, name: str, files) -> dict | None:
-  """``name``'s JSON where it passed and its own header is current today, else None."""
+def _current_closure(results: pathlib.Path, name: str, files) -> set[str] | None:
+  """The modules ``name``'s header lists (its probe's closure) where that header is current
+  today, else None."""
   from benchmarks.results_header import read_entry
-  record = json.loads((results / f"{name}.json").read_text())
   own = read_entry(results / f"{name}.md")
-  if not record.get("passed") or any(m not in files for m in own.modules) \
-     or provenance.code_digest(own.modules) != own.digest:
+  if any(m not in files for m in own.modules) or provenance.code_digest(own.modules) != own.digest:
     return None
-  return record
-
-
-def _closure(results: pathlib.Path, name: str) -> set[str]:
-  from benchmarks.results_header import read_entry
-  return set(read_entry(results / f"{name}.md").modules)
+  return set(own.modules)
 
 
 def _changed_since(entry, base: str, files) -> set[str] | None:

@@ -71,6 +71,16 @@ METHOD_OPTIONS = {"fbp": ("falloff", "operators", "oversample"),
                   "csa": ("tau_rel", "iterations", "falloff", "oversample")}
 
 
+def add_weight_arguments(parser, checkpoint_help: str = "training workdir, variant folder or checkpoints"
+                         " folder (default: the shipped weights of --pretrained)") -> None:
+  """``--checkpoint`` and ``--pretrained NAME`` (default :data:`DEFAULT_PRETRAINED`) on
+  ``parser`` (a parser or an argument group): where a command's network comes from."""
+  parser.add_argument("--checkpoint", default=None, help=checkpoint_help)
+  parser.add_argument("--pretrained", default=None, metavar="NAME",
+                      help=f"weights shipped in the package when no --checkpoint is given (default"
+                           f" {DEFAULT_PRETRAINED!r}; nlosjax.inference.pretrained_names() lists them)")
+
+
 def build_parser() -> argparse.ArgumentParser:
   p = argparse.ArgumentParser(prog="python -m experiments.reconstruct", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -121,12 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
                       " protocol takes 0.1 at stride 4, 0.03 at stride 8)")
   g.add_argument("--iterations", type=int, default=None, help="csa: the most FISTA steps (200)")
   g = p.add_argument_group("model options")
-  g.add_argument("--checkpoint", default=None,
-                 help="training workdir, variant folder or checkpoints folder (default: the shipped"
-                      " weights of --pretrained)")
-  g.add_argument("--pretrained", default=None, metavar="NAME",
-                 help=f"weights shipped in the package when no --checkpoint is given (default"
-                      f" {DEFAULT_PRETRAINED!r}; nlosjax.inference.pretrained_names() lists them)")
+  add_weight_arguments(g)
   g.add_argument("--variant", choices=tuple(VARIANTS), default=None,
                  help="--method model: which trained variant (default: with --checkpoint the first"
                       f" trained of {', '.join(VARIANTS)}; shipped weights: ours)")

@@ -1,4 +1,4 @@
-"""Tests of the speed-accuracy benchmark's own logic (``benchmarks/tradeoff/``).
+"""Tests of the speed-accuracy benchmark's own logic (``experiments/studies/tradeoff/``).
 
 The Pareto front against a brute-force O(n^2) dominance check, the
 recommendations, the frame windows, the re-noising at another exposure
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks import tradeoff
+from experiments.studies import tradeoff
 from nlosjax.physics import Setup, jitter_kernel
 from tests.poisson_checks import assert_poisson, stated_rate
 

@@ -75,3 +75,34 @@ def test_two_hundred_steps_stay_finite_at_the_lowest_efficiency_and_exposure(tmp
     values = np.array([r[key] for r in rows])
     assert np.isfinite(values).all(), key
   assert rows[-1]["l2_grads"] > 0                   # still learning, not silently zeroed
+
+
+@pytest.mark.full
+def test_a_passed_loader_and_model_config_are_what_trains(data_path, tmp_path):
+  # The trade-off study's path: train_model with its own loader and network.
+  cfg = tiny_config(data_path)
+  _, default = T.train_model(cfg, data_path, tmp_path / "a", "ours_s", log=lambda s: None)
+  run = T.run_config(cfg)
+  loader = T.make_loader(run, data_path, "train", batch_size=run.train.batch_size, shuffle=True,
+                         seed=run.train.seed)
+  mcfg = T.model_config_for(run, loader.setup, "ours_s")
+  _, passed = T.train_model(cfg, None, tmp_path / "b", "ours_s", log=lambda s: None,
+                            loader=loader, model_config=mcfg)
+  jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
+               default.params, passed.params)
+
+  read = []
+
+  class Recording(type(loader)):
+    def batch(self, step):
+      read.append(int(step))
+      return super().batch(step)
+
+  recording = Recording(data_path, split="train", batch_size=run.train.batch_size, stride=run.data.stride(),
+                        offset=run.data.input_offset, seed=run.train.seed, shuffle=True, drop_remainder=True)
+  wider = T.model_config_for({**cfg, "model": {**cfg["model"], "width": 6}}, loader.setup, "ours_s")
+  got, state = T.train_model(cfg, None, tmp_path / "c", "ours_s", folder="wide", log=lambda s: None,
+                             loader=recording, model_config=wider)
+  assert read == list(range(run.train.steps))
+  assert got == wider and (tmp_path / "c" / "wide" / "checkpoints").exists()
+  assert T.param_fingerprint(state.params) != T.param_fingerprint(default.params)

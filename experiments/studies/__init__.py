@@ -24,7 +24,7 @@ folders in the store (:mod:`experiments.store`), outside the work tree; the othe
 * ``ablations`` (the paper's Table 2), ``table1`` (Table 1 over seeds at a fixed step count),
   ``temporal_probe`` (does Ours read its neighbours), ``time_to_plateau`` and
   ``stopping_replay`` (how long to train, when to stop).
-
-Still elsewhere: in ``benchmarks/`` the trade-off study, which measures speed against accuracy
-of every reconstruction knob beside the other performance benchmarks.
+* ``tradeoff`` -- speed against accuracy of every reconstruction knob (method, scan density,
+  exposure, frames, model size, scan kernel, depth gating); its networks train through
+  :func:`nlosjax.train.train_model` with a loader of wider frame windows.
 """

@@ -14,7 +14,7 @@ import math
 import os
 import pathlib
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import jax
 import numpy as np
@@ -29,6 +29,9 @@ from nlosjax.train.state import TrainState, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_train_step
 from nlosjax.train.stopping import BEST_FOLDER, PlateauTracker
 from nlosjax.variants import VARIANTS
+
+if TYPE_CHECKING:
+  from nlosjax.data.dataset import TripletLoader
 
 #: Input frames of each variant (:data:`nlosjax.variants.VARIANTS`).
 VARIANT_FRAMES = {name: v.frames for name, v in VARIANTS.items()}
@@ -127,7 +130,8 @@ def read_metrics(path) -> list[dict]:
 def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, folder: str | None = None,
                 validate: Callable[[Any, Any], float] | None = None,
                 log: Callable[[str], None] = print,
-                export: StateExport | None = None) -> tuple[Any, TrainState]:
+                export: StateExport | None = None, loader: TripletLoader | None = None,
+                model_config: Any = None) -> tuple[Any, TrainState]:
   """Train one variant (a name of :data:`nlosjax.variants.VARIANTS`), resuming from ``workdir/<folder>``.
 
   Args:
@@ -155,6 +159,13 @@ def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, f
       machine), refused when trained under another signature or data digest; past
       ``export.deadline`` the run saves, exports and raises
       :class:`~nlosjax.train.run_state.TrainingPaused`.
+    loader: the training batches (default: :func:`make_loader` of ``data_path``'s train
+      split, the config's loader options, batch ``train.batch_size``, seed ``train.seed``):
+      any :class:`~nlosjax.data.dataset.TripletLoader` (its subclasses choose other frames);
+      ``data_path`` is then unused. Closed when training ends.
+    model_config: the network to train (default :func:`model_config_for` the variant
+      on the loader's Setup); ``variant`` still names the training recipe
+      (:func:`training_recipe`) and labels progress.
   Returns:
     ``(model_config, state)``: after ``train.steps`` steps, or at
     the checkpoint chosen on validation (the plateau rule's best).
@@ -174,9 +185,10 @@ def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, f
   primary = jax.process_index() == 0
   if not primary:
     log = lambda s: None                                 # noqa: E731 -- one process reports
-  loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed,
-                       shard=(jax.process_index(), jax.process_count()))
-  mcfg = model_config_for(config, loader.setup, variant)
+  if loader is None:
+    loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed,
+                         shard=(jax.process_index(), jax.process_count()))
+  mcfg = model_config_for(config, loader.setup, variant) if model_config is None else model_config
   log(f"[{variant}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{variant}] "))
   model = network(mcfg)
   optim, weights = training_recipe(config, variant)

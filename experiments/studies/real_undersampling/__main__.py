@@ -8,11 +8,11 @@ import pathlib
 import sys
 import time
 
+from experiments.reconstruct import add_weight_arguments
 from experiments.studies.real_undersampling import __doc__ as package_doc
 from experiments.studies.real_undersampling.ablation import ablated_models, adapted_models, aligned_run
 from experiments.studies.real_undersampling.figures import write_figures
 from experiments.studies.real_undersampling.protocol import (
-  DEFAULT_PRETRAINED,
   REPO,
   binned_classic,
   default_files,
@@ -29,12 +29,8 @@ def main(argv=None):
                                    description=package_doc.split("\n\n")[0])
   parser.add_argument("--data-dir", default=None,
                       help="folder of real .mat scans (default ../shared/data/real, else the shipped scan)")
-  parser.add_argument("--checkpoint", default=None,
-                      help="trained run (workdir of python -m experiments.train); 'none' for classic only;"
-                           " default: the shipped weights of --pretrained")
-  parser.add_argument("--pretrained", default=None, metavar="NAME",
-                      help=f"weights shipped in the package, used without --checkpoint (default"
-                           f" {DEFAULT_PRETRAINED!r}; nlosjax.inference.pretrained_names() lists them)")
+  add_weight_arguments(parser, "trained run (workdir of python -m experiments.train); 'none' for"
+                               " classic only; default: the shipped weights of --pretrained")
   parser.add_argument("--strides", type=int, nargs="+", default=[4, 8])
   parser.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "real.md"))
   parser.add_argument("--no-timing", action="store_true", help="skip the CLI vs twin timing")

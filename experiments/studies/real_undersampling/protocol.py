@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from experiments.provenance import ROOT as REPO
+from experiments.reconstruct import DEFAULT_PRETRAINED
 from nlosjax.evaluation.baselines import CLASSIC_METHODS
 from nlosjax.evaluation.report import METHOD_LABELS
 
@@ -30,8 +31,6 @@ UNTRAINED = CLASSIC + ITERATIVE
 REFERENCES = CLASSIC
 #: Bin width of the measured scans after the published preparation (s).
 CAPTURE_BIN_WIDTH = 16e-12
-#: Shipped weights used when neither --checkpoint nor --pretrained is given.
-DEFAULT_PRETRAINED = "real"
 
 
 def default_files(data_dir=None) -> list[pathlib.Path]:

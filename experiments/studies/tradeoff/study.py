@@ -1,19 +1,20 @@
 """The study: every measurement of every configuration, in one run (:func:`run`).
 
-What is measured and how is described in :mod:`benchmarks.tradeoff`. The configurations
+What is measured and how is described in :mod:`experiments.studies.tradeoff`. The configurations
 are evaluated in order under one progress bar, then every executable is timed side by side.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import statistics
 import time
 
 import numpy as np
 
-from benchmarks.tradeoff.accuracy import in_range_accuracy, scores
-from benchmarks.tradeoff.configs import (
+from experiments.studies.tradeoff.accuracy import in_range_accuracy, scores
+from experiments.studies.tradeoff.configs import (
   CLASSIC,
   DENSITY_STRIDES,
   EXPOSURES,
@@ -23,11 +24,11 @@ from benchmarks.tradeoff.configs import (
   depth_ranges,
   gated_setup,
 )
-from benchmarks.tradeoff.data import TestSplit
-from benchmarks.tradeoff.pipelines import classic_pipeline, csa_pipeline, learned_pipeline
-from benchmarks.tradeoff.runners import evaluate, interleaved_times
-from benchmarks.tradeoff.stages import lct_stage_executables, network_volume_executable
-from benchmarks.tradeoff.training import train_learned, window_loader
+from experiments.studies.tradeoff.data import TestSplit
+from experiments.studies.tradeoff.pipelines import classic_pipeline, csa_pipeline, learned_pipeline
+from experiments.studies.tradeoff.runners import evaluate, interleaved_times
+from experiments.studies.tradeoff.stages import lct_stage_executables, network_volume_executable
+from experiments.studies.tradeoff.training import train_learned, window_loader
 from nlosjax.evaluation import baselines
 
 
@@ -38,22 +39,24 @@ def run(args) -> dict:
   from experiments.configs import get_config
   from nlosjax.evaluation.baselines import upsample_scan
   from nlosjax.evaluation.report import METHOD_LABELS
-  from nlosjax.train import ensure_dataset, with_defaults
+  from nlosjax.train import RunConfig, ensure_dataset
   t_start = time.perf_counter()
-  config = with_defaults(get_config("cpu"))
-  config["train"]["steps"] = args.steps
-  config["train"]["optim"]["learning_rate"] = LEARNING_RATE
-  data_path = pathlib.Path(config["data"]["path"])
+  config = RunConfig.from_dict(get_config("cpu"))
+  config = dataclasses.replace(config, train=dataclasses.replace(
+      config.train, steps=args.steps,
+      optim=dataclasses.replace(config.train.optim, learning_rate=LEARNING_RATE)))
+  data_path = pathlib.Path(config.data.path)
   ensure_dataset(config, data_path)
   test = TestSplit.load(data_path)
   setup = test.setup
-  stride = int(config["data"]["input_stride"])
+  stride = config.data.stride()
+  depth_range = tuple(config.data.section["scene"]["depth_range"])
   gt_i, gt_d = test.gt()
   B = args.batch
   res: dict = {"configs": [], "gating": {}, "stages": {}, "steps": args.steps, "batch": B,
                "max_depth": setup.max_depth, "wall_size": setup.wall_size, "grid": list(setup.grid),
                "num_bins": setup.num_bins, "bin_width": setup.bin_width, "stride": stride,
-               "depth_range": list(config["data"]["scene"]["depth_range"]), "rounds": args.repeats, "frames": len(test),
+               "depth_range": list(depth_range), "rounds": args.repeats, "frames": len(test),
                "data": str(data_path), "knobs": sorted(args.knobs)}
   labels = {**LABELS, **METHOD_LABELS}
 
@@ -68,14 +71,10 @@ def run(args) -> dict:
   # ---- learned configurations: trained or restored on first use
   root = pathlib.Path(args.workdir) / f"s{args.steps}"
   window = max(s.frames for s in LEARNED)
-  loader_box: list = []
 
   def get_loader():
-    if not loader_box:
-      tr = config["train"]
-      loader_box.append(window_loader(config, data_path, window, batch_size=int(tr["batch_size"]),
-                                      seed=int(tr.get("seed", 0))))
-    return loader_box[0]
+    return window_loader(config, data_path, window, batch_size=config.train.batch_size,
+                         seed=config.train.seed)
 
   specs = {spec.name: spec for spec in LEARNED}
   models: dict = {}
@@ -83,7 +82,7 @@ def run(args) -> dict:
   def trained(name: str):
     """``(model_config, params)`` of a learned configuration, trained or restored on first use."""
     if name not in models:
-      models[name] = train_learned(specs[name], config, setup, root, args.steps, get_loader)
+      models[name] = train_learned(specs[name], config, setup, root, get_loader)
     return models[name]
 
   inputs = {f: test.windows(stride, f) for f in (1, 3, 5)}
@@ -172,7 +171,7 @@ def run(args) -> dict:
       learned("ours", trained("ours")[0].replace(dtype="bfloat16")), setting="bfloat16")))
 
   # ---- time gating: accuracy inside each range; the stage profile's executables
-  ranges = depth_ranges(tuple(config["data"]["scene"]["depth_range"]), setup.max_depth,
+  ranges = depth_ranges(depth_range, setup.max_depth,
                         args.aperture)
   res["aperture"] = args.aperture
   gating: dict = {}
@@ -202,7 +201,7 @@ def run(args) -> dict:
     jobs.append(("gating", f"gating {method}", lambda method=method: job_gating(method)))
 
   def job_gated_ours_s():
-    z = tuple(config["data"]["scene"]["depth_range"])
+    z = depth_range
     m = learned("ours_s", trained("ours_s")[0].with_setup(setup.with_depth_range(*z)))
     add("gating", "ours_s@R", f"{labels['ours_s']}, gated {z[0]:g}-{z[1]:g} m", "learned", m,
         setting=f"{z[0]:g}-{z[1]:g} m")
@@ -231,8 +230,6 @@ def run(args) -> dict:
       bar.set_postfix_str(desc)
       job()
       bar.update(1)
-  for loader in loader_box:
-    loader.close()
 
   # ---- every executable timed side by side
   fns = {("x",) + k: v["executable"] for k, v in cache.items()}

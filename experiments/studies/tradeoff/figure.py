@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from benchmarks.tradeoff.pareto import pareto_front, pareto_points
+from experiments.studies.tradeoff.pareto import pareto_front, pareto_points
 
 
 def plot(res: dict, path) -> None:

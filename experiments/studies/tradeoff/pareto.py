@@ -1,7 +1,7 @@
 """The Pareto logic: the front of (time, PSNR) points, the recommended settings, and the
 learned points that beat every classic one.
 
-:func:`pareto_points` turns :func:`benchmarks.tradeoff.study.run`'s results into points;
+:func:`pareto_points` turns :func:`experiments.studies.tradeoff.study.run`'s results into points;
 the report and the plot both read the front from here.
 """
 

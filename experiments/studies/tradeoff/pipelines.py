@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from benchmarks.tradeoff.configs import CLASSIC
+from experiments.studies.tradeoff.configs import CLASSIC
 
 
 def classic_pipeline(method: str, setup, stride: int, *, volume: bool = False) -> Callable:

@@ -1,6 +1,6 @@
 """Speed-accuracy trade-offs of every reconstruction knob, on the test split of the CPU-preset data.
 
-    python -m benchmarks.tradeoff [--quick] [--steps N] [--repeats N] [--batch 8] [--knobs ...]
+    python -m experiments.studies.tradeoff [--quick] [--steps N] [--repeats N] [--batch 8] [--knobs ...]
                                   [--workdir runs/tradeoff] [--out-dir benchmarks/results]
 
 For each configuration, on the test split of the CPU preset's dataset
@@ -59,33 +59,33 @@ intensity PSNR, every configuration a point, the Pareto front of the
 configurations that read the default capture drawn).
 
 The code, one concern per module; every name is importable from
-``benchmarks.tradeoff`` as before the split:
+``experiments.studies.tradeoff`` as before the split:
 
-* :mod:`~benchmarks.tradeoff.configs` -- the configurations: knobs and their
+* :mod:`~experiments.studies.tradeoff.configs` -- the configurations: knobs and their
   settings, the learned configurations (:data:`LEARNED`), the gating depth
   ranges, budgets and default paths.
-* :mod:`~benchmarks.tradeoff.data` -- :class:`TestSplit`, the test split in memory.
-* :mod:`~benchmarks.tradeoff.pipelines` -- the jitted ``input -> (intensity,
+* :mod:`~experiments.studies.tradeoff.data` -- :class:`TestSplit`, the test split in memory.
+* :mod:`~experiments.studies.tradeoff.pipelines` -- the jitted ``input -> (intensity,
   depth)`` pipelines of a classic method and of a network.
-* :mod:`~benchmarks.tradeoff.training` -- :func:`train_learned`: every learned
+* :mod:`~experiments.studies.tradeoff.training` -- :func:`train_learned`: every learned
   configuration trained (or restored) with one budget.
-* :mod:`~benchmarks.tradeoff.runners` -- :func:`evaluate` (compile time, XLA
+* :mod:`~experiments.studies.tradeoff.runners` -- :func:`evaluate` (compile time, XLA
   memory, outputs) and :func:`interleaved_times` (warm time, round-robin).
-* :mod:`~benchmarks.tradeoff.accuracy` -- :func:`scores` and
+* :mod:`~experiments.studies.tradeoff.accuracy` -- :func:`scores` and
   :func:`in_range_accuracy`.
-* :mod:`~benchmarks.tradeoff.stages` -- the LCT stage split and the network's
+* :mod:`~experiments.studies.tradeoff.stages` -- the LCT stage split and the network's
   volume stage, for the time-gating profile.
-* :mod:`~benchmarks.tradeoff.machine` -- the machine line and load average.
-* :mod:`~benchmarks.tradeoff.study` -- :func:`run`: every measurement in one run.
-* :mod:`~benchmarks.tradeoff.pareto` -- the Pareto front, the recommended
+* :mod:`~experiments.studies.tradeoff.machine` -- the machine line and load average.
+* :mod:`~experiments.studies.tradeoff.study` -- :func:`run`: every measurement in one run.
+* :mod:`~experiments.studies.tradeoff.pareto` -- the Pareto front, the recommended
   settings, learned points that beat the classic ones.
-* :mod:`~benchmarks.tradeoff.report` -- :func:`to_markdown`, the report ``tradeoff.md``.
-* :mod:`~benchmarks.tradeoff.figure` -- :func:`plot`, the figure ``tradeoff.png``.
-* :mod:`~benchmarks.tradeoff.__main__` -- ``main``, the command line.
+* :mod:`~experiments.studies.tradeoff.report` -- :func:`to_markdown`, the report ``tradeoff.md``.
+* :mod:`~experiments.studies.tradeoff.figure` -- :func:`plot`, the figure ``tradeoff.png``.
+* :mod:`~experiments.studies.tradeoff.__main__` -- ``main``, the command line.
 """
 
-from benchmarks.tradeoff.accuracy import in_range_accuracy, scores
-from benchmarks.tradeoff.configs import (
+from experiments.studies.tradeoff.accuracy import in_range_accuracy, scores
+from experiments.studies.tradeoff.configs import (
   APERTURE,
   CLASSIC,
   DEFAULT_OUT_DIR,
@@ -105,16 +105,16 @@ from benchmarks.tradeoff.configs import (
   gated_setup,
   learned_config,
 )
-from benchmarks.tradeoff.data import TestSplit
-from benchmarks.tradeoff.figure import plot
-from benchmarks.tradeoff.machine import load_average, machine_line
-from benchmarks.tradeoff.pareto import learned_beats_classic, pareto_front, pareto_points, recommend
-from benchmarks.tradeoff.pipelines import classic_pipeline, csa_pipeline, learned_pipeline
-from benchmarks.tradeoff.report import csa_choice_markdown, gating_markdown, knob_table, to_markdown
-from benchmarks.tradeoff.runners import MIB, evaluate, interleaved_times
-from benchmarks.tradeoff.stages import lct_stage_executables, lct_stages, network_volume_executable
-from benchmarks.tradeoff.study import run
-from benchmarks.tradeoff.training import train_learned, window_frames, window_loader
+from experiments.studies.tradeoff.data import TestSplit
+from experiments.studies.tradeoff.figure import plot
+from experiments.studies.tradeoff.machine import load_average, machine_line
+from experiments.studies.tradeoff.pareto import learned_beats_classic, pareto_front, pareto_points, recommend
+from experiments.studies.tradeoff.pipelines import classic_pipeline, csa_pipeline, learned_pipeline
+from experiments.studies.tradeoff.report import csa_choice_markdown, gating_markdown, knob_table, to_markdown
+from experiments.studies.tradeoff.runners import MIB, evaluate, interleaved_times
+from experiments.studies.tradeoff.stages import lct_stage_executables, lct_stages, network_volume_executable
+from experiments.studies.tradeoff.study import run
+from experiments.studies.tradeoff.training import train_learned, window_frames, window_loader
 
 __all__ = [
     "APERTURE", "CLASSIC", "DEFAULT_OUT_DIR",

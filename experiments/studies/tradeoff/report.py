@@ -7,9 +7,9 @@ from __future__ import annotations
 import datetime
 import math
 
-from benchmarks.tradeoff.configs import CLASSIC, GOAL_HALVING, LABELS, LEARNING_RATE
-from benchmarks.tradeoff.pareto import learned_beats_classic, pareto_front, pareto_points, recommend
 from experiments.configs import get_config
+from experiments.studies.tradeoff.configs import CLASSIC, GOAL_HALVING, LABELS, LEARNING_RATE
+from experiments.studies.tradeoff.pareto import learned_beats_classic, pareto_front, pareto_points, recommend
 
 
 def _main_job_steps() -> int:

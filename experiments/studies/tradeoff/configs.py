@@ -11,10 +11,11 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 
+from experiments.provenance import ROOT
 from nlosjax.evaluation.baselines import CLASSIC_METHODS
 from nlosjax.evaluation.report import METHOD_LABELS
 
-DEFAULT_OUT_DIR = pathlib.Path(__file__).resolve().parent.parent / "results"
+DEFAULT_OUT_DIR = ROOT / "benchmarks" / "results"
 DEFAULT_WORKDIR = pathlib.Path("runs/tradeoff")
 QUICK_STEPS, FULL_STEPS = 150, 300
 QUICK_REPEATS, FULL_REPEATS = 9, 15
@@ -64,14 +65,17 @@ LEARNED = (
 )
 
 
-def learned_config(config: dict, setup, spec: Learned):
-  """The model config of ``spec`` on ``setup`` (the preset's model section + overrides; USM's own)."""
+def learned_config(config, setup, spec: Learned):
+  """The model config of ``spec`` on ``setup`` (the preset's model section + overrides; USM's own).
+
+  ``config``: a :class:`~nlosjax.train.RunConfig`.
+  """
   from nlosjax.models.network import ModelConfig
   if spec.variant == "usm":
     from nlosjax.train import model_config_for
     return model_config_for(config, setup, "usm")
-  kw = {**config.get("model", {}), **dict(spec.model), "frames": spec.frames}
-  return ModelConfig(setup=setup, stride=int(config["data"]["input_stride"]), **kw)
+  kw = {**config.model, **dict(spec.model), "frames": spec.frames}
+  return ModelConfig(setup=setup, stride=config.data.stride(), **kw)
 
 
 def depth_ranges(scene_range: tuple[float, float], max_depth: float,

@@ -1,6 +1,6 @@
-"""``python -m benchmarks.tradeoff``: the command line of the study (:mod:`benchmarks.tradeoff`).
+"""``python -m experiments.studies.tradeoff``: the command line of the study (:mod:`experiments.studies.tradeoff`).
 
-Parses the flags, runs :func:`~benchmarks.tradeoff.study.run` and writes ``OUT/tradeoff.json``,
+Parses the flags, runs :func:`~experiments.studies.tradeoff.study.run` and writes ``OUT/tradeoff.json``,
 ``OUT/tradeoff.png`` and ``OUT/tradeoff.md`` (printed too). The ``--help`` description is the
 first line of the package docstring.
 """
@@ -12,8 +12,8 @@ import json
 import pathlib
 import sys
 
-from benchmarks import tradeoff
-from benchmarks.tradeoff.configs import (
+from experiments.studies import tradeoff
+from experiments.studies.tradeoff.configs import (
   APERTURE,
   DEFAULT_OUT_DIR,
   DEFAULT_WORKDIR,
@@ -23,14 +23,15 @@ from benchmarks.tradeoff.configs import (
   QUICK_REPEATS,
   QUICK_STEPS,
 )
-from benchmarks.tradeoff.figure import plot
-from benchmarks.tradeoff.machine import load_average, machine_line
-from benchmarks.tradeoff.report import to_markdown
-from benchmarks.tradeoff.study import run
+from experiments.studies.tradeoff.figure import plot
+from experiments.studies.tradeoff.machine import load_average, machine_line
+from experiments.studies.tradeoff.report import to_markdown
+from experiments.studies.tradeoff.study import run
 
 
 def main(argv=None) -> dict:
-  parser = argparse.ArgumentParser(prog="python -m benchmarks.tradeoff", description=tradeoff.__doc__.split("\n\n")[0])
+  parser = argparse.ArgumentParser(prog="python -m experiments.studies.tradeoff",
+                                   description=tradeoff.__doc__.split("\n\n")[0])
   parser.add_argument("--quick", action="store_true",
                       help=f"CI-sized: {QUICK_STEPS} training steps, {QUICK_REPEATS} timed calls")
   parser.add_argument("--steps", type=int, default=None,
@@ -55,7 +56,7 @@ def main(argv=None) -> dict:
     parser.error(f"--knobs: unknown {sorted(args.knobs - set(KNOBS))}; choose from {KNOBS}")
   if args.steps < 1 or args.repeats < 1 or args.batch < 1:
     parser.error("--steps, --repeats and --batch must be >= 1")
-  cmd = "python -m benchmarks.tradeoff " + " ".join(argv if argv is not None else sys.argv[1:])
+  cmd = "python -m experiments.studies.tradeoff " + " ".join(argv if argv is not None else sys.argv[1:])
   before = load_average()
   res = run(args)
   after = load_average()
