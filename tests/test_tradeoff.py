@@ -9,6 +9,7 @@ one classic configuration (timed, scored, written as Markdown and a plot).
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
@@ -258,3 +259,31 @@ def test_csa_choice_table_bolds_the_chosen_setting():
                      ["retroreflective", 0.1, 17.0], ["retroreflective", 0.3, 18.25]]}
   md = "\n".join(tradeoff.csa_choice_markdown(choice))
   assert "| retroreflective | 17.00 | **18.25** |" in md and "| diffuse | 15.00 | 16.00 |" in md
+
+
+@pytest.mark.full
+def test_learned_configurations_train_through_train_model_and_a_rerun_restores(tmp_path_factory, tmp_path):
+  from nlosjax import train as T
+  from tests.tiny_run import make_tiny_dataset, tiny_config
+  path = make_tiny_dataset(tmp_path_factory)
+  config = T.RunConfig.from_dict(tiny_config(path, steps=2))
+  setup = config.data.setup()
+  spec = tradeoff.Learned("wide", "wide", 3, (("width", 6),))
+  made = []
+
+  def get_loader():
+    made.append(tradeoff.window_loader(config, path, 5, batch_size=config.train.batch_size,
+                                       seed=config.train.seed))
+    return made[-1]
+
+  mcfg, params = tradeoff.train_learned(spec, config, setup, tmp_path, get_loader, log=lambda s: None)
+  assert (mcfg.width, mcfg.frames) == (6, 3)
+  assert mcfg == tradeoff.learned_config(config, setup, spec)
+  assert [r["step"] for r in T.read_metrics(tmp_path / "wide" / "metrics.jsonl")][-1] == 2
+  # The loader reads 5-frame windows; the network takes the middle 3.
+  assert made[0].batch(0)["measurement"].shape[1] == 5
+  messages = []
+  again, restored = tradeoff.train_learned(spec, config, setup, tmp_path, get_loader, log=messages.append)
+  assert again == mcfg and any("resumed from step 2" in m for m in messages)
+  assert [r["step"] for r in T.read_metrics(tmp_path / "wide" / "metrics.jsonl")] == [1, 2]   # no step more
+  jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), params, restored)

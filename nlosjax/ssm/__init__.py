@@ -3,7 +3,7 @@
 Public API::
 
     selective_scan       h_t = exp(dt_t A) h_{t-1} + dt_t B_t x_t,  y_t = <C_t, h_t> + D x_t
-                         methods "associative" | "sequential" | "chunked" | "blockwise" | "auto"
+                         method: a name of METHODS (a kernel of nlosjax.ssm.scan, or "auto")
     bidirectional_scan   forward + reverse scans of one sequence, combined as Vision Mamba does
     resolve_method       the method "auto" picks for a shape and backend
     SelectiveSSM         Mamba's selective SSM (conv, projections of dt, B, C; scan), the one SSM

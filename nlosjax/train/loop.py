@@ -162,7 +162,8 @@ def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, f
     loader: the training batches (default: :func:`make_loader` of ``data_path``'s train
       split, the config's loader options, batch ``train.batch_size``, seed ``train.seed``):
       any :class:`~nlosjax.data.dataset.TripletLoader` (its subclasses choose other frames);
-      ``data_path`` is then unused. Closed when training ends.
+      ``data_path`` is then unused. Closed when training ends. Several processes need
+      one sharded loader each (``shard``, as :func:`make_loader` builds).
     model_config: the network to train (default :func:`model_config_for` the variant
       on the loader's Setup); ``variant`` still names the training recipe
       (:func:`training_recipe`) and labels progress.

@@ -46,14 +46,16 @@ scan point, the stored exposure, 3 frames, the CPU preset's model, the
   methods and Ours (Ours-S at 0.5-1.5 m only), with the depth accuracy
   inside each range and a per-stage profile of LCT and the network.
 
-``--knobs`` runs a subset (``method`` always runs). The quick mode (about 7
-minutes on 2 shared cores once the checkpoints exist) is what
-``benchmarks/results/tradeoff.md`` was produced with.
+``--knobs`` runs a subset (``method`` always runs). The quick mode is what
+``benchmarks/results/tradeoff.md`` was produced with (its header gives the seconds).
 
 Every learned configuration is trained by this benchmark with one shared
 budget (``--steps``; 150 with ``--quick``) and the CPU preset's optimiser
-at peak learning rate 1e-3 (``configs.LEARNING_RATE``) and seed, into ``WORKDIR/s<steps>/<name>``; a rerun restores the
-checkpoints (an interrupted training resumes). Writes ``OUT/tradeoff.md``,
+at peak learning rate 1e-3 (``configs.LEARNING_RATE``) and seed, through the main job's
+:func:`nlosjax.train.train_model`, into ``WORKDIR/s<steps>/<name>``; a rerun restores the
+checkpoints (an interrupted training resumes). Checkpoints written by the study's own loop
+before it trained through ``train_model`` carry another signature and are refused: move them
+aside or give another ``--workdir``. Writes ``OUT/tradeoff.md``,
 ``OUT/tradeoff.json`` and ``OUT/tradeoff.png`` (time per frame against
 intensity PSNR, every configuration a point, the Pareto front of the
 configurations that read the default capture drawn).
