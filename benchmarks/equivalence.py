@@ -38,6 +38,11 @@ protocol, so a results file of the protocol is carried by one of them, alone or 
 record against the same base. A base without the protocol writes no array, and its measured
 record fails; any failed record stops its base from carrying anything.
 
+The rule chains: a results file that ``COMMIT``'s own committed index showed as carried
+forward, and that is byte for byte the file ``COMMIT`` held, is carried on by records against
+``COMMIT`` that cover the changes since (:func:`_carried_at`). So records against the last
+landed commit carry every file that commit's index carried, and no older base need be rerun.
+
 Records against several bases may stand side by side (``equivalence.md`` for the first
 base named, ``equivalence_<COMMIT>.md`` for the others; :func:`records`): a file is carried
 when the records against one base carry it, so files current at different commits can all be
@@ -343,16 +348,69 @@ def carried_forward(entry, *, results: pathlib.Path, files=None) -> str | None:
   for base, closures in by_base.items():
     if base in failed:
       continue
-    needed = _changed_since(entry, base, files)
-    if needed is None:
-      continue                             # not current at the base: nothing to carry
+    origin, needed = base[:7], _changed_since(entry, base, files)
+    if needed is None:                     # not current at the base: carried there, then on?
+      origin, needed = _carried_at(entry, base, results, files) or (None, None)
+      if needed is None:
+        continue                           # neither: nothing to carry
+      origin = f"{origin} via {base[:7]}"
     for name, closure in closures.items():  # one record alone, where one does
       if needed <= closure:
-        return f"carried forward from {base[:7]} by {name}.md"
+        return f"carried forward from {origin} by {name}.md"
     if needed <= set().union(*closures.values()):
       used = [n for n in closures if needed & closures[n]]
-      return f"carried forward from {base[:7]} by " + " + ".join(f"{n}.md" for n in used)
+      return f"carried forward from {origin} by " + " + ".join(f"{n}.md" for n in used)
   return None
+
+
+#: The index file whose committed rows :func:`_carried_at` reads at a base.
+INDEX_PATH = "benchmarks/README.md"
+
+
+def state_at(base: str, name: str, show) -> str | None:
+  """The state column ``base``'s committed index (:data:`INDEX_PATH`) gave results file ``name``,
+  or None where that commit has no index or no row for it. ``show(commit, path)``: a file's text."""
+  text = show(base, INDEX_PATH)
+  prefix = f"| [{name}.md](results/{name}.md) |"
+  for line in (text or "").splitlines():
+    if line.startswith(prefix):
+      cells = [c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]]
+      return cells[6] if len(cells) == 9 else None   # file, what, command, date, machine, commit, state
+  return None
+
+
+def _carried_at(entry, base: str, results: pathlib.Path, files) -> tuple[str, set[str]] | None:
+  """``(origin, changed)`` where ``entry`` was carried forward at ``base`` (its committed index,
+  checked at that commit by ``tests/test_benchmarks_index.py``, says so, from ``origin``) and its
+  results file is byte for byte the one ``base`` holds; ``changed``: today's paths of its modules
+  whose code differs between ``base`` and today. None otherwise.
+
+  The chain is sound link by link: the records ``base``'s index named showed that the changes
+  from ``origin`` to ``base`` move no probe; the records against ``base`` show the same of the
+  changes since. So each stop needs records against the last landed commit only, not against
+  every commit a results file was current at.
+  """
+  from benchmarks.results_header import GitFiles as _GitFiles
+  own = results / f"{entry.name}.md"
+  show = _GitFiles()
+  try:
+    at_base = show(base, f"benchmarks/results/{entry.name}.md")
+    if at_base is None or not own.exists() or own.read_text() != at_base:
+      return None
+    said = state_at(base, entry.name, show) or ""
+    found = re.match(r"carried forward from (\w+)", said)
+    if not found:
+      return None                          # current at the base is the direct rule's case
+    changed = set()
+    for m in entry.modules:
+      today = moved_path(m)
+      then = show(base, today) if show(base, today) is not None else show(base, m)
+      now = (provenance.ROOT / today).read_text() if today in files else None
+      if then is None or not same_moved_code(then, now, m):
+        changed.add(today)
+    return found.group(1), changed
+  finally:
+    show.close()
 
 
 def _current_closure(results: pathlib.Path, name: str, files) -> set[str] | None:

@@ -416,6 +416,32 @@ def test_loader_triplets_are_the_right_frames(tiny, ends, in_memory):
     assert middles == ({1, 2} if ends == "valid" else {0, 1, 2, 3})
 
 
+@pytest.mark.parametrize("in_memory", [False, True])
+def test_a_wider_window_reads_the_clipped_neighbours_and_keeps_the_triplets_batches(tiny, in_memory):
+  """A 5-frame window: each example's frames m-2..m+2 clipped to the sequence (a loop over the
+  stored frames), the same examples in the same order as the triplet loader, whose frames are
+  the window's middle three."""
+  path, _ = tiny
+  kw = dict(batch_size=2, stride=4, offset=1, ends="replicate", in_memory=in_memory, seed=3)
+  with D.TripletLoader(path, window=5, **kw) as wide, D.TripletLoader(path, **kw) as triplet, \
+       D.open_dataset(path) as ds:
+    for step in range(len(wide) + 1):
+      w, t = wide.batch(step), triplet.batch(step)
+      assert w["measurement"].shape == (2, 5, 64, 4, 4)
+      for k in ("transient", "intensity", "depth", "sequence", "frame", "efficiency"):
+        np.testing.assert_array_equal(w[k], t[k])
+      np.testing.assert_array_equal(w["measurement"][:, 1:4], t["measurement"])
+      for b in range(2):
+        name, m = wide.names[w["sequence"][b]], int(w["frame"][b])
+        full = ds.read(name, "measurement")
+        for i, d in enumerate(range(-2, 3)):
+          f = min(max(m + d, 0), full.shape[0] - 1)
+          np.testing.assert_array_equal(w["measurement"][b, i], full[f, :, 1::4, 1::4])
+  for bad in (0, 4, -1, 2.0, True):
+    with pytest.raises(ValueError, match="window must be a positive odd integer"):
+      D.TripletLoader(path, window=bad, **kw)
+
+
 def test_loader_shuffles_by_seed_and_resumes_from_a_step(tiny):
   path, _ = tiny
   with D.TripletLoader(path, batch_size=2, seed=1) as a, D.TripletLoader(path, batch_size=2, seed=1) as b, \

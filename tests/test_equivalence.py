@@ -270,3 +270,57 @@ def test_a_records_header_names_the_closure_of_the_probe_it_ran(tmp_path):
     listed = results_header.read_entry(out).modules
     assert ("experiments/studies/real_undersampling/protocol.py" in listed) is holds
     assert set(listed) == set(json.loads(out.with_suffix(".json").read_text())["closure"])
+
+
+#: A landed commit whose committed index carried ``mechanisms.md`` forward (from 44695d1).
+CHAIN_BASE = "3a506b4"
+
+
+def test_a_file_carried_at_the_base_is_carried_on_by_records_against_that_base(tmp_path):
+  """The chain: the base's own index carried the file; records against the base cover what changed since."""
+  show = results_header.GitFiles()
+  try:
+    text = show(CHAIN_BASE, "benchmarks/results/mechanisms.md")
+    said = equivalence.state_at(CHAIN_BASE, "mechanisms", show)
+  finally:
+    show.close()
+  if text is None:
+    pytest.skip(f"this clone lacks commit {CHAIN_BASE} (a shallow clone)")
+  assert said == "carried forward from 44695d1 by equivalence_44695d1.md"
+  own = tmp_path / "mechanisms.md"
+  own.write_text(text)                                   # the file as the base held it
+  entry = results_header.read_entry(own)
+  assert equivalence._changed_since(entry, CHAIN_BASE, provenance.project_files()) is None  # not current there
+  _, changed = equivalence._carried_at(entry, CHAIN_BASE, tmp_path, provenance.project_files())
+  files = provenance.project_files()
+  closure = sorted({m for m in changed if m in files} | {"nlosjax/train/loop.py"})
+
+  def record(closure, passed=True):
+    (tmp_path / "equivalence.md").write_text(
+        "# Results carried forward\n\nProduced by `python -m benchmarks.equivalence --base x`.\n\n"
+        "- Date: 2026-12-01T00:00:00+00:00\n- Machine: M\n- Commit: abc\n" + provenance.code_line(closure) + "\n")
+    (tmp_path / "equivalence.json").write_text(json.dumps({"base": CHAIN_BASE, "passed": passed}))
+
+  record(closure)
+  if changed <= set(closure):
+    assert equivalence.carried_forward(entry, results=tmp_path) == \
+        f"carried forward from 44695d1 via {CHAIN_BASE} by equivalence.md"
+  if changed:                                   # a changed module outside every closure stops it
+    record(sorted(set(closure) - {sorted(changed)[0]}) or ["nlosjax/train/loop.py"])
+    assert equivalence.carried_forward(entry, results=tmp_path) is None
+  record(closure, passed=False)
+  assert equivalence.carried_forward(entry, results=tmp_path) is None
+  record(closure)
+  own.write_text(text.replace("\n", "\n\n", 1))           # not the file the base's index judged
+  assert equivalence.carried_forward(entry, results=tmp_path) is None
+
+
+def test_state_at_reads_the_state_column_of_a_committed_index():
+  row = ("| [x.md](results/x.md) | a \\| b | `python -m x` | 2026 | M | abc | carried forward from 1234567 by "
+         "equivalence.md | goal | x.json |")
+  other = "| [xy.md](results/xy.md) | t | `c` | 2026 | M | abc | stale since 1 (m) | goal |  |"
+  show = lambda commit, path: f"# Index\n\n{other}\n{row}\n" if path == equivalence.INDEX_PATH else None
+  assert equivalence.state_at("c", "x", show) == "carried forward from 1234567 by equivalence.md"
+  assert equivalence.state_at("c", "xy", show) == "stale since 1 (m)"
+  assert equivalence.state_at("c", "z", show) is None
+  assert equivalence.state_at("c", "x", lambda commit, path: None) is None

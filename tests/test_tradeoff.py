@@ -75,17 +75,6 @@ def test_recommend_and_learned_beats_classic():
   assert tradeoff.learned_beats_classic(pts) == ["big"]
 
 
-def test_window_frames():
-  from nlosjax.data.dataset import TripletLoader
-  np.testing.assert_array_equal(tradeoff.window_frames(1, 8, 5), [0, 0, 1, 2, 3])
-  np.testing.assert_array_equal(tradeoff.window_frames(6, 8, 5), [4, 5, 6, 7, 7])
-  for m in range(8):   # window 3 is the triplet loader's rule (the main job's batches)
-    np.testing.assert_array_equal(tradeoff.window_frames(m, 8, 3),
-                                  TripletLoader.triplet_frames(None, m, 8))
-  with pytest.raises(ValueError, match="odd"):
-    tradeoff.window_frames(3, 8, 4)
-
-
 def _tiny_split(F=4, T=32, H=8, seed=0):
   rng = np.random.default_rng(seed)
   setup = Setup(wall_size=1.0, grid=(H, H), bin_width=64e-12, num_bins=T)
@@ -272,8 +261,8 @@ def test_learned_configurations_train_through_train_model_and_a_rerun_restores(t
   made = []
 
   def get_loader():
-    made.append(tradeoff.window_loader(config, path, 5, batch_size=config.train.batch_size,
-                                       seed=config.train.seed))
+    made.append(T.make_loader(config, path, "train", batch_size=config.train.batch_size, shuffle=True,
+                              seed=config.train.seed, window=5))
     return made[-1]
 
   mcfg, params = tradeoff.train_learned(spec, config, setup, tmp_path, get_loader, log=lambda s: None)

@@ -106,3 +106,20 @@ def test_a_passed_loader_and_model_config_are_what_trains(data_path, tmp_path):
   assert read == list(range(run.train.steps))
   assert got == wider and (tmp_path / "c" / "wide" / "checkpoints").exists()
   assert T.param_fingerprint(state.params) != T.param_fingerprint(default.params)
+
+  # A passed loader is closed however training ends: here a batch that cannot be read.
+  closed = []
+
+  class Failing(type(loader)):
+    def batch(self, step):
+      raise OSError("the disk went away")
+
+    def close(self):
+      closed.append(True)
+      super().close()
+
+  failing = Failing(data_path, split="train", batch_size=run.train.batch_size, stride=run.data.stride(),
+                    offset=run.data.input_offset, seed=run.train.seed, shuffle=True, drop_remainder=True)
+  with pytest.raises(OSError, match="the disk went away"):
+    T.train_model(cfg, None, tmp_path / "d", "ours_s", log=lambda s: None, loader=failing)
+  assert closed and not failing.dataset._file   # h5py: a closed file is falsy

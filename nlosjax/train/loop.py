@@ -69,12 +69,13 @@ def select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
 
 
 def make_loader(config: RunConfig | dict, path, split: str, *, batch_size: int, shuffle: bool, seed: int,
-                shard: tuple[int, int] = (0, 1)):
+                shard: tuple[int, int] = (0, 1), window: int = 3):
   """The config's :class:`~nlosjax.data.dataset.TripletLoader` of ``split`` (the model's under-scan offset checked).
 
   ``data.loader`` is :class:`~nlosjax.data.dataset.LoaderOptions` (its ``prefetch`` is the
   training loop's: :func:`train_model`). ``shard = (index, count)``: this process's rows of
-  every global batch.
+  every global batch. ``window``: input frames per example (odd; 3 is the triplet every
+  variant reads, a wider one serves a network of more frames).
   """
   from nlosjax.data.dataset import TripletLoader
   data = run_config(config).data
@@ -82,7 +83,7 @@ def make_loader(config: RunConfig | dict, path, split: str, *, batch_size: int, 
   return TripletLoader(path, split=split, batch_size=batch_size, stride=data.stride(), offset=data.input_offset,
                        seed=seed, shuffle=shuffle, drop_remainder=shuffle,
                        ends=opts.ends, target=opts.target, in_memory=opts.in_memory,
-                       prefetch_size=opts.prefetch, shard=shard)
+                       prefetch_size=opts.prefetch, shard=shard, window=window)
 
 
 def ensure_dataset(config: RunConfig | dict, path: pathlib.Path, log: Callable[[str], None] = print) -> None:
@@ -162,7 +163,7 @@ def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, f
     loader: the training batches (default: :func:`make_loader` of ``data_path``'s train
       split, the config's loader options, batch ``train.batch_size``, seed ``train.seed``):
       any :class:`~nlosjax.data.dataset.TripletLoader` (its subclasses choose other frames);
-      ``data_path`` is then unused. Closed when training ends. Several processes need
+      ``data_path`` is then unused. Closed when training ends, returns or raises. Several processes need
       one sharded loader each (``shard``, as :func:`make_loader` builds).
     model_config: the network to train (default :func:`model_config_for` the variant
       on the loader's Setup); ``variant`` still names the training recipe
@@ -189,146 +190,149 @@ def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, f
   if loader is None:
     loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed,
                          shard=(jax.process_index(), jax.process_count()))
-  mcfg = model_config_for(config, loader.setup, variant) if model_config is None else model_config
-  log(f"[{variant}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{variant}] "))
-  model = network(mcfg)
-  optim, weights = training_recipe(config, variant)
-  mesh = mesh_for(config)
-  key = jax.random.key(seed)
-  init_key, loop_key = jax.random.split(key)
-  del key
-  shape = (batch_size, mcfg.frames, loader.setup.num_bins) + tuple(loader.input_shape[-2:])
-  state = create_train_state(model, shape, make_optimizer(optim, steps), init_key, mesh)
-  signature = run_signature(mcfg, state.params, optim, weights, batch_size, seed)
-  ckpt = Checkpointer(vdir / "checkpoints", signature, every=tr.checkpoint_every,
-                      keep=tr.keep_checkpoints, model=mcfg)
-  start = 0
-  restored = ckpt.restore_latest(state)
-  if restored is not None:
-    state, start = restored
-    log(f"[{variant}] resumed from step {start} ({ckpt.directory})")
-  name = folder or variant
-  imported_best = None
-  exported = read_meta(export.folder(name)) if export is not None else None
-  if exported is not None and exported["step"] > start and primary:
-    state, imported_best, meta = import_state(export.folder(name), state, signature=signature, model=mcfg,
-                                              data_digest=export.data_digest,
-                                              data_fingerprint=export.data_fingerprint,
-                                              allow_data_change=export.allow_data_change)
-    start = int(state.step)
-    copy_logs(export.folder(name), vdir)
-    ckpt.save(state, start, force=True)
-    ckpt.wait()
-    log(f"[{variant}] resumed from step {start} of the exported state {export.folder(name)}"
-        f"{meta['data_check'].describe()}")
-  elif exported is not None and exported["step"] > start:
-    raise ValueError("resuming from an exported state needs a single process; resume once with one, "
-                     "then continue with several")
-  tracker = None
-  if stop.rule == "plateau":
-    best = Checkpointer(vdir / BEST_FOLDER, signature, every=1, keep=1, model=mcfg)
-    if imported_best is not None and int(imported_best.step) not in best.all_steps():
-      best.save(imported_best, int(imported_best.step), force=True)
-      best.wait()
-    tracker = PlateauTracker(vdir, stop, best, validate, lambda s: learning_rate_at(optim, steps, s - 1),
-                             primary=primary)
-    tracker.resume(start)
-    if tracker.pending(start):       # killed after the checkpoint of a validation step, before its curve
-      tracker.record(mcfg, state, start, to_host)
-  # One process writes the log (several processes share the workdir); the others write
-  # theirs to /dev/null.
-  log_path = vdir / "metrics.jsonl" if primary else pathlib.Path(os.devnull)
-  if primary:
-    kept = [r for r in read_metrics(log_path) if r["step"] <= start]
-    log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
-  step_fn = make_train_step(mcfg, weights, mesh)
-  log_every = tr.log_every
-  exported_best = {"step": (exported or {}).get("best_step")}
+  try:                                  # the loader is closed however training ends
+    mcfg = model_config_for(config, loader.setup, variant) if model_config is None else model_config
+    log(f"[{variant}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{variant}] "))
+    model = network(mcfg)
+    optim, weights = training_recipe(config, variant)
+    mesh = mesh_for(config)
+    key = jax.random.key(seed)
+    init_key, loop_key = jax.random.split(key)
+    del key
+    shape = (batch_size, mcfg.frames, loader.setup.num_bins) + tuple(loader.input_shape[-2:])
+    state = create_train_state(model, shape, make_optimizer(optim, steps), init_key, mesh)
+    signature = run_signature(mcfg, state.params, optim, weights, batch_size, seed)
+    ckpt = Checkpointer(vdir / "checkpoints", signature, every=tr.checkpoint_every,
+                        keep=tr.keep_checkpoints, model=mcfg)
+    start = 0
+    restored = ckpt.restore_latest(state)
+    if restored is not None:
+      state, start = restored
+      log(f"[{variant}] resumed from step {start} ({ckpt.directory})")
+    name = folder or variant
+    imported_best = None
+    exported = read_meta(export.folder(name)) if export is not None else None
+    if exported is not None and exported["step"] > start and primary:
+      state, imported_best, meta = import_state(export.folder(name), state, signature=signature, model=mcfg,
+                                                data_digest=export.data_digest,
+                                                data_fingerprint=export.data_fingerprint,
+                                                allow_data_change=export.allow_data_change)
+      start = int(state.step)
+      copy_logs(export.folder(name), vdir)
+      ckpt.save(state, start, force=True)
+      ckpt.wait()
+      log(f"[{variant}] resumed from step {start} of the exported state {export.folder(name)}"
+          f"{meta['data_check'].describe()}")
+    elif exported is not None and exported["step"] > start:
+      raise ValueError("resuming from an exported state needs a single process; resume once with one, "
+                       "then continue with several")
+    tracker = None
+    if stop.rule == "plateau":
+      best = Checkpointer(vdir / BEST_FOLDER, signature, every=1, keep=1, model=mcfg)
+      if imported_best is not None and int(imported_best.step) not in best.all_steps():
+        best.save(imported_best, int(imported_best.step), force=True)
+        best.wait()
+      tracker = PlateauTracker(vdir, stop, best, validate, lambda s: learning_rate_at(optim, steps, s - 1),
+                               primary=primary)
+      tracker.resume(start)
+      if tracker.pending(start):       # killed after the checkpoint of a validation step, before its curve
+        tracker.record(mcfg, state, start, to_host)
+    # One process writes the log (several processes share the workdir); the others write
+    # theirs to /dev/null.
+    log_path = vdir / "metrics.jsonl" if primary else pathlib.Path(os.devnull)
+    if primary:
+      kept = [r for r in read_metrics(log_path) if r["step"] <= start]
+      log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
+    step_fn = make_train_step(mcfg, weights, mesh)
+    log_every = tr.log_every
+    exported_best = {"step": (exported or {}).get("best_step")}
 
-  def export_now(current: TrainState) -> None:
-    """Mirror ``current``, just checkpointed, into the export folder (primary process)."""
-    if export is None or not primary:
-      return
-    best_step = tracker.best_step if tracker is not None else None
-    best_state = None
-    if best_step is not None and best_step != exported_best["step"]:
-      best_state = current if best_step == int(current.step) else tracker.best_state(current)
-    export_state(export.folder(name), vdir, to_host(current), signature=signature,
-                 best=None if best_state is None else to_host(best_state),
-                 best_step=best_step, data_digest=export.data_digest,
-                 data_fingerprint=export.data_fingerprint)
-    exported_best["step"] = best_step
+    def export_now(current: TrainState) -> None:
+      """Mirror ``current``, just checkpointed, into the export folder (primary process)."""
+      if export is None or not primary:
+        return
+      best_step = tracker.best_step if tracker is not None else None
+      best_state = None
+      if best_step is not None and best_step != exported_best["step"]:
+        best_state = current if best_step == int(current.step) else tracker.best_state(current)
+      export_state(export.folder(name), vdir, to_host(current), signature=signature,
+                   best=None if best_state is None else to_host(best_state),
+                   best_step=best_step, data_digest=export.data_digest,
+                   data_fingerprint=export.data_fingerprint)
+      exported_best["step"] = best_step
 
-  t_start = time.perf_counter()
-  # Batches are a function of the step; with data.loader.prefetch they are read that many
-  # steps ahead in a thread while the step runs (the same batches).
-  with open(log_path, "a") as f, tqdm(total=steps, initial=start, desc=f"train {variant}",
-                                      unit="step", dynamic_ncols=True, mininterval=2.0,
-                                      disable=not primary) as bar, \
-       contextlib.closing(loader.iterate(start, max(0, steps - start))) as batches:
-    for step in range(start, steps):
-      if tracker is not None and tracker.reason(step):
-        break                           # a stopped run (rerun after its end): no step more
-      host = next(batches)
-      batch = {k: host[k] for k in BATCH_KEYS}
-      batch["measurement"] = select_frames(batch["measurement"], mcfg.frames)
-      state, metrics = step_fn(state, shard_batch(batch, mesh), jax.random.fold_in(loop_key, step))
-      done = step + 1
-      validating = tracker is not None and stop.validates_at(done)
-      if done % log_every == 0 or done == steps or validating:
-        m = {k: float(v) for k, v in to_host(metrics).items()}
-        if not all(math.isfinite(v) for v in m.values()):
-          raise FloatingPointError(f"[{variant}] non-finite metrics at step {done}: {m}")
-        row = {"step": done, "time_s": round(time.perf_counter() - t_start, 3), **m}
-        f.write(json.dumps(row) + "\n")
-        f.flush()
-        bar.set_postfix(loss=f"{m['loss']:.4f}")
-      pause = export is not None and export.past_deadline() and done < steps
-      if validating:
-        ckpt.save(state, done, force=True)
-        ckpt.wait()                     # the curve may name only finished checkpoints
-        score = tracker.record(mcfg, state, done, to_host)
-        export_now(state)
-        bar.set_postfix(val_psnr=f"{score:.2f}")
-        bar.update(1)
-        if tracker.reason(done):
-          break
-      else:
-        if ckpt.save(state, done, force=(done == steps) or pause):
+    t_start = time.perf_counter()
+    # Batches are a function of the step; with data.loader.prefetch they are read that many
+    # steps ahead in a thread while the step runs (the same batches).
+    with open(log_path, "a") as f, tqdm(total=steps, initial=start, desc=f"train {variant}",
+                                        unit="step", dynamic_ncols=True, mininterval=2.0,
+                                        disable=not primary) as bar, \
+         contextlib.closing(loader.iterate(start, max(0, steps - start))) as batches:
+      for step in range(start, steps):
+        if tracker is not None and tracker.reason(step):
+          break                           # a stopped run (rerun after its end): no step more
+        host = next(batches)
+        batch = {k: host[k] for k in BATCH_KEYS}
+        batch["measurement"] = select_frames(batch["measurement"], mcfg.frames)
+        state, metrics = step_fn(state, shard_batch(batch, mesh), jax.random.fold_in(loop_key, step))
+        done = step + 1
+        validating = tracker is not None and stop.validates_at(done)
+        if done % log_every == 0 or done == steps or validating:
+          m = {k: float(v) for k, v in to_host(metrics).items()}
+          if not all(math.isfinite(v) for v in m.values()):
+            raise FloatingPointError(f"[{variant}] non-finite metrics at step {done}: {m}")
+          row = {"step": done, "time_s": round(time.perf_counter() - t_start, 3), **m}
+          f.write(json.dumps(row) + "\n")
+          f.flush()
+          bar.set_postfix(loss=f"{m['loss']:.4f}")
+        pause = export is not None and export.past_deadline() and done < steps
+        if validating:
+          ckpt.save(state, done, force=True)
+          ckpt.wait()                     # the curve may name only finished checkpoints
+          score = tracker.record(mcfg, state, done, to_host)
           export_now(state)
-        bar.update(1)
-      if pause and not (tracker is not None and tracker.reason(done)):
-        batches.close()
-        ckpt.close()
-        if tracker is not None:
-          tracker.best.close()
-        loader.close()
-        log(f"[{variant}] paused at step {done} (deadline); state exported to {export.folder(name)}")
-        raise TrainingPaused(variant, done, export.folder(name))
-  batches.close()
-  loader.close()
-  if tracker is not None:
-    chosen = _finish_plateau(tracker, state, ckpt, vdir, variant, primary, log)
-    export_now(state)                   # with the final curve and selection.json
-    return mcfg, chosen
-  last = state
-  selection = {"select": tr.select_checkpoint, "step": int(state.step), "val_psnr": {}}
-  if selection["select"] == "val" and validate is not None:
-    candidates = {}
-    for step in ckpt.all_steps():
-      candidate, _ = ckpt.restore(state, step)
-      selection["val_psnr"][step] = float(validate(mcfg, to_host(candidate.params)))
-      candidates[step] = candidate
-    best = max(selection["val_psnr"], key=lambda k: (selection["val_psnr"][k], k))
-    state = candidates[best]
-    selection["step"] = int(best)
-    log(f"[{variant}] checkpoint chosen on validation: step {best} "
-        f"({', '.join(f'{k}: {v:.2f} dB' for k, v in selection['val_psnr'].items())})")
-  ckpt.close()
-  if primary:
-    (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-  export_now(last)                      # the last state, with selection.json
-  return mcfg, state
+          bar.set_postfix(val_psnr=f"{score:.2f}")
+          bar.update(1)
+          if tracker.reason(done):
+            break
+        else:
+          if ckpt.save(state, done, force=(done == steps) or pause):
+            export_now(state)
+          bar.update(1)
+        if pause and not (tracker is not None and tracker.reason(done)):
+          batches.close()
+          ckpt.close()
+          if tracker is not None:
+            tracker.best.close()
+          loader.close()
+          log(f"[{variant}] paused at step {done} (deadline); state exported to {export.folder(name)}")
+          raise TrainingPaused(variant, done, export.folder(name))
+    batches.close()
+    loader.close()
+    if tracker is not None:
+      chosen = _finish_plateau(tracker, state, ckpt, vdir, variant, primary, log)
+      export_now(state)                   # with the final curve and selection.json
+      return mcfg, chosen
+    last = state
+    selection = {"select": tr.select_checkpoint, "step": int(state.step), "val_psnr": {}}
+    if selection["select"] == "val" and validate is not None:
+      candidates = {}
+      for step in ckpt.all_steps():
+        candidate, _ = ckpt.restore(state, step)
+        selection["val_psnr"][step] = float(validate(mcfg, to_host(candidate.params)))
+        candidates[step] = candidate
+      best = max(selection["val_psnr"], key=lambda k: (selection["val_psnr"][k], k))
+      state = candidates[best]
+      selection["step"] = int(best)
+      log(f"[{variant}] checkpoint chosen on validation: step {best} "
+          f"({', '.join(f'{k}: {v:.2f} dB' for k, v in selection['val_psnr'].items())})")
+    ckpt.close()
+    if primary:
+      (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
+    export_now(last)                      # the last state, with selection.json
+    return mcfg, state
+  finally:
+    loader.close()
 
 
 def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpointer, vdir: pathlib.Path,

@@ -116,7 +116,7 @@ from experiments.studies.tradeoff.report import csa_choice_markdown, gating_mark
 from experiments.studies.tradeoff.runners import MIB, evaluate, interleaved_times
 from experiments.studies.tradeoff.stages import lct_stage_executables, lct_stages, network_volume_executable
 from experiments.studies.tradeoff.study import run
-from experiments.studies.tradeoff.training import train_learned, window_frames, window_loader
+from experiments.studies.tradeoff.training import train_learned
 
 __all__ = [
     "APERTURE", "CLASSIC", "DEFAULT_OUT_DIR",
@@ -127,5 +127,5 @@ __all__ = [
     "interleaved_times", "knob_table", "lct_stage_executables", "lct_stages",
     "learned_beats_classic", "learned_config", "learned_pipeline", "load_average", "machine_line",
     "network_volume_executable", "pareto_front", "pareto_points", "plot", "recommend", "run",
-    "scores", "to_markdown", "train_learned", "window_frames", "window_loader",
+    "scores", "to_markdown", "train_learned",
 ]

@@ -28,7 +28,7 @@ from experiments.studies.tradeoff.data import TestSplit
 from experiments.studies.tradeoff.pipelines import classic_pipeline, csa_pipeline, learned_pipeline
 from experiments.studies.tradeoff.runners import evaluate, interleaved_times
 from experiments.studies.tradeoff.stages import lct_stage_executables, network_volume_executable
-from experiments.studies.tradeoff.training import train_learned, window_loader
+from experiments.studies.tradeoff.training import train_learned
 from nlosjax.evaluation import baselines
 
 
@@ -39,7 +39,7 @@ def run(args) -> dict:
   from experiments.configs import get_config
   from nlosjax.evaluation.baselines import upsample_scan
   from nlosjax.evaluation.report import METHOD_LABELS
-  from nlosjax.train import RunConfig, ensure_dataset
+  from nlosjax.train import RunConfig, ensure_dataset, make_loader
   t_start = time.perf_counter()
   config = RunConfig.from_dict(get_config("cpu"))
   config = dataclasses.replace(config, train=dataclasses.replace(
@@ -50,7 +50,7 @@ def run(args) -> dict:
   test = TestSplit.load(data_path)
   setup = test.setup
   stride = config.data.stride()
-  depth_range = tuple(config.data.section["scene"]["depth_range"])
+  depth_range = tuple(config.data.spec().scene.depth_range)
   gt_i, gt_d = test.gt()
   B = args.batch
   res: dict = {"configs": [], "gating": {}, "stages": {}, "steps": args.steps, "batch": B,
@@ -73,8 +73,8 @@ def run(args) -> dict:
   window = max(s.frames for s in LEARNED)
 
   def get_loader():
-    return window_loader(config, data_path, window, batch_size=config.train.batch_size,
-                         seed=config.train.seed)
+    return make_loader(config, data_path, "train", batch_size=config.train.batch_size, shuffle=True,
+                       seed=config.train.seed, window=window)
 
   specs = {spec.name: spec for spec in LEARNED}
   models: dict = {}

@@ -106,7 +106,7 @@ class LoaderOptions:
 
 
 class TripletLoader:
-  """Batches of three adjacent under-scanned frames and the middle frame's targets.
+  """Batches of adjacent under-scanned frames (three by default) and the middle frame's targets.
 
   Args:
     dataset: a path or an open :class:`DynamicDataset`.
@@ -122,13 +122,15 @@ class TripletLoader:
     in_memory: read everything the loader needs once, at construction.
     setup: optional expected full-resolution Setup (checked).
     prefetch_size: default of :meth:`iterate`'s ``prefetch_size``.
+    window: input frames per example, an odd number centred on the middle frame
+      (3: the triplet); frame indices past a sequence's ends are clipped to it.
     shard: ``(index, count)``: :meth:`batch` returns rows ``index * B / count``
       to ``(index + 1) * B / count`` of every global batch and reads only
       those (one process of ``count`` in multi-process training; ``B`` must
       divide by ``count``). With ``in_memory`` a sharded loader keeps the
       sequences it has read instead of reading every one at construction.
 
-  Batch (numpy, float32 unless noted): ``measurement [B, 3, T, h, w]``,
+  Batch (numpy, float32 unless noted): ``measurement [B, window, T, h, w]``,
   ``transient [B, T, H, W]``, ``intensity [B, H, W]``, ``depth [B, H, W]``
   (metres), ``sequence [B]`` int32 (index into :attr:`names`), ``frame
   [B]`` int32 (middle frame), ``efficiency [B]``.
@@ -138,7 +140,10 @@ class TripletLoader:
                offset: int = 0, seed: int = 0, shuffle: bool = True, drop_remainder: bool = True,
                ends: str = "valid", target: str = "clean", in_memory: bool = False,
                setup: Setup | None = None, prefetch_size: int = 0,
-               shard: tuple[int, int] = (0, 1)):
+               shard: tuple[int, int] = (0, 1), window: int = 3):
+    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1 or window % 2 == 0:
+      raise ValueError(f"window must be a positive odd integer, got {window!r}")
+    self.window = int(window)
     index, count = (int(v) for v in shard)
     if not (count >= 1 and 0 <= index < count):
       raise ValueError(f"shard must be (index, count) with 0 <= index < count, got {shard!r}")
@@ -212,9 +217,11 @@ class TripletLoader:
             "transient": ds.read(name, self.target),
             "intensity": ds.read(name, "intensity"), "depth": ds.read(name, "depth")}
 
-  def triplet_frames(self, middle: int, num_frames: int) -> np.ndarray:
-    """``[3]`` input frame indices of the example with middle frame ``middle``."""
-    return np.clip(np.arange(middle - 1, middle + 2), 0, num_frames - 1)
+  def input_frames(self, middle: int, num_frames: int) -> np.ndarray:
+    """``[window]`` input frame indices of the example with middle frame ``middle``, clipped to
+    ``[0, num_frames)``."""
+    half = self.window // 2
+    return np.clip(np.arange(middle - half, middle + half + 1), 0, num_frames - 1)
 
   def order(self, epoch: int) -> np.ndarray:
     """Example indices in the order of ``epoch``."""
@@ -243,12 +250,12 @@ class TripletLoader:
         if self._cache[s] is None:
           self._cache[s] = self._load_sequence(name)
         seq = self._cache[s]
-        frames = self.triplet_frames(m, seq["measurement"].shape[0])
+        frames = self.input_frames(m, seq["measurement"].shape[0])
         out["measurement"].append(seq["measurement"][frames])
         for k in ("transient", "intensity", "depth"):
           out[k].append(seq[k][m])
       else:
-        frames = self.triplet_frames(m, self._num_frames[s])
+        frames = self.input_frames(m, self._num_frames[s])
         out["measurement"].append(self.dataset.read(name, "measurement", frames, self.stride,
                                                     self.offset))
         out["transient"].append(self.dataset.read(name, self.target, int(m)))
