@@ -43,6 +43,13 @@ forward, and that is byte for byte the file ``COMMIT`` held, is carried on by re
 ``COMMIT`` that cover the changes since (:func:`_carried_at`). So records against the last
 landed commit carry every file that commit's index carried, and no older base need be rerun.
 
+``--probe studies`` runs :mod:`benchmarks.equivalence_probe_studies` (studies' own code between
+their designs and the library, at tiny sizes: the mechanisms study's ``--tiny`` run, the
+speed-accuracy study's training) and writes ``equivalence_studies.md``; its closure holds those
+studies' modules, so a change to how a study builds, trains and records its runs can be carried.
+Its blind spot is the main probe's, wider: a study's lines only its full design runs (the
+mechanisms CLI's config assembly outside ``--tiny``) are in the closure but not run.
+
 Records against several bases may stand side by side (``equivalence.md`` for the first
 base named, ``equivalence_<COMMIT>.md`` for the others; :func:`records`): a file is carried
 when the records against one base carry it, so files current at different commits can all be
@@ -70,8 +77,10 @@ HERE = pathlib.Path(__file__).resolve().parent
 PROBE = HERE / "equivalence_probe.py"
 #: The probe scripts by ``--probe`` name: ``main`` (the library, the main job, the shipped
 #: networks), ``measured`` (the measured-scan protocol's command line on a small scan,
-#: :mod:`benchmarks.equivalence_probe_measured`), each with records of its own.
-PROBES = {"main": PROBE, "measured": HERE / "equivalence_probe_measured.py"}
+#: :mod:`benchmarks.equivalence_probe_measured`), ``studies`` (the studies' own paths at tiny
+#: sizes, :mod:`benchmarks.equivalence_probe_studies`), each with records of its own.
+PROBES = {"main": PROBE, "measured": HERE / "equivalence_probe_measured.py",
+          "studies": HERE / "equivalence_probe_studies.py"}
 #: Largest ``max|new - old| / max|old|`` of one probe array that counts as rounding.
 TOLERANCE = 1e-5
 NAME = "equivalence"
@@ -199,6 +208,8 @@ def run_probe(tree: pathlib.Path, out: pathlib.Path, *, log=print, probe: pathli
   env = {**os.environ, "PYTHONPATH": str(tree)}
   script = out.with_name(f"{out.stem}_probe.py")          # run from a folder of its own: no
   script.write_text(probe.read_text())                      # benchmarks/ module shadows anything
+  for sibling in HERE.glob("equivalence_probe*.py"):        # today's probes, importable by each other
+    (out.parent / sibling.name).write_text(sibling.read_text())
   t0 = time.perf_counter()
   got = subprocess.run([sys.executable, str(script), str(out)], cwd=tree, env=env, capture_output=True,
                        text=True)

@@ -64,17 +64,18 @@ def small_scan(folder: pathlib.Path) -> pathlib.Path:
   return path
 
 
-def json_arrays(value, prefix: str, out: dict) -> None:
-  """Every number under ``value`` (nested dicts and lists) into ``out[prefix/...]``; seconds left out."""
+def json_arrays(value, prefix: str, out: dict, skip=TIME_KEYS) -> None:
+  """Every number under ``value`` (nested dicts and lists) into ``out[prefix/...]``; the keys of
+  ``skip`` (seconds) left out. Also the studies probe's reader (a sibling script)."""
   if isinstance(value, dict):
     for k, v in value.items():
-      if k not in TIME_KEYS:
-        json_arrays(v, f"{prefix}/{k}", out)
+      if k not in skip:
+        json_arrays(v, f"{prefix}/{k}", out, skip)
   elif isinstance(value, list) and all(isinstance(v, (int, float)) for v in value):
     out[prefix] = np.asarray(value, np.float64)
   elif isinstance(value, list):
     for i, v in enumerate(value):
-      json_arrays(v, f"{prefix}/{i}", out)
+      json_arrays(v, f"{prefix}/{i}", out, skip)
   elif isinstance(value, (int, float)) and not isinstance(value, bool):
     out[prefix] = np.asarray(value, np.float64)
 
@@ -121,8 +122,6 @@ def repository_arrays(cli) -> dict[str, np.ndarray]:
 def main(argv=None) -> int:
   argv = sys.argv[1:] if argv is None else argv
   target = pathlib.Path(argv[0])
-  import experiments
-  import nlosjax
   out: dict[str, np.ndarray] = {}
   t0 = time.perf_counter()
   cli = protocol_cli()
@@ -138,12 +137,20 @@ def main(argv=None) -> int:
         json_arrays(value, f"measured/{section}", out)
       table_arrays((tmp / "real.md").read_text(), out)
     out.update(repository_arrays(cli))
+  save(target, out, {"measured": time.perf_counter() - t0}, protocol=cli is not None)
+  return 0
+
+
+def save(target: pathlib.Path, out: dict, seconds: dict, **meta) -> None:
+  """``out`` to ``target`` (``.npz``) and, beside it (``.json``), which tree's packages ran, the
+  probes' seconds and ``meta``: what ``benchmarks.equivalence.run_probe`` reads back."""
+  import experiments
+  import nlosjax
   np.savez(target, **out)
   target.with_suffix(".json").write_text(json.dumps(
       {"nlosjax": str(pathlib.Path(nlosjax.__file__).parent),
-       "experiments": str(pathlib.Path(experiments.__file__).parent), "protocol": cli is not None,
-       "seconds": {"measured": time.perf_counter() - t0}}, indent=1) + "\n")
-  return 0
+       "experiments": str(pathlib.Path(experiments.__file__).parent), **meta, "seconds": seconds},
+      indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -324,3 +324,24 @@ def test_state_at_reads_the_state_column_of_a_committed_index():
   assert equivalence.state_at("c", "xy", show) == "stale since 1 (m)"
   assert equivalence.state_at("c", "z", show) is None
   assert equivalence.state_at("c", "x", lambda commit, path: None) is None
+
+
+def test_the_studies_probe_runs_the_studies_and_keeps_their_numbers_not_their_times(monkeypatch):
+  """Its closure holds the studies it runs (so a change there can be carried), and it keeps every
+  number of a study's record but times, machine facts and paths."""
+  import sys
+  monkeypatch.syspath_prepend(str(provenance.ROOT / "benchmarks"))   # as benchmarks.equivalence lays it out
+  sys.modules.pop("equivalence_probe_measured", None)
+  from benchmarks import equivalence_probe_studies as S
+  closure = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe_studies"])
+  for m in ("experiments/studies/mechanisms/study.py", "experiments/studies/mechanisms/cli.py",
+            "experiments/studies/ablations.py", "experiments/studies/tradeoff/training.py", "experiments/tiny_run.py"):
+    assert m in closure, m
+  assert equivalence.PROBES["studies"].name == "equivalence_probe_studies.py"
+  out = {}
+  S.leaves({"best_val_psnr": 12.5, "machine": {"cpu": 2}, "train_wall_s": 3.0, "test": {"eval_s": 1.0,
+            "scores": {"psnr": [1.0, 2.5]}}, "loss_curve": [{"step": 2, "loss": 0.5, "time_s": 9.0}],
+            "stop_reason": "plateau"}, "studies/x", out)
+  assert sorted(out) == ["studies/x/best_val_psnr", "studies/x/loss_curve/0/loss", "studies/x/loss_curve/0/step",
+                         "studies/x/test/scores/psnr"]
+  np.testing.assert_array_equal(out["studies/x/test/scores/psnr"], [1.0, 2.5])
