@@ -37,8 +37,8 @@ import time
 import numpy as np
 
 #: Keys of a study's records that hold times, machine facts or paths, not computed numbers.
-UNTIMED = frozenset({"time_s", "eval_s", "train_wall_s", "wall_s", "seconds", "machine", "date", "data",
-                     "path", "commit", "code_digest"})
+UNTIMED = frozenset({"time_s", "eval_s", "val_s", "train_wall_s", "wall_s", "seconds", "machine", "date",
+                     "data", "path", "commit", "code_digest"})
 
 
 def leaves(value, prefix: str, out: dict) -> None:

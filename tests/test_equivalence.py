@@ -341,7 +341,9 @@ def test_the_studies_probe_runs_the_studies_and_keeps_their_numbers_not_their_ti
   out = {}
   S.leaves({"best_val_psnr": 12.5, "machine": {"cpu": 2}, "train_wall_s": 3.0, "test": {"eval_s": 1.0,
             "scores": {"psnr": [1.0, 2.5]}}, "loss_curve": [{"step": 2, "loss": 0.5, "time_s": 9.0}],
-            "stop_reason": "plateau"}, "studies/x", out)
+            "stop_reason": "plateau", "validation_curve": [{"step": 2, "val_psnr": 8.0, "val_s": 0.4}]},
+           "studies/x", out)
   assert sorted(out) == ["studies/x/best_val_psnr", "studies/x/loss_curve/0/loss", "studies/x/loss_curve/0/step",
-                         "studies/x/test/scores/psnr"]
+                         "studies/x/test/scores/psnr", "studies/x/validation_curve/0/step",
+                         "studies/x/validation_curve/0/val_psnr"]
   np.testing.assert_array_equal(out["studies/x/test/scores/psnr"], [1.0, 2.5])
