@@ -412,14 +412,7 @@ def _carried_at(entry, base: str, results: pathlib.Path, files) -> tuple[str, se
     found = re.match(r"carried forward from (\w+)", said)
     if not found:
       return None                          # current at the base is the direct rule's case
-    changed = set()
-    for m in entry.modules:
-      today = moved_path(m)
-      then = show(base, today) if show(base, today) is not None else show(base, m)
-      now = (provenance.ROOT / today).read_text() if today in files else None
-      if then is None or not same_moved_code(then, now, m):
-        changed.add(today)
-    return found.group(1), changed
+    return found.group(1), _changed_code(entry, base, show, files)
   finally:
     show.close()
 
@@ -444,12 +437,25 @@ def _changed_since(entry, base: str, files) -> set[str] | None:
       return None
     if provenance.code_digest(entry.modules, lambda p: show(base, p)) != entry.digest:
       return None
-    today = {m: moved_path(m) for m in entry.modules}
-    return {today[m] for m in entry.modules
-            if not same_moved_code(show(base, m),
-                                   (provenance.ROOT / today[m]).read_text() if today[m] in files else None, m)}
+    return _changed_code(entry, base, show, files)
   finally:
     show.close()
+
+
+def _changed_code(entry, base: str, show, files) -> set[str]:
+  """Today's paths of ``entry``'s modules whose code differs between ``base`` and today (moves
+  and renames aside). A module is read at ``base`` under the path the entry names, or, where
+  ``base`` has it already moved, under today's; one that ``base`` lacks counts as changed."""
+  changed = set()
+  for m in entry.modules:
+    today = moved_path(m)
+    then = show(base, m)
+    if then is None:
+      then = show(base, today)
+    now = (provenance.ROOT / today).read_text() if today in files else None
+    if then is None or not same_moved_code(then, now, m):
+      changed.add(today)
+  return changed
 
 
 def record_name(base: str, first: bool, probe: str = "main") -> str:
