@@ -42,18 +42,17 @@ def _programs(config_name: str, variant: str, batch: int):
   """``{name: (constants_fn, bound_fn, abstract_args, concrete_args or None)}`` for the preset's model."""
   from experiments import configs
   from nlosjax import train as T
-  from nlosjax.data.dataset.spec import DatasetSpec
   from nlosjax.physics import illumination_wavelet, operator_args
   from nlosjax.train.sharding import make_mesh
   from nlosjax.train.step import train_step
 
-  cfg = T.with_defaults(configs.get_config(config_name))
-  setup = DatasetSpec.from_config(cfg["data"]).setup
+  cfg = T.read_preset(configs.get_config(config_name))
+  setup = cfg.data.spec().setup
   mcfg = T.model_config_for(cfg, setup, variant)
   model = T.network(mcfg)
   optim, weights = T.training_recipe(cfg, variant)
   mesh = make_mesh()
-  tx = T.make_optimizer(optim, int(cfg["train"]["steps"]))
+  tx = T.make_optimizer(optim, cfg.train.steps)
   state = T.abstract_train_state(model, tuple(mcfg.input_shape(batch)), tx, mesh)
   H, W = setup.grid
   f32 = jnp.float32

@@ -52,7 +52,7 @@ def _timed(fn, repeats: int = 2, *, warm: bool = False) -> float:
   return statistics.median(times)
 
 
-def split_study(config: dict, methods, *, max_frames: int | None = None, log=print) -> dict:
+def split_study(config, methods, *, max_frames: int | None = None, log=print) -> dict:
   """Per-frame scores of full and gated reconstructions on the test split (see module docstring)."""
   from nlosjax import metrics
   from nlosjax.evaluation import baselines as B
@@ -60,7 +60,7 @@ def split_study(config: dict, methods, *, max_frames: int | None = None, log=pri
   from nlosjax.physics import estimate_depth_range, intensity_depth, reconstruct
   from nlosjax.train import ensure_dataset
 
-  path = pathlib.Path(config["data"]["path"])
+  path = pathlib.Path(config.data.path)
   ensure_dataset(config, path, log=log)
   data = load_split(config, path, "test", batch_size=8)
   data["loader"].close()
@@ -196,7 +196,7 @@ def main(argv=None) -> int:
   command = "python -m benchmarks.depth_range" + (" " + " ".join(sys.argv[1:] if argv is None else argv)).rstrip()
   from experiments.configs import get_config
   from nlosjax import train as T
-  config = T.with_defaults(get_config(args.config))
+  config = T.read_preset(get_config(args.config))
   study = split_study(config, args.methods, max_frames=args.max_frames)
   scans = scan_study(args.methods)
   print(write_report(args.out, command, study, scans, args.methods))

@@ -307,11 +307,12 @@ def compiled_train_step(config: dict, variant: str, precision: str | None) -> di
   key = (repr(sorted(config.items())), variant, precision)
   if key in _COMPILED:
     return _COMPILED[key]
-  setup, mesh = setup_of(config), train.mesh_for(config)
-  mcfg = train.model_config_for(config, setup, variant)
+  typed = train.RunConfig.from_dict(config)
+  setup, mesh = setup_of(config), train.mesh_for(typed)
+  mcfg = train.model_config_for(typed, setup, variant)
   t = time.perf_counter()
   with matmul_precision(precision):
-    compiled, abstract_state, abstract_batch = plan.compile_train_step(config, mcfg, variant, mesh)
+    compiled, abstract_state, abstract_batch = plan.compile_train_step(typed, mcfg, variant, mesh)
   compile_s = time.perf_counter() - t
   batch = int(config["train"]["batch_size"])
   # The dry run's own numbers (nlosjax.plan.dry_run builds them with this function).
@@ -428,7 +429,7 @@ def scan_kernels(ctx) -> None:
   sz = sizes(ctx.tiny)
   case = sz["paper"]
   cfg = config_for(case)
-  mcfg = train.model_config_for(cfg, setup_of(cfg), case[1])
+  mcfg = train.model_config_for(train.RunConfig.from_dict(cfg), setup_of(cfg), case[1])
   shapes = {"x".join(map(str, scan_bench.parse_shape(s))): "benchmarks.scan default" for s in sz["scan_shapes"]}
   for kind, s in paper_scan_shapes(mcfg, int(cfg["train"]["batch_size"])).items():
     shapes.setdefault("x".join(map(str, s)), f"paper model {kind} SSM, batch {cfg['train']['batch_size']}")
@@ -611,7 +612,7 @@ def paper_scale(ctx) -> None:
   case = sizes(ctx.tiny)["paper"]
   cfg = config_for(case)
   variant = case[1]
-  mcfg = train.model_config_for(cfg, setup_of(cfg), variant)
+  mcfg = train.model_config_for(train.RunConfig.from_dict(cfg), setup_of(cfg), variant)
   s = mcfg.setup
   ctx.data.update(preset=case[0], variant=variant, setup=[*s.grid, s.num_bins], input=list(mcfg.input_shape(1)),
                   inference=[])

@@ -1,6 +1,6 @@
 """Results carried forward: does a code change move any number the results files are made of?
 
-    python -m benchmarks.equivalence --base COMMIT [COMMIT ...] [--out FILE ...] [--probe measured]
+    python -m benchmarks.equivalence --base COMMIT [COMMIT ...] [--out FILE ...] [--probe measured|studies|scripts]
 
 Runs the fixed probes of :mod:`benchmarks.equivalence_probe` (tiny datasets of every
 renderer family, three train steps of Ours-S, Ours and USM, the evaluation protocol,
@@ -50,6 +50,14 @@ studies' modules, so a change to how a study builds, trains and records its runs
 Its blind spot is the main probe's, wider: a study's lines only its full design runs (the
 mechanisms CLI's config assembly outside ``--tiny``) are in the closure but not run.
 
+``--probe scripts`` runs :mod:`benchmarks.equivalence_probe_scripts` (the performance
+benchmarks' own code on a tiny preset: the fingerprints of the programs they time and every
+number that is not a time; and the studies the studies probe leaves out: preset choice,
+independent test, generalisation, the weights export, time to plateau, the real-preset
+runs, alignment, realism) and writes ``equivalence_scripts.md``. A performance file is
+carried when the programs it times are unchanged: the same lowered text, the same model
+config.
+
 Records against several bases may stand side by side (``equivalence.md`` for the first
 base named, ``equivalence_<COMMIT>.md`` for the others; :func:`records`): a file is carried
 when the records against one base carry it, so files current at different commits can all be
@@ -78,9 +86,11 @@ PROBE = HERE / "equivalence_probe.py"
 #: The probe scripts by ``--probe`` name: ``main`` (the library, the main job, the shipped
 #: networks), ``measured`` (the measured-scan protocol's command line on a small scan,
 #: :mod:`benchmarks.equivalence_probe_measured`), ``studies`` (the studies' own paths at tiny
-#: sizes, :mod:`benchmarks.equivalence_probe_studies`), each with records of its own.
+#: sizes, :mod:`benchmarks.equivalence_probe_studies`), ``scripts`` (the performance benchmarks'
+#: programs and the other studies' paths, :mod:`benchmarks.equivalence_probe_scripts`), each with
+#: records of its own.
 PROBES = {"main": PROBE, "measured": HERE / "equivalence_probe_measured.py",
-          "studies": HERE / "equivalence_probe_studies.py"}
+          "studies": HERE / "equivalence_probe_studies.py", "scripts": HERE / "equivalence_probe_scripts.py"}
 #: Largest ``max|new - old| / max|old|`` of one probe array that counts as rounding.
 TOLERANCE = 1e-5
 NAME = "equivalence"
@@ -442,6 +452,11 @@ def _changed_since(entry, base: str, files) -> set[str] | None:
     show.close()
 
 
+def today_text(path: str) -> str:
+  """The working tree's text of ``path`` (a project file): what every base is compared with."""
+  return (provenance.ROOT / path).read_text()
+
+
 def _changed_code(entry, base: str, show, files) -> set[str]:
   """Today's paths of ``entry``'s modules whose code differs between ``base`` and today (moves
   and renames aside). A module is read at ``base`` under the path the entry names, or, where
@@ -452,7 +467,7 @@ def _changed_code(entry, base: str, show, files) -> set[str]:
     then = show(base, m)
     if then is None:
       then = show(base, today)
-    now = (provenance.ROOT / today).read_text() if today in files else None
+    now = today_text(today) if today in files else None
     if then is None or not same_moved_code(then, now, m):
       changed.add(today)
   return changed

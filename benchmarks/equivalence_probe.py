@@ -75,7 +75,7 @@ def probe_data(tmp: pathlib.Path, out: dict) -> dict:
   for renderer in RENDERERS:
     path = tmp / f"{renderer}.h5"
     cfg = _config(path, renderer)
-    train.ensure_dataset(cfg, path, log=lambda s: None)
+    train.ensure_dataset(train.RunConfig.from_dict(cfg), path, log=lambda s: None)
     for name, a in _arrays(path).items():
       out[f"data/{renderer}/{name}"] = a
     paths[renderer] = (cfg, path)
@@ -87,6 +87,7 @@ def probe_train_and_evaluate(cfg: dict, path, tmp: pathlib.Path, out: dict) -> N
 
   from nlosjax import train
   from nlosjax.evaluation import baselines, protocol
+  cfg = train.RunConfig.from_dict(cfg)     # the one reader; the library takes it typed
   trained = {}
   for variant in ("ours_s", "ours", "usm"):
     mcfg, state = train.train_model(cfg, path, tmp / "run", variant, log=lambda s: None)

@@ -60,8 +60,6 @@ def probe_mechanisms(tmp: pathlib.Path, out: dict) -> None:
 
 
 def probe_tradeoff(tmp: pathlib.Path, out: dict) -> None:
-  import inspect
-
   import jax
 
   from experiments.studies.tradeoff import training
@@ -70,18 +68,15 @@ def probe_tradeoff(tmp: pathlib.Path, out: dict) -> None:
   from nlosjax import train
   path = tmp / "tradeoff.h5"
   cfg = tiny_config(path, steps=2)
-  train.ensure_dataset(cfg, path, log=lambda s: None)
   config = train.RunConfig.from_dict(cfg)
+  train.ensure_dataset(config, path, log=lambda s: None)
   setup = config.data.setup()
   window = 5
-  if "window" in inspect.signature(train.make_loader).parameters:
-    def get_loader():
-      return train.make_loader(config, path, "train", batch_size=config.train.batch_size, shuffle=True,
-                               seed=config.train.seed, window=window)
-  else:                                          # a tree from before make_loader's window
-    def get_loader():
-      return training.window_loader(config, path, window, batch_size=config.train.batch_size,
-                                    seed=config.train.seed)
+
+  def get_loader():
+    return train.make_loader(config, path, "train", batch_size=config.train.batch_size, shuffle=True,
+                             seed=config.train.seed, window=window)
+
   for spec in LEARNED:
     if spec.name not in ("usm", "ours_s", "ours", "ours_f5"):
       continue

@@ -634,11 +634,12 @@ def lower_step(config: dict, variant: str, batch: int, scan_method: str | None =
   from nlosjax import train as T
   from nlosjax.ssm import resolve_method
   config = {**config, "train": {**config["train"], "batch_size": int(batch)}}
-  mcfg = T.model_config_for(config, inference.training_setup(config), variant)
+  typed = T.RunConfig.from_dict(config)
+  mcfg = T.model_config_for(typed, inference.training_setup(typed), variant)
   if scan_method is not None:
     mcfg = dataclasses.replace(mcfg, scan_method=scan_method)
-  mesh = T.mesh_for(config)
-  optim, weights = T.training_recipe(config, variant)
+  mesh = T.mesh_for(typed)
+  optim, weights = T.training_recipe(typed, variant)
   tx = T.make_optimizer(optim, int(config["train"]["steps"]))
   t = time.perf_counter()
   state = T.abstract_train_state(T.network(mcfg), tuple(mcfg.input_shape(batch)), tx, mesh)

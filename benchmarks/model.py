@@ -66,9 +66,8 @@ def _config(name: str, frames: int):
   if name in ("cpu", "usm"):   # what the cpu preset trains, on its data's Setup
     from experiments import configs
     from nlosjax import train
-    from nlosjax.data.dataset import DatasetSpec
-    preset = train.with_defaults(configs.get_config("cpu"))
-    setup = DatasetSpec.from_config(preset["data"]).setup
+    preset = train.read_preset(configs.get_config("cpu"))
+    setup = preset.data.spec().setup
     if name == "usm":                  # USM reconstructs one frame
       return train.model_config_for(preset, setup, "usm")
     return dataclasses.replace(train.model_config_for(preset, setup, "ours"), frames=frames)

@@ -29,8 +29,8 @@ def read_time(config: dict, data_path, batches: int = 20) -> float:
   """Median seconds to read one training batch from disk (``TripletLoader.batch``, not in memory)."""
   from nlosjax import train as T
   cfg = {**config, "data": {**config["data"], "loader": {**config["data"].get("loader", {}), "in_memory": False}}}
-  loader = T.make_loader(cfg, data_path, "train", batch_size=int(config["train"]["batch_size"]), shuffle=True,
-                         seed=0)
+  loader = T.make_loader(T.RunConfig.from_dict(cfg), data_path, "train", batch_size=int(config["train"]["batch_size"]),
+                         shuffle=True, seed=0)
   try:
     times = []
     for k in range(batches):
@@ -51,7 +51,7 @@ def train_seconds_per_step(config: dict, data_path, workdir: pathlib.Path, ahead
   cfg["train"].update(steps=steps, log_every=1, checkpoint_every=steps, select_checkpoint="last",
                       variants=["ours"])
   cfg["train"].pop("stop", None)
-  cfg = T.with_defaults(cfg)
+  cfg = T.read_preset(cfg)
   _, state = T.train_model(cfg, data_path, workdir, "ours", log=lambda s: None)
   rows = [json.loads(line) for line in (workdir / "ours" / "metrics.jsonl").read_text().splitlines()]
   t = {r["step"]: r["time_s"] for r in rows}
@@ -76,7 +76,7 @@ def main(argv=None) -> int:
   from nlosjax import train as T
   config = T.with_defaults(configs.get_config(args.config))
   data_path = pathlib.Path(config["data"]["path"])
-  T.ensure_dataset(config, data_path)
+  T.ensure_dataset(T.RunConfig.from_dict(config), data_path)
   read_s = read_time(config, data_path)
   per_step = {0: [], args.ahead: []}
   params = {}

@@ -132,16 +132,17 @@ def profile_variant(config: dict, variant: str, steps: int) -> dict:
 
   from nlosjax import inference, plan
   from nlosjax import train as T
-  mcfg = T.model_config_for(config, inference.training_setup(config), variant)
-  mesh = T.mesh_for(config)
+  typed = T.RunConfig.from_dict(config)
+  mcfg = T.model_config_for(typed, inference.training_setup(typed), variant)
+  mesh = T.mesh_for(typed)
   batch = int(config["train"]["batch_size"])
   t = time.perf_counter()
-  step, _, batch_shapes = plan.compile_train_step(config, mcfg, variant, mesh)   # the run's own step
+  step, _, batch_shapes = plan.compile_train_step(typed, mcfg, variant, mesh)   # the run's own step
   compile_s = time.perf_counter() - t
   text = step.as_text()
   names, model = hlo_op_names(text), type(T.network(mcfg)).__name__
   module = re.search(r"HloModule\s+([\w.\-]+)", text).group(1)
-  optim, _ = T.training_recipe(config, variant)
+  optim, _ = T.training_recipe(typed, variant)
   state = T.create_train_state(T.network(mcfg), tuple(mcfg.input_shape(batch)),
                                T.make_optimizer(optim, int(config["train"]["steps"])), jax.random.key(0), mesh)
   rng = np.random.default_rng(0)

@@ -61,13 +61,13 @@ def main(argv=None) -> dict:
       if not ds.names(args.split):
         raise ValueError(f"{data}: no sequence in split {args.split!r}")
     config, trained = inference.load_run(args.checkpoint, setup=setup)
-    config = train.with_defaults(config)
+    config = train.read_preset(config)
     workdir, _, _ = inference.find_checkpoints(args.checkpoint)
     chosen = workdir / "results" / "validation.json"
     settings, best, source = {}, None, "defaults (the run chose none)"
     thresholds = {}
     if args.retune:
-      batch = int(config["train"]["eval_batch_size"])
+      batch = config.train.eval_batch
       val = protocol.load_split(config, data, "val", batch_size=batch)
       val["loader"].close()
       settings = baselines.tune(val["measurement"], val["intensity"], val["depth"], val["setup"],

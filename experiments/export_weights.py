@@ -311,10 +311,10 @@ def validation_scores(config: dict, data_path, model_config, params, *, split: s
   """
   from tqdm import tqdm
 
-  from nlosjax import metrics
+  from nlosjax import metrics, train
   from nlosjax.evaluation import protocol
   batch_size = int(config["train"].get("eval_batch_size", config["train"]["batch_size"]))
-  data = protocol.load_split(config, data_path, split, batch_size=batch_size)
+  data = protocol.load_split(train.RunConfig.from_dict(config), data_path, split, batch_size=batch_size)
   loader = data["loader"]
   try:
     with tqdm(total=len(loader), desc=f"{split} split", unit="batch", dynamic_ncols=True) as bar:
@@ -381,7 +381,8 @@ def export(run_path, name: str, variant: str, *, command: str | None = None, com
     raise ValueError(f"{folder}: exists; pass --overwrite to replace it")
   run = find_run(run_path, variant, results, preset)
   config = run["config"]
-  mcfg = train.model_config_for(config, inference.training_setup(config), variant)
+  typed = train.RunConfig.from_dict(config)
+  mcfg = train.model_config_for(typed, inference.training_setup(typed), variant)
   if "params_file" in run:
     params, restored = state_params(run, mcfg)
   else:

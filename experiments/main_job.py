@@ -61,9 +61,8 @@ def _training_length(tr: train.TrainConfig) -> str:
           "validation.json)")
 
 
-def tune_classic(config: train.RunConfig | dict, data_path, log) -> dict:
+def tune_classic(config: train.RunConfig, data_path, log) -> dict:
   """Each classic method's settings chosen on ``data_path``'s validation split (``baselines.tune``)."""
-  config = train.run_config(config)
   batch_size = config.train.eval_batch
   data = protocol.load_split(config, data_path, "val", batch_size=batch_size)
   data["loader"].close()

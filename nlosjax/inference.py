@@ -96,7 +96,8 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
       e.g. ``"ours-seed1"`` (another training seed, :func:`seed_folders`).
   Returns:
     ``(ModelConfig, params, info)``; ``info`` holds ``workdir``, ``variant``,
-    ``checkpoint`` (folder), ``step``, ``config`` (the run config dict) and
+    ``checkpoint`` (folder), ``step``, ``config`` (the run's ``config.json``, a dict:
+    :meth:`~nlosjax.train.RunConfig.from_dict` reads it) and
     ``selected_on_validation`` (the step came from ``selection.json``).
   Raises:
     ValueError: naming the folder for a missing, unreadable or mismatched checkpoint.
@@ -111,10 +112,11 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
       raise ValueError(f"{ckpt}: no checkpoint there")
   try:
     config = json.loads((workdir / "config.json").read_text())
-    train_setup = training_setup(config)
+    typed = train.RunConfig.from_dict(config)
+    train_setup = training_setup(typed)
   except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
     raise ValueError(f"{workdir / 'config.json'}: not a usable run config ({e})") from None
-  mcfg = train.model_config_for(config, train_setup, variant)
+  mcfg = train.model_config_for(typed, train_setup, variant)
   selected = None
   if step is None:
     selection = train.read_selection(ckpt.parent)
@@ -133,14 +135,15 @@ def load_trained(path, variant: str | None = None, *, step: int | None = None,
 def training_setup(config) -> Setup:
   """The full-grid Setup a run trained on, from its config's ``data`` section (wall, grid, bins).
 
-  ``config``: a :class:`~nlosjax.train.RunConfig` or the dict it reads (a run's ``config.json``).
+  ``config``: a :class:`~nlosjax.train.RunConfig` (a run's ``config.json`` is read by
+  :meth:`~nlosjax.train.RunConfig.from_dict`).
 
   Raises:
-    KeyError, TypeError, ValueError: a config without a usable ``data`` section
-    (callers name the file).
+    TypeError: ``config`` is not a RunConfig.
+    KeyError, ValueError: a config without a usable ``data`` section (callers name the file).
   """
   from nlosjax import train
-  return train.run_config(config).data.setup()
+  return train.require_run_config(config, "training_setup").data.setup()
 
 
 def restore_params(ckpt, model_config, *, step: int | None = None,
@@ -275,7 +278,7 @@ def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | 
     raise ValueError(f"{where}: records weights {prov['name']!r} of variant {prov['variant']!r}, but"
                      f" lies in the folder of {name!r} ({variant!r})")
   try:
-    config = prov["config"]
+    config = train.RunConfig.from_dict(prov["config"])
     mcfg = train.model_config_for(config, training_setup(config), variant)
   except (KeyError, TypeError, ValueError) as e:
     raise ValueError(f"{where}: its config does not rebuild a model ({type(e).__name__}: {e})") from None
@@ -320,7 +323,8 @@ def seed_folders(workdir, variant: str) -> list[str]:
 
 def load_run(path, *, setup: Setup | None = None, seeds: bool = False,
              log=print) -> tuple[dict, dict]:
-  """Every trained variant of a run, for evaluation: ``(config, variant -> (model_config, params))``.
+  """Every trained variant of a run, for evaluation: ``(config, variant -> (model_config, params))``;
+  ``config`` is the run's ``config.json`` (a dict; :meth:`~nlosjax.train.RunConfig.from_dict` reads it).
 
   ``path`` as in :func:`find_checkpoints`: a workdir gives each variant that
   has a checkpoint, a variant's folder gives that one. Each variant's

@@ -46,7 +46,7 @@ from jax.sharding import PartitionSpec as P
 from nlosjax import train
 from nlosjax.models.network import flop_counts
 from nlosjax.physics import Setup, operator_args
-from nlosjax.train.config import RunConfig, run_config
+from nlosjax.train.config import RunConfig, require_run_config
 
 GIB = 2 ** 30
 #: Fraction of the device memory a plan may use (XLA needs some room beyond its plan:
@@ -147,9 +147,9 @@ def _abstract_batch(mcfg, batch: int, mesh) -> dict:
   return {k: jax.ShapeDtypeStruct(v, jnp.float32, sharding=split) for k, v in shapes.items()}
 
 
-def compile_train_step(config: RunConfig | dict, mcfg, variant: str, mesh):
+def compile_train_step(config: RunConfig, mcfg, variant: str, mesh):
   """``(compiled, abstract_state, abstract_batch)``: the run's real train step, compiled from shapes."""
-  tr = run_config(config).train
+  tr = require_run_config(config, "compile_train_step").train
   batch = tr.batch_size
   n = mesh.devices.size
   if batch % n:
@@ -172,9 +172,9 @@ def _compile_inference(mcfg, batch: int):
   return forward.lower(params, x).compile()
 
 
-def plan_variant(config: RunConfig | dict, setup: Setup, variant: str, mesh, *, inference: bool = True) -> dict:
+def plan_variant(config: RunConfig, setup: Setup, variant: str, mesh, *, inference: bool = True) -> dict:
   """Compile ``variant``'s train (and inference) step for ``setup``: ``{"model_config", "train", "inference"}``."""
-  config = run_config(config)
+  config = require_run_config(config, "plan_variant")
   mcfg = train.model_config_for(config, setup, variant)
   t = time.perf_counter()
   compiled, _, _ = compile_train_step(config, mcfg, variant, mesh)
@@ -204,7 +204,7 @@ def reduced_setup(setup: Setup, stride: int, factor: int) -> Setup | None:
                  bin_width=setup.bin_width * factor, num_bins=T // factor)
 
 
-def measure_reduced(config: RunConfig | dict, setup: Setup, variant: str, mesh, *, steps: int = 3,
+def measure_reduced(config: RunConfig, setup: Setup, variant: str, mesh, *, steps: int = 3,
                     factors=(8, 4, 2, 1), points: int = 2,
                     log: Callable[[str], None] = print) -> list[dict]:
   """Time real train steps of ``variant`` at the ``points`` largest reductions of ``setup`` the model accepts.
@@ -214,7 +214,7 @@ def measure_reduced(config: RunConfig | dict, setup: Setup, variant: str, mesh, 
   where the grid or bins do not divide, the input would be under 4 x 4 scan
   points or 32 bins, or the model rejects the Setup.
   """
-  config = run_config(config)
+  config = require_run_config(config, "measure_reduced")
   stride = config.data.stride()
   batch = config.train.batch_size
   found, last_error = [], None
@@ -304,22 +304,22 @@ def _model_fields(config) -> set:
   return {f.name for f in dataclasses.fields(ModelConfig)}
 
 
-def verdict(config: RunConfig | dict, plan: StepPlan, memory: int | None, variant: str) -> str | None:
+def verdict(config: RunConfig, plan: StepPlan, memory: int | None, variant: str) -> str | None:
   """None when ``plan`` fits ``MEMORY_FRACTION`` of ``memory`` (or memory is unknown), else the error message."""
   if memory is None:
     return None
   limit = int(MEMORY_FRACTION * memory)
   if plan.peak_bytes <= limit:
     return None
-  fixes = "\n".join(f"  - {f}" for f in _fixes(run_config(config), plan, limit))
+  fixes = "\n".join(f"  - {f}" for f in _fixes(require_run_config(config, "verdict"), plan, limit))
   return (f"[{variant}] the {plan.kind} step plans {plan.peak_bytes / GIB:.2f} GiB per device, more than "
           f"{MEMORY_FRACTION:.0%} of the device's {memory / GIB:.2f} GiB ({limit / GIB:.2f} GiB); "
           f"batch {plan.batch} over {plan.devices} device(s). Fixes:\n{fixes}")
 
 
-def check_fits(config: RunConfig | dict, *, log: Callable[[str], None] = print) -> None:
+def check_fits(config: RunConfig, *, log: Callable[[str], None] = print) -> None:
   """Compile every variant's train step from shapes; raise :class:`DoesNotFit` if one would not fit."""
-  config = train.read_preset(config)
+  config = require_run_config(config, "check_fits")
   setup, mesh = config.data.spec().setup, train.mesh_for(config)
   memory, _ = device_memory()
   for variant in config.train.variants:
@@ -330,7 +330,7 @@ def check_fits(config: RunConfig | dict, *, log: Callable[[str], None] = print) 
       raise DoesNotFit(message + "\n(train.check_memory=False skips this check)")
 
 
-def dry_run(config: RunConfig | dict, *, measure: bool = True, log: Callable[[str], None] = print) -> dict:
+def dry_run(config: RunConfig, *, measure: bool = True, log: Callable[[str], None] = print) -> dict:
   """The dry run (module docstring): plans, estimates and verdicts per variant; nothing is trained or written.
 
   Returns ``{"devices", "platform", "memory_bytes", "memory_source", "steps",
@@ -338,7 +338,7 @@ def dry_run(config: RunConfig | dict, *, measure: bool = True, log: Callable[[st
   StepPlan, "reduced": {...} | None, "step_s", "run_s", "fits": bool,
   "problem": str | None}}}``; times are estimates (module docstring, step 3).
   """
-  config = train.read_preset(config)
+  config = require_run_config(config, "dry_run")
   setup, mesh = config.data.spec().setup, train.mesh_for(config)
   memory, source = device_memory()
   steps = config.train.steps

@@ -47,7 +47,7 @@ def devices(data, out):
 
   def run(n, steps, workdir):
     cfg = tiny_config(data, steps=steps, devices=n, batch_size=4)
-    return T.train_model(cfg, data, workdir, "ours_s", log=quiet)
+    return T.train_model(T.RunConfig.from_dict(cfg), data, workdir, "ours_s", log=quiet)
 
   # Straight runs keep their checkpoints of steps 2 and 4 (tiny_config saves every 2 steps).
   straight = {n: _flat(T.to_host(run(n, 4, out / f"straight{n}")[1].params)) for n in (4, 2, 1)}
@@ -57,11 +57,12 @@ def devices(data, out):
   def restore_step2(workdir, n):
     """The step-2 checkpoint of ``workdir`` restored into a fresh state replicated on ``n`` devices."""
     cfg = T.with_defaults(tiny_config(data, steps=4, devices=n, batch_size=4))
-    mcfg = T.model_config_for(cfg, _setup(data), "ours_s")
-    optim, weights = T.training_recipe(cfg, "ours_s")
+    typed = T.RunConfig.from_dict(cfg)
+    mcfg = T.model_config_for(typed, _setup(data), "ours_s")
+    optim, weights = T.training_recipe(typed, "ours_s")
     batch = int(cfg["train"]["batch_size"])
     fresh = T.create_train_state(T.network(mcfg), mcfg.input_shape(batch),
-                                 T.make_optimizer(optim, 4), jax.random.key(123), T.mesh_for(cfg))
+                                 T.make_optimizer(optim, 4), jax.random.key(123), T.mesh_for(typed))
     ckpt = T.Checkpointer(workdir / "ours_s" / "checkpoints",
                           T.run_signature(mcfg, fresh.params, optim, weights, batch, 0), every=2)
     state, position = ckpt.restore(fresh, 2)
@@ -99,10 +100,10 @@ def worker(data, out, port, pid):
 
   from tests.tiny_run import tiny_config
   cfg = tiny_config(data, steps=4, batch_size=4)
-  loader = T.make_loader(T.with_defaults(cfg), data, "train", batch_size=4, shuffle=True, seed=0,
+  loader = T.make_loader(T.read_preset(cfg), data, "train", batch_size=4, shuffle=True, seed=0,
                          shard=(jax.process_index(), jax.process_count()))
   rows = loader.batch(0)
-  _, state = T.train_model(cfg, data, out / "shared", "ours_s", log=lambda s: None)
+  _, state = T.train_model(T.RunConfig.from_dict(cfg), data, out / "shared", "ours_s", log=lambda s: None)
   np.savez(out / f"worker{pid}.npz", **_flat(T.to_host(state.params)))
   (out / f"worker{pid}.json").write_text(json.dumps({
       "process_count": jax.process_count(), "devices": jax.device_count(),

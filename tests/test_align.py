@@ -13,6 +13,7 @@ import pytest
 from experiments.studies import alignment as A
 from nlosjax import losses
 from nlosjax import train as T
+from nlosjax.train import RunConfig
 from tests.tiny_run import make_tiny_dataset, tiny_config
 
 
@@ -20,10 +21,10 @@ from tests.tiny_run import make_tiny_dataset, tiny_config
 def tiny(tmp_path_factory):
   path = make_tiny_dataset(tmp_path_factory)
   cfg = tiny_config(path)
-  loader = T.make_loader(cfg, path, "train", batch_size=2, shuffle=False, seed=0)
+  loader = T.make_loader(RunConfig.from_dict(cfg), path, "train", batch_size=2, shuffle=False, seed=0)
   host = loader.batch(0)
   loader.close()
-  mcfg = T.model_config_for(cfg, loader.setup, "ours")
+  mcfg = T.model_config_for(RunConfig.from_dict(cfg), loader.setup, "ours")
   model = mcfg.module()
   batch = {k: jnp.asarray(host[k]) for k in T.BATCH_KEYS}
   params = jax.jit(model.init)(jax.random.key(0, impl="rbg"), batch["measurement"])["params"]
@@ -34,7 +35,7 @@ def tiny(tmp_path_factory):
 @pytest.mark.full
 def test_the_loss_is_the_papers_plus_lam_times_the_feature_mmd(tiny):
   cfg, _, mcfg, model, params, batch, measured = tiny
-  _, weights = T.training_recipe(cfg, "ours")
+  _, weights = T.training_recipe(RunConfig.from_dict(cfg), "ours")
   kw = dict(model=model, weights=weights, wavelet=None, time_window=mcfg.time_window, samples=64)
   weights0 = losses.LossWeights(**{**weights.__dict__, "phasor_field": 0.0})
   kw["weights"] = weights0
@@ -58,7 +59,8 @@ def test_the_loss_is_the_papers_plus_lam_times_the_feature_mmd(tiny):
 @pytest.mark.full
 def test_align_trains_writes_its_record_and_refuses_bad_measured_inputs(tiny, tmp_path):
   cfg, path, mcfg, _, params, _, measured = tiny
-  got, record = A.align(cfg, path, mcfg, jax.tree_util.tree_map(np.asarray, params), measured, tmp_path,
+  got, record = A.align(RunConfig.from_dict(cfg), path, mcfg, jax.tree_util.tree_map(np.asarray, params), measured,
+                        tmp_path,
                         steps=2, every=1, samples=32, measured_batch=2, learning_rate=1e-3,
                         validate=lambda m, p: 1.0, log=lambda s: None)
   assert (tmp_path / "params.npz").exists() and (tmp_path / "align.json").exists()
@@ -66,7 +68,7 @@ def test_align_trains_writes_its_record_and_refuses_bad_measured_inputs(tiny, tm
   changed = jax.tree_util.tree_leaves(jax.tree_util.tree_map(lambda a, b: not np.array_equal(a, b), got, params))
   assert any(changed)
   with pytest.raises(ValueError, match="measured must be"):
-    A.align(cfg, path, mcfg, params, measured[:, :1], tmp_path, steps=1)
+    A.align(RunConfig.from_dict(cfg), path, mcfg, params, measured[:, :1], tmp_path, steps=1)
 
 
 @pytest.mark.full
@@ -76,14 +78,15 @@ def test_term_gradient_norms_are_the_norms_of_the_two_terms_of_the_loss(tiny):
   draw and sample key that align's first step uses."""
   import optax
   cfg, path, mcfg, model, params, _, measured = tiny
-  norms = A.term_gradient_norms(cfg, path, mcfg, params, measured[:1], batches=1, measured_batch=2, samples=32)
+  config = RunConfig.from_dict(cfg)
+  norms = A.term_gradient_norms(config, path, mcfg, params, measured[:1], batches=1, measured_batch=2, samples=32)
   assert set(norms) == {"synthetic", "mmd", "mmd_value"} and all(len(v) == 1 for v in norms.values())
-  loader = T.make_loader(cfg, path, "train", batch_size=int(cfg["train"]["batch_size"]), shuffle=True, seed=0)
+  loader = T.make_loader(config, path, "train", batch_size=config.train.batch_size, shuffle=True, seed=0)
   batch = A._device_batch(loader.batch(0), mcfg)
   loader.close()
   meas = jnp.asarray(np.repeat(measured[:1], 2, axis=0))             # one measured input: every draw is it
   key = jax.random.fold_in(jax.random.key(0), 0)
-  loss_fn = A._loss_fn(cfg, mcfg, lam=1.0, samples=32, layer=A.DEFAULT_LAYER)
+  loss_fn = A._loss_fn(config, mcfg, lam=1.0, samples=32, layer=A.DEFAULT_LAYER)
   ops = mcfg.physics_operators()
   from nlosjax.physics import operator_args
 
@@ -95,7 +98,7 @@ def test_term_gradient_norms_are_the_norms_of_the_two_terms_of_the_loss(tiny):
   assert norms["synthetic"][0] == pytest.approx(want_syn, rel=1e-4)
   assert norms["mmd"][0] == pytest.approx(want_mmd, rel=1e-3, abs=1e-7)
   with pytest.raises(ValueError, match="measured must be"):
-    A.term_gradient_norms(cfg, path, mcfg, params, measured[:, :1])
+    A.term_gradient_norms(RunConfig.from_dict(cfg), path, mcfg, params, measured[:, :1])
 
 
 def test_balanced_lam_is_the_ratio_of_the_median_norms():
@@ -110,7 +113,7 @@ def test_balanced_lam_is_the_ratio_of_the_median_norms():
 @pytest.mark.full
 def test_layer_separation_is_noise_on_one_distribution_and_large_on_another(tiny):
   cfg, path, mcfg, _, params, _, _ = tiny
-  loader = T.make_loader(cfg, path, "train", batch_size=2, shuffle=False, seed=0)
+  loader = T.make_loader(RunConfig.from_dict(cfg), path, "train", batch_size=2, shuffle=False, seed=0)
   x = np.concatenate([loader.batch(k)["measurement"] for k in range(2)])
   loader.close()
   # The same inputs on both sides: the measured features are a draw of the synthetic ones, so

@@ -12,6 +12,7 @@ from experiments import cli, independent_set, main_job, make_dataset
 from experiments import train as train_cli
 from nlosjax import train as T
 from nlosjax.data import dataset as D
+from nlosjax.train import RunConfig
 
 
 @pytest.fixture
@@ -120,7 +121,7 @@ def test_keys_the_consumers_read_are_known_where_the_config_lacks_them():
   assert config["train"]["devices"] == 2 and config["model"]["remat"] is True
   assert D.DatasetSpec.from_config(config["data"]).falloff == "retroreflective"
   T.with_defaults(config)
-  T.training_recipe(config, "usm")
+  T.training_recipe(RunConfig.from_dict(config), "usm")
   # The paper preset has no independent set: one is given whole, never half made.
   with pytest.raises(SystemExit, match="no section 'independent'"):
     cli.apply_overrides(cli.load_config("paper"), ["--config.independent.seed=3"])

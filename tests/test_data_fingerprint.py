@@ -22,7 +22,7 @@ import pytest
 
 from nlosjax.data import dataset as D
 from nlosjax.data.dataset import file as dataset_file
-from nlosjax.train import run_state
+from nlosjax.train import RunConfig, run_state
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -144,7 +144,7 @@ sys.path.insert(0, {root!r})
 from nlosjax import train as T
 from tests.tiny_run import tiny_config
 path = pathlib.Path({path!r})
-T.ensure_dataset(tiny_config(path), path, log=lambda s: None)
+T.ensure_dataset(T.RunConfig.from_dict(tiny_config(path)), path, log=lambda s: None)
 """
 
 
@@ -169,14 +169,15 @@ def test_a_run_resumes_on_data_regenerated_with_another_vector_width(tmp_path_fa
   cfg = tiny_config(here, steps=2)
   quiet = lambda s: None  # noqa: E731
   export = T.StateExport(tmp_path / "state", data_digest=D.dataset_digest(here), data_fingerprint=fp_here)
-  T.train_model(cfg, here, tmp_path / "a", "ours_s", log=quiet, export=export)
+  T.train_model(RunConfig.from_dict(cfg), here, tmp_path / "a", "ours_s", log=quiet, export=export)
   assert run_state.read_fingerprint(tmp_path / "state/ours_s") == fp_here
   # A fresh clone on the other machine: the export copied, its data regenerated there.
   shutil.copytree(tmp_path / "state", tmp_path / "clone")
   longer = tiny_config(there, steps=4)
   messages = []
   moved = T.StateExport(tmp_path / "clone", data_digest=D.dataset_digest(there), data_fingerprint=fp_there)
-  _, state = T.train_model(longer, there, tmp_path / "b", "ours_s", log=messages.append, export=moved)
+  _, state = T.train_model(RunConfig.from_dict(longer), there, tmp_path / "b", "ours_s", log=messages.append,
+                           export=moved)
   assert int(state.step) == 4
   resumed = [m for m in messages if "resumed from step 2 of the exported state" in m]
   assert resumed and (same_bits or "another rounding" in resumed[0])

@@ -19,6 +19,7 @@ from nlosjax.data import dataset as D
 from nlosjax.data import scenes
 from nlosjax.physics import Setup, render_points
 from nlosjax.physics.noise import jitter_kernel
+from nlosjax.train import RunConfig
 from tests.poisson_checks import assert_poisson, stated_rate
 from tests.tiny_run import LCT_DATA, LCT_SCENE
 from tests.xla_options import xla_optimizations
@@ -346,14 +347,14 @@ def test_the_main_jobs_dataset_step_refuses_a_file_of_other_data(tiny, tmp_path)
   out = tmp_path / "data.h5"
   shutil.copy(path, out)
   config = T.with_defaults({"data": {**spec.to_dict(), "path": str(out)}})
-  T.ensure_dataset(config, out, log=lambda s: None)                  # the same data: used
+  T.ensure_dataset(RunConfig.from_dict(config), out, log=lambda s: None)                  # the same data: used
   before = out.read_bytes()
   other = {**config, "data": {**config["data"], "photons": (10.0, 20.0)}}
   with pytest.raises(ValueError, match=r"photons: file \[.*\], config \[10\.0, 20\.0\]"):
-    T.ensure_dataset(other, out, log=lambda s: None)
+    T.ensure_dataset(RunConfig.from_dict(other), out, log=lambda s: None)
   fewer = {**config, "data": {**config["data"], "num_sequences": {"train": 1, "val": 1, "test": 1}}}
   with pytest.raises(ValueError, match="more sequences"):
-    T.ensure_dataset(fewer, out, log=lambda s: None)
+    T.ensure_dataset(RunConfig.from_dict(fewer), out, log=lambda s: None)
   assert out.read_bytes() == before                                  # nothing written
 
 
@@ -640,13 +641,14 @@ def test_cli_writes_the_preset_split_and_the_loader_reads_it_by_config(tmp_path)
     assert json.loads(ds.attrs["spec"])["grid"] == [data["grid"]] * 2
   from nlosjax import train as T
   config = configs.get_config("cpu")
-  with T.make_loader(config, out, "test", batch_size=1, shuffle=False, seed=0) as loader:
+  with T.make_loader(RunConfig.from_dict(config), out, "test", batch_size=1, shuffle=False, seed=0) as loader:
     assert not loader.shuffle and loader.stride == data["input_stride"]
     assert loader._cache is not None and loader.prefetch_size == data["loader"]["prefetch"]
     batch = next(loader.iterate())
     assert batch["measurement"].shape == (1, 3, data["num_bins"], 8, 8)
   with pytest.raises(ValueError, match="unknown data.loader"):
-    T.make_loader({**config, "data": {**data, "loader": {"shuffle": True}}}, out, "test", batch_size=1,
+    T.make_loader(RunConfig.from_dict({**config, "data": {**data, "loader": {"shuffle": True}}}), out, "test",
+                  batch_size=1,
                   shuffle=False, seed=0)
 
 

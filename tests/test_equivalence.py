@@ -181,6 +181,12 @@ def test_a_module_moved_verbatim_is_judged_at_its_new_path(tmp_path, monkeypatch
   # rule carries the file.
   modules = ["nlosjax/models/probe.py", "benchmarks/mechanisms/study.py"]     # as the base names them
   entry = _entry(modules, _digest_at(before, modules))
+  # Today's text as of a commit the study had changed only by the move (later edits of its code
+  # are the rule's business, not this test's).
+  after = "f2a4186"
+  if results_header.git_output("cat-file", "-e", f"{after}^{{commit}}") is None:
+    pytest.skip(f"this clone lacks commit {after} (a shallow clone)")
+  monkeypatch.setattr(equivalence, "today_text", lambda p: results_header.git_output("show", f"{after}:{p}"))
   _record(tmp_path, base=before)
   assert "experiments/studies/mechanisms/probe.py" not in provenance.code_modules(
       ["benchmarks.equivalence", "benchmarks.equivalence_probe"])
@@ -347,3 +353,35 @@ def test_the_studies_probe_runs_the_studies_and_keeps_their_numbers_not_their_ti
                          "studies/x/test/scores/psnr", "studies/x/validation_curve/0/step",
                          "studies/x/validation_curve/0/val_psnr"]
   np.testing.assert_array_equal(out["studies/x/test/scores/psnr"], [1.0, 2.5])
+
+
+def test_the_scripts_probe_holds_the_scripts_it_runs_and_fingerprints_programs(monkeypatch):
+  """Its closure holds the performance benchmarks and the studies it runs; a fingerprint is equal
+  for equal texts and moves for any change; the tiny preset answers only its own name."""
+  import sys
+  monkeypatch.syspath_prepend(str(provenance.ROOT / "benchmarks"))
+  sys.modules.pop("equivalence_probe_measured", None)
+  from benchmarks import equivalence_probe_scripts as P
+  from experiments import configs
+  closure = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe_scripts"])
+  for m in ("benchmarks/compile.py", "benchmarks/dry_run.py", "benchmarks/hlo_gpu.py", "benchmarks/model.py",
+            "benchmarks/step_profile.py", "benchmarks/prefetch.py", "benchmarks/depth_range.py",
+            "experiments/studies/generalisation.py", "experiments/studies/preset_choice.py",
+            "experiments/studies/realism.py", "experiments/studies/time_to_plateau.py",
+            "experiments/studies/real_preset/study.py", "experiments/studies/align.py",
+            "experiments/studies/alignment.py", "experiments/export_weights.py",
+            "experiments/studies/independent_test.py"):
+    assert m in closure, m
+  assert equivalence.PROBES["scripts"].name == "equivalence_probe_scripts.py"
+  a = P.fingerprint("module { }")
+  assert a.shape == (32,) and np.array_equal(a, P.fingerprint("module { }"))
+  assert equivalence.compare({"x": a}, {"x": P.fingerprint("module {  }")})[0]["passed"] is False
+  with P.tiny_preset({"data": {"path": "x.h5"}}):
+    assert configs.get_config(P.TINY) == {"data": {"path": "x.h5"}}
+    assert configs.get_config("cpu") == configs.get_config("cpu")
+  with pytest.raises(ValueError):
+    configs.get_config(P.TINY)
+  kept = []
+  with P.wrapped(P, "plain", kept):
+    P.plain({"a": 1})
+  assert kept == [{"a": 1}] and P.plain.__name__ == "plain"

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from nlosjax.evaluation import baselines, protocol, report, scores
+from nlosjax.train import RunConfig
 from tests.small_capture import three_patch_capture
 
 
@@ -228,8 +229,8 @@ def test_evaluate_pairs_the_consecutive_middle_frames_of_each_test_sequence(tmp_
   path = tmp_path / "tiny.h5"
   cfg = tiny_config(path, eval_batch_size=4)
   cfg["data"]["num_sequences"] = {"train": 1, "val": 1, "test": 2}
-  train.ensure_dataset(cfg, path, log=lambda s: None)
-  ev = protocol.evaluate(cfg, path, {}, split="test", methods=("lct",), log=lambda s: None)
+  train.ensure_dataset(RunConfig.from_dict(cfg), path, log=lambda s: None)
+  ev = protocol.evaluate(RunConfig.from_dict(cfg), path, {}, split="test", methods=("lct",), log=lambda s: None)
   np.testing.assert_array_equal(ev["sequence"], [0, 0, 1, 1])
   np.testing.assert_array_equal(ev["frame"], [1, 2, 1, 2])       # loader ends="valid": 1 .. F - 2
   got, im, gt = ev["scores"]["lct"], ev["images"]["lct"], ev["images"]["gt"]

@@ -20,6 +20,7 @@ from nlosjax.models import count_params
 from nlosjax.models.ik import IKConfig, LearnableInverseKernel, band_weights
 from nlosjax.models.lfe import LFEConfig
 from nlosjax.physics import Setup
+from nlosjax.train import RunConfig
 from tests.test_lfe import TINY, scene
 
 
@@ -130,7 +131,7 @@ def test_the_training_loop_builds_ik_and_two_steps_move_the_kernel_and_the_atten
   from nlosjax.train.step import make_train_step
   config = train.with_defaults({"data": {"input_stride": 4}, "model": {"wavelet_cycles": 4.0},
                                 "ik": {"model": {"extract_width": 1, "bands": 3}}})
-  mcfg = train.model_config_for(config, TINY, "ik")
+  mcfg = train.model_config_for(RunConfig.from_dict(config), TINY, "ik")
   assert mcfg == IKConfig(setup=TINY, stride=4, extract_width=1, bands=3, wavelet_cycles=4.0)
   assert cli._schema(("ik", "model"))[0] >= {"extract_width", "bands", "attention_width"}
   state = create_train_state(mcfg.module(), mcfg.input_shape(2), optax.adam(1e-2), jax.random.PRNGKey(0),

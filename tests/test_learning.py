@@ -26,6 +26,7 @@ from nlosjax import metrics
 from nlosjax import train as T
 from nlosjax.evaluation import baselines, protocol
 from nlosjax.models.network import STMambaNet
+from nlosjax.train import RunConfig
 from tests.tiny_run import tiny_config
 
 #: End-to-end claims: the full tier (conftest.py, TIERS).
@@ -43,14 +44,14 @@ def trained(tmp_path_factory):
                            "cosine": True, "clip_norm": 1.0})
   cfg["data"]["num_sequences"] = {"train": 6, "test": 4}
   cfg["data"]["scene"] = {**cfg["data"]["scene"], "size_range": (0.6, 1.0), "num_static": (1, 2)}
-  T.ensure_dataset(cfg, path, log=lambda s: None)
-  mcfg, state = T.train_model(cfg, path, root / "run", "ours_s", log=lambda s: None)
+  T.ensure_dataset(RunConfig.from_dict(cfg), path, log=lambda s: None)
+  mcfg, state = T.train_model(RunConfig.from_dict(cfg), path, root / "run", "ours_s", log=lambda s: None)
   untrained = T.create_train_state(STMambaNet(mcfg), (4,) + mcfg.input_shape()[1:],
                                    T.make_optimizer(T.OptimConfig(), 1), jax.random.key(0))
-  ev = protocol.evaluate(cfg, path, {"trained": (mcfg, state.params),
+  ev = protocol.evaluate(RunConfig.from_dict(cfg), path, {"trained": (mcfg, state.params),
                                      "untrained": (mcfg, untrained.params)},
                          split="test", log=lambda s: None)
-  train_split = protocol.load_split(cfg, path, "train", batch_size=4)
+  train_split = protocol.load_split(RunConfig.from_dict(cfg), path, "train", batch_size=4)
   train_split["loader"].close()
   return {"ev": ev, "log": T.read_metrics(root / "run" / "ours_s" / "metrics.jsonl"),
           "train_mean": train_split["intensity"].mean(axis=0)}

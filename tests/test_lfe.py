@@ -18,6 +18,7 @@ from nlosjax.models import count_params
 from nlosjax.models.lfe import LFEConfig, interpolate_scan
 from nlosjax.models.usm import half_setup
 from nlosjax.physics import Setup
+from nlosjax.train import RunConfig
 
 # 16 x 16 scan of a 0.6 m wall, 64 ps bins, 64 bins; stride 4 -> 4 x 4 input.
 TINY = Setup(wall_size=0.6, grid=(16, 16), bin_width=64e-12, num_bins=64)
@@ -138,10 +139,10 @@ def test_the_training_loop_builds_lfe_and_one_step_moves_every_learned_part():
   config = train.with_defaults({"data": {"input_stride": 4}, "model": {"wavelet_cycles": 4.0},
                                 "train": {"optim": {"learning_rate": 1e-3}},
                                 "lfe": {"model": {"extract_width": 1}, "optim": {"learning_rate": 3e-4}}})
-  mcfg = train.model_config_for(config, TINY, "lfe")
+  mcfg = train.model_config_for(RunConfig.from_dict(config), TINY, "lfe")
   assert mcfg == LFEConfig(setup=TINY, stride=4, extract_width=1, wavelet_cycles=4.0)
-  assert train.training_recipe(config, "lfe")[0].learning_rate == 3e-4
-  assert train.training_recipe(config, "ours")[0].learning_rate == 1e-3
+  assert train.training_recipe(RunConfig.from_dict(config), "lfe")[0].learning_rate == 3e-4
+  assert train.training_recipe(RunConfig.from_dict(config), "ours")[0].learning_rate == 1e-3
   assert cli._schema(("lfe", "model"))[0] >= {"extract_width", "physics", "lct_snr"}
   weights = losses.LossWeights()
   state = create_train_state(mcfg.module(), mcfg.input_shape(2), optax.adam(1e-2), jax.random.PRNGKey(0),

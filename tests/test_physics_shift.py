@@ -14,6 +14,7 @@ import pytest
 
 from experiments import configs
 from experiments.studies.physics_shift import heldout, report, study
+from nlosjax.train import RunConfig
 
 
 def loop_returns(x, y, z, w, scan_x, scan_y, bin_length, T, power, cosines):
@@ -60,7 +61,7 @@ def test_a_written_condition_is_read_by_the_evaluation_protocol(tmp_path):
   assert heldout.ensure_condition(path, data, "far", 2, 3, 1) == path        # the same set: reused
   with pytest.raises(ValueError, match="another held-out set"):
     heldout.ensure_condition(path, {**data, "photons": (1.0, 2.0)}, "far", 2, 3, 1)
-  split = protocol.load_split({**cfg, "data": data}, path, "test", batch_size=4)
+  split = protocol.load_split(RunConfig.from_dict({**cfg, "data": data}), path, "test", batch_size=4)
   split["loader"].close()
   assert split["measurement"].shape == (2, 64, 4, 4) and split["intensity"].shape == (2, 16, 16)
 

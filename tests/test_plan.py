@@ -11,6 +11,7 @@ from experiments import train as train_cli
 from nlosjax import plan
 from nlosjax import train as T
 from nlosjax.models.network import ModelConfig
+from nlosjax.train import RunConfig
 from tests.tiny_run import tiny_config
 from tests.xla_options import xla_optimizations
 
@@ -34,8 +35,8 @@ def test_paper_recipe_is_explicit_and_matches_model_config_paper(tmp_path):
     if key != "volume_activation":                     # softplus: the cpu preset's choice (config)
       assert getattr(paper, key) == value, key
   # The model section builds exactly ModelConfig.paper() on the preset's data.
-  setup = plan.run_config(cfg).data.spec().setup
-  mcfg = T.model_config_for(T.with_defaults(cfg), setup, "ours")
+  setup = T.RunConfig.from_dict(cfg).data.spec().setup
+  mcfg = T.model_config_for(RunConfig.from_dict(T.with_defaults(cfg)), setup, "ours")
   assert dataclasses.replace(mcfg, volume_activation="relu") == paper
 
 
@@ -55,7 +56,7 @@ def tiny(tmp_path_factory):
 
 @pytest.mark.full
 def test_dry_run_plans_from_shapes_and_measures_without_data(tiny):
-  result = plan.dry_run(tiny, log=lambda s: None)
+  result = plan.dry_run(T.read_preset(tiny), log=lambda s: None)
   assert not __import__("pathlib").Path(tiny["data"]["path"]).exists()      # no data generated
   for v in result["variants"].values():
     p = v["train"]
@@ -81,7 +82,7 @@ def test_dry_run_plans_from_shapes_and_measures_without_data(tiny):
 def test_a_plan_over_the_device_memory_is_refused_with_the_fix(tiny, monkeypatch):
   monkeypatch.setattr(plan, "device_memory", lambda device=None: (2 ** 20, "test"))
   with pytest.raises(plan.DoesNotFit, match="train.batch_size|remat") as e:
-    plan.check_fits(tiny, log=lambda s: None)
+    plan.check_fits(T.read_preset(tiny), log=lambda s: None)
   assert "more devices" in str(e.value) and "check_memory=False" in str(e.value)
   # The main job refuses before making any data.
   from experiments.main_job import train_and_evaluate

@@ -24,6 +24,7 @@ from nlosjax import inference, metrics, pretrained
 from nlosjax.data import dataset as D
 from nlosjax.data import scenes
 from nlosjax.evaluation import protocol
+from nlosjax.train import RunConfig
 from tests.xla_options import xla_optimizations
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -95,7 +96,8 @@ def _regenerate(name, variant, folder):
 
 def _val_sequence_psnr(mcfg, params, config, path) -> np.ndarray:
   """``[F]`` intensity PSNR (dB) of the model on each frame of the one val sequence in ``path``."""
-  data = protocol.load_split(config, path, "val", batch_size=int(config["train"]["eval_batch_size"]))
+  data = protocol.load_split(RunConfig.from_dict(config), path, "val",
+                             batch_size=int(config["train"]["eval_batch_size"]))
   try:
     images = protocol.model_images(mcfg, params, data["loader"])
     assert data["loader"].names == ["val-00000"]
@@ -352,7 +354,8 @@ def test_export_reads_a_committed_run_state(tmp_path):
   assert run["step"] == record["best_step"] and run["stop_reason"] == record["stop_reason"]
   assert run["recorded_val_psnr"] == pytest.approx(record["best_val_psnr"], abs=1e-9)
   assert run["command"].startswith("python -m experiments.studies.mechanisms --budgets full --rows lfe --seeds 0")
-  mcfg = train.model_config_for(run["config"], inference.training_setup(run["config"]), "lfe")
+  config = RunConfig.from_dict(run["config"])
+  mcfg = train.model_config_for(config, inference.training_setup(config), "lfe")
   params, restored = export_weights.state_params(run, mcfg)
   assert restored["step"] == run["step"]
   assert train.param_fingerprint(params) == run["signature"]["params"]
@@ -371,7 +374,8 @@ def test_export_reads_a_committed_run_state(tmp_path):
   record["config"].setdefault("lfe", {}).setdefault("model", {})["extract_width"] = 5
   (results / "mechanisms" / "full" / "lfe-seed0.json").write_text(json.dumps(record))
   run = export_weights.find_run(state, "lfe", results)
-  mcfg = train.model_config_for(run["config"], inference.training_setup(run["config"]), "lfe")
+  config = RunConfig.from_dict(run["config"])
+  mcfg = train.model_config_for(config, inference.training_setup(config), "lfe")
   with pytest.raises(ValueError, match="rebuilt"):
     export_weights.state_params(run, mcfg)
 

@@ -18,6 +18,7 @@ from benchmarks.physics import ncc
 from experiments import numpy_twins as twins
 from nlosjax import physics
 from nlosjax.data import io
+from nlosjax.train import RunConfig
 from tests.xla_options import xla_optimizations
 
 
@@ -153,7 +154,8 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
 
   config = T.with_defaults(get_config("real"))
   spec = DatasetSpec.from_config(config["data"])
-  mcfg = T.model_config_for(config, spec.setup, "ours_s")      # raises if the physics layer can't be built
+  mcfg = T.model_config_for(RunConfig.from_dict(config), spec.setup,
+                            "ours_s")      # raises if the physics layer can't be built
   _, capture = scan
   adapted = cio.for_capture(mcfg, capture)
   assert adapted.bin_factor * capture.bin_width == pytest.approx(spec.setup.bin_width)
@@ -173,7 +175,7 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
 
   # USM has no phasor layer: the same time binning and geometry, its (loss) wavelet kept as
   # trained. Rescaled as Ours' would be, its carrier on the coarse bins raised "not resolved".
-  usm = T.model_config_for(config, spec.setup, "usm")
+  usm = T.model_config_for(RunConfig.from_dict(config), spec.setup, "usm")
   moved = cio.for_capture(usm, capture)
   assert moved.bin_factor == 4 and moved.setup == adapted.setup
   assert moved.model_config == dataclasses.replace(usm, setup=adapted.setup)
@@ -278,13 +280,13 @@ def test_every_variant_of_the_real_preset_can_build_its_loss_wavelet():
   config = T.with_defaults(get_config("real"))
   setup = DatasetSpec.from_config(config["data"]).setup
   for variant in ("ours", "ours_s", "usm"):
-    m = T.model_config_for(config, setup, variant)
+    m = T.model_config_for(RunConfig.from_dict(config), setup, variant)
     assert m.wavelet_sampling == config["model"]["wavelet_sampling"] == 3.0
     illumination_wavelet(m.setup, cycles=m.wavelet_cycles, sampling_coeff=m.wavelet_sampling)
   with pytest.raises(ValueError, match="not resolved"):       # what USM had before
     illumination_wavelet(setup, cycles=5.0, sampling_coeff=2.0)
   config["usm"]["model"]["wavelet_sampling"] = 4.0            # USM's own setting wins
-  assert T.model_config_for(config, setup, "usm").wavelet_sampling == 4.0
+  assert T.model_config_for(RunConfig.from_dict(config), setup, "usm").wavelet_sampling == 4.0
 
 
 def test_time_lines_separate_the_compiling_first_call_from_the_compiled_ones():

@@ -25,6 +25,7 @@ from nlosjax import inference as cio
 from nlosjax import physics
 from nlosjax.data import io
 from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
+from nlosjax.train import RunConfig
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 PATCH_BIN = 70
@@ -185,7 +186,7 @@ def trained_run(tmp_path_factory):
   rng = np.random.default_rng(3)
   out = {}
   for variant in ("ours", "usm"):
-    mcfg = train.model_config_for(config, TRAINED, variant)
+    mcfg = train.model_config_for(RunConfig.from_dict(config), TRAINED, variant)
     # Random parameters of the right shapes (no init compilation).
     shapes = jax.eval_shape(mcfg.module().init, jax.random.key(0),
                             jax.ShapeDtypeStruct(mcfg.input_shape(), jnp.float32))["params"]

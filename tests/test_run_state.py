@@ -13,7 +13,7 @@ import pytest
 
 from nlosjax import train as T
 from nlosjax.data.dataset import dataset_digest
-from nlosjax.train import run_state
+from nlosjax.train import RunConfig, run_state
 from tests.tiny_run import make_tiny_dataset, tiny_config
 
 
@@ -48,7 +48,7 @@ class _Killed(Exception):
 def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for_bit(data_path, tmp_path):
   cfg = _plateau_config(data_path)
   quiet = lambda s: None
-  _, straight = T.train_model(cfg, data_path, tmp_path / "a", "ours_s", validate=_score, log=quiet)
+  _, straight = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", validate=_score, log=quiet)
   # The interrupted run: killed inside the validation of step 6, after that step's checkpoint
   # and before its export (the export still holds step 4, the last finished validation).
   calls = []
@@ -61,7 +61,8 @@ def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for
 
   export = T.StateExport(tmp_path / "state", data_digest=dataset_digest(data_path))
   with pytest.raises(_Killed):
-    T.train_model(cfg, data_path, tmp_path / "b", "ours_s", validate=dying, log=quiet, export=export)
+    T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=dying, log=quiet,
+                  export=export)
   meta = run_state.read_meta(tmp_path / "state" / "ours_s")
   assert meta["step"] == 4 and meta["best_step"] in (2, 4)
   # A fresh clone: the export moved, the workdir gone.
@@ -70,7 +71,7 @@ def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for
   shutil.rmtree(tmp_path / "state")
   messages = []
   moved = T.StateExport(tmp_path / "clone" / "state", data_digest=dataset_digest(data_path))
-  _, resumed = T.train_model(cfg, data_path, tmp_path / "c", "ours_s", validate=_score,
+  _, resumed = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "c", "ours_s", validate=_score,
                              log=messages.append, export=moved)
   assert any("resumed from step 4 of the exported state" in m for m in messages)
   _assert_same_tree(straight.params, resumed.params)          # the best state, chosen alike
@@ -95,14 +96,14 @@ def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for
 def test_a_run_past_its_deadline_pauses_exported_and_continues_to_the_same_parameters(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=5, checkpoint_every=4)
   quiet = lambda s: None
-  _, straight = T.train_model(cfg, data_path, tmp_path / "a", "ours_s", log=quiet)
+  _, straight = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", log=quiet)
   paused = T.StateExport(tmp_path / "state", deadline=0.0)       # already past: pause after step 1
   with pytest.raises(T.TrainingPaused) as info:
-    T.train_model(cfg, data_path, tmp_path / "b", "ours_s", log=quiet, export=paused)
+    T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", log=quiet, export=paused)
   assert info.value.step == 1
   assert run_state.read_meta(tmp_path / "state/ours_s")["step"] == 1
   shutil.rmtree(tmp_path / "b")
-  _, resumed = T.train_model(cfg, data_path, tmp_path / "c", "ours_s", log=quiet,
+  _, resumed = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "c", "ours_s", log=quiet,
                              export=T.StateExport(tmp_path / "state"))
   _assert_same_tree(straight.params, resumed.params)
   _assert_same_tree(straight.opt_state, resumed.opt_state)
@@ -112,16 +113,16 @@ def test_a_run_past_its_deadline_pauses_exported_and_continues_to_the_same_param
 def test_an_export_of_another_run_or_other_data_is_refused_and_kept(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=2)
   quiet = lambda s: None
-  T.train_model(cfg, data_path, tmp_path / "a", "ours_s", log=quiet,
+  T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", log=quiet,
                 export=T.StateExport(tmp_path / "state", data_digest="0123456789abcdef"))
   before = (tmp_path / "state/ours_s/state.npz").read_bytes()
   other = {**cfg, "model": {**cfg["model"], "width": 6}}
   with pytest.raises(ValueError, match="another run signature"):
-    T.train_model(other, data_path, tmp_path / "b", "ours_s", log=quiet,
+    T.train_model(RunConfig.from_dict(other), data_path, tmp_path / "b", "ours_s", log=quiet,
                   export=T.StateExport(tmp_path / "state"))
   longer = {**cfg, "train": {**cfg["train"], "steps": 4}}
   with pytest.raises(ValueError, match="content digest 0123456789abcdef.*--allow-data-change"):
-    T.train_model(longer, data_path, tmp_path / "c", "ours_s", log=quiet,
+    T.train_model(RunConfig.from_dict(longer), data_path, tmp_path / "c", "ours_s", log=quiet,
                   export=T.StateExport(tmp_path / "state", data_digest=dataset_digest(data_path)))
   assert (tmp_path / "state/ours_s/state.npz").read_bytes() == before
 

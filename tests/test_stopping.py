@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from nlosjax import train as T
-from nlosjax.train import loop, stopping
+from nlosjax.train import RunConfig, loop, stopping
 from tests.tiny_run import make_tiny_dataset, tiny_config
 
 MAX_STEPS = 8
@@ -102,7 +102,7 @@ def test_a_plateau_run_stops_where_its_validations_say_and_keeps_the_best(data_p
     return next(scores)
 
   cfg = tiny_config(data_path, stop=plateau(), optim=OPTIM)
-  _, state = T.train_model(cfg, data_path, tmp_path, "ours_s", validate=validate, log=quiet)
+  _, state = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path, "ours_s", validate=validate, log=quiet)
   folder = tmp_path / "ours_s"
   curve = T.read_curve(folder)
   assert [p["step"] for p in curve["curve"]] == [2, 4, 6] and len(calls) == 3
@@ -124,7 +124,7 @@ def test_a_plateau_run_stops_where_its_validations_say_and_keeps_the_best(data_p
   # The schedule spans max_steps, so a plateau run is the start of the fixed-length run of
   # max_steps steps: the same losses step by step.
   fixed = tiny_config(data_path, steps=MAX_STEPS, optim=OPTIM)
-  T.train_model(fixed, data_path, tmp_path / "fixed", "ours_s", log=quiet)
+  T.train_model(RunConfig.from_dict(fixed), data_path, tmp_path / "fixed", "ours_s", log=quiet)
   a = T.read_metrics(folder / "metrics.jsonl")
   b = T.read_metrics(tmp_path / "fixed" / "ours_s" / "metrics.jsonl")[:6]
   assert [r["loss"] for r in a] == [r["loss"] for r in b]
@@ -134,8 +134,8 @@ def test_a_plateau_run_stops_where_its_validations_say_and_keeps_the_best(data_p
 def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path, tmp_path, monkeypatch):
   from nlosjax.evaluation import protocol
   cfg = tiny_config(data_path, stop=plateau(patience=2, min_delta_db=0.0), optim=OPTIM)
-  real = protocol.validation_psnr(cfg, data_path)
-  _, straight = T.train_model(cfg, data_path, tmp_path / "a", "ours_s", validate=real, log=quiet)
+  real = protocol.validation_psnr(RunConfig.from_dict(cfg), data_path)
+  _, straight = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", validate=real, log=quiet)
 
   class Kill(Exception):
     pass
@@ -154,7 +154,7 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
 
   monkeypatch.setattr(loop, "make_train_step", killing_step)
   with pytest.raises(Kill):
-    T.train_model(cfg, data_path, tmp_path / "b", "ours_s", validate=real, log=quiet)
+    T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=real, log=quiet)
   monkeypatch.setattr(loop, "make_train_step", make_step)
   assert [p["step"] for p in T.read_curve(tmp_path / "b" / "ours_s")["curve"]] == [2, 4]
 
@@ -164,12 +164,14 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
 
   messages = []
   with pytest.raises(Kill):
-    T.train_model(cfg, data_path, tmp_path / "b", "ours_s", validate=killing_validate, log=messages.append)
+    T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=killing_validate,
+                  log=messages.append)
   assert any("resumed from step 4" in m for m in messages)
   assert [p["step"] for p in T.read_curve(tmp_path / "b" / "ours_s")["curve"]] == [2, 4]
 
   messages = []
-  _, resumed = T.train_model(cfg, data_path, tmp_path / "b", "ours_s", validate=real, log=messages.append)
+  _, resumed = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=real,
+                             log=messages.append)
   assert any("resumed from step 6" in m for m in messages)
   ca, cb = (T.read_curve(tmp_path / x / "ours_s") for x in ("a", "b"))
   assert [(p["step"], p["val_psnr"]) for p in ca["curve"]] == [(p["step"], p["val_psnr"]) for p in cb["curve"]]
@@ -187,7 +189,8 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
 
   monkeypatch.setattr(loop, "make_train_step", lambda *a, **k: no_step)
   before = (tmp_path / "b" / "ours_s" / "metrics.jsonl").read_text()
-  _, again = T.train_model(cfg, data_path, tmp_path / "b", "ours_s", validate=killing_validate, log=quiet)
+  _, again = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=killing_validate,
+                           log=quiet)
   assert (tmp_path / "b" / "ours_s" / "metrics.jsonl").read_text() == before
   assert_same_tree(T.to_host(straight.params), T.to_host(again.params))
 
@@ -198,8 +201,9 @@ def test_the_default_rule_is_unchanged(data_path, tmp_path):
   assert T.StopRule.from_config(cfg["train"]["stop"]) == T.StopRule() and T.StopRule().rule == "steps"
   default_cfg = {**cfg, "train": {k: v for k, v in cfg["train"].items() if k != "stop"}}
   explicit = tiny_config(data_path, steps=MAX_STEPS, optim=OPTIM, stop={"rule": "steps"})
-  _, a = T.train_model(default_cfg, data_path, tmp_path / "a", "ours_s", log=quiet)
-  _, b = T.train_model(explicit, data_path, tmp_path / "b", "ours_s", validate=lambda m, p: 1 / 0, log=quiet)
+  _, a = T.train_model(RunConfig.from_dict(default_cfg), data_path, tmp_path / "a", "ours_s", log=quiet)
+  _, b = T.train_model(RunConfig.from_dict(explicit), data_path, tmp_path / "b", "ours_s", validate=lambda m,
+                       p: 1 / 0, log=quiet)
   assert int(a.step) == int(b.step) == MAX_STEPS
   assert_same_tree(T.to_host(a.params), T.to_host(b.params))
   for run in ("a", "b"):
@@ -208,7 +212,8 @@ def test_the_default_rule_is_unchanged(data_path, tmp_path):
     assert json.loads((folder / "selection.json").read_text()) == {"select": "last", "step": MAX_STEPS,
                                                                   "val_psnr": {}}
   with pytest.raises(ValueError, match="needs the validate callback"):
-    T.train_model(tiny_config(data_path, stop=plateau(), optim=OPTIM), data_path, tmp_path / "c", "ours_s", log=quiet)
+    T.train_model(RunConfig.from_dict(tiny_config(data_path, stop=plateau(), optim=OPTIM)), data_path,
+                  tmp_path / "c", "ours_s", log=quiet)
 
 
 def test_the_main_job_caption_names_how_long_its_models_trained():

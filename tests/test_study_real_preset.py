@@ -7,6 +7,7 @@ import pytest
 from experiments import store
 from experiments.studies.real_preset import study
 from nlosjax import train as T
+from nlosjax.train import RunConfig
 from tests.tiny_run import tiny_config
 
 TINY = study.Run("tiny-ours_s", "cpu", "ours_s")
@@ -91,10 +92,10 @@ def test_data_of_an_edited_candidate_config_are_refused_not_used(tiny_study):
   cfg = study.run_config(TINY)
   path = store.data_path("tiny.h5")
   path.parent.mkdir(parents=True)
-  T.ensure_dataset(cfg, path, log=lambda s: None)
+  T.ensure_dataset(RunConfig.from_dict(cfg), path, log=lambda s: None)
   edited = {**cfg, "data": {**cfg["data"], "photons": (10.0, 20.0)}}
   with pytest.raises(ValueError, match="another data configuration"):
-    T.ensure_dataset(edited, path, log=lambda s: None)
+    T.ensure_dataset(RunConfig.from_dict(edited), path, log=lambda s: None)
 
 
 def test_a_candidates_workdir_links_its_runs_and_names_both_variants(monkeypatch, tmp_path):

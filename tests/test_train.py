@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from nlosjax import train as T
+from nlosjax.train import RunConfig
 from tests.nested import assert_nested_close
 from tests.tiny_run import make_tiny_dataset, tiny_config
 from tests.xla_options import xla_optimizations
@@ -139,7 +140,7 @@ def test_bad_configs_raise(data_path, tmp_path):
   empty = tmp_path / "empty.h5"
   empty.write_bytes(b"")
   with pytest.raises(ValueError, match="empty.h5"):
-    T.train_model(tiny_config(empty), empty, tmp_path, "ours_s", log=lambda s: None)
+    T.train_model(RunConfig.from_dict(tiny_config(empty)), empty, tmp_path, "ours_s", log=lambda s: None)
 
 
 def test_prefetching_batches_changes_no_trained_parameter(data_path, tmp_path):
@@ -159,7 +160,8 @@ def test_prefetching_batches_changes_no_trained_parameter(data_path, tmp_path):
     cfg["data"]["loader"] = {**cfg["data"]["loader"], "prefetch": ahead}
     with pytest.MonkeyPatch.context() as mp:
       mp.setattr(loader_module, "prefetch", recording)
-      _, state = T.train_model(cfg, data_path, tmp_path / f"prefetch{ahead}", "ours_s", log=lambda s: None)
+      _, state = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / f"prefetch{ahead}", "ours_s",
+                               log=lambda s: None)
     params[ahead] = T.to_host(state.params)
   assert asked == [3]                      # the training loop read ahead only when asked to
   assert_nested_close(params[3], params[0], rtol=0, atol=0)

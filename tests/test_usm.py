@@ -30,6 +30,7 @@ from nlosjax.models.usm import (
   zero_fill,
 )
 from nlosjax.physics import Setup
+from nlosjax.train import RunConfig
 from tests.xla_options import xla_optimizations
 
 # 8 x 8 scan of a 0.5 m wall, 64 ps bins, 32 bins; stride 2 -> 4 x 4 input.
@@ -288,7 +289,7 @@ def test_published_recipe_and_variant_config():
   widths = {k: v for k, v in TINY_KW.items() if k != "stride"}
   config = train.with_defaults({"data": {"input_stride": 2}, "train": {"loss": {"object_intensity": 3.0}},
                                 "usm": {"recipe": "published", "model": widths}})
-  optim, weights = train.training_recipe(config, "usm")
+  optim, weights = train.training_recipe(RunConfig.from_dict(config), "usm")
   assert optim == train.OptimConfig(**PUBLISHED_OPTIM)
   assert (optim.learning_rate, optim.weight_decay, optim.cosine, optim.clip_norm) == (1e-4, 1e-4,
                                                                                       False, None)
@@ -298,22 +299,22 @@ def test_published_recipe_and_variant_config():
   assert weights.gamma * weights.local_similarity == pytest.approx(1e-5)
   assert weights.gamma * weights.alpha3 == pytest.approx(1e-6)
   # Ours' recipe for Ours, and for USM unless asked otherwise.
-  assert train.training_recipe(config, "ours")[1].object_intensity == 3.0
+  assert train.training_recipe(RunConfig.from_dict(config), "ours")[1].object_intensity == 3.0
   config["usm"]["recipe"] = "ours"
-  assert train.training_recipe(config, "usm")[1].object_intensity == 3.0
+  assert train.training_recipe(RunConfig.from_dict(config), "usm")[1].object_intensity == 3.0
   # USM's own optimiser entries (its learning rate chosen on validation) over Ours'.
   config["train"]["optim"] = {"learning_rate": 1e-3, "weight_decay": 0.95}
   config["usm"]["optim"] = {"learning_rate": 3e-4}
-  usm_optim = train.training_recipe(config, "usm")[0]
+  usm_optim = train.training_recipe(RunConfig.from_dict(config), "usm")[0]
   assert (usm_optim.learning_rate, usm_optim.weight_decay) == (3e-4, 0.95)
-  assert train.training_recipe(config, "ours")[0].learning_rate == 1e-3
+  assert train.training_recipe(RunConfig.from_dict(config), "ours")[0].learning_rate == 1e-3
   config["usm"]["recipe"] = "nope"
   with pytest.raises(ValueError, match="recipe"):
-    train.training_recipe(config, "usm")
+    train.training_recipe(RunConfig.from_dict(config), "usm")
   with pytest.raises(ValueError, match="recipe"):    # the typed config refuses it wherever it is read
-    train.model_config_for(config, TINY, "usm")
+    train.model_config_for(RunConfig.from_dict(config), TINY, "usm")
   config["usm"]["recipe"] = "ours"
-  mcfg = train.model_config_for(config, TINY, "usm")
+  mcfg = train.model_config_for(RunConfig.from_dict(config), TINY, "usm")
   assert isinstance(mcfg, USMConfig) and mcfg.trn_width == 2 and mcfg.stride == 2
 
 

@@ -90,13 +90,14 @@ def run_row(base: dict, row: str, steps: int, workdir: pathlib.Path, seed: int |
       return saved
   cfg = row_config(base, row, steps, seed)
   data_path = pathlib.Path(cfg["data"]["path"])
-  T.ensure_dataset(cfg, data_path)
+  typed = T.RunConfig.from_dict(cfg)
+  T.ensure_dataset(typed, data_path)
   t0 = time.perf_counter()
-  mcfg, state = T.train_model(cfg, data_path, out, "ours", log=lambda s: None)
+  mcfg, state = T.train_model(typed, data_path, out, "ours", log=lambda s: None)
   train_s = time.perf_counter() - t0
   result = {"row": row, "seed": seed, "steps": steps, "train_s": round(train_s, 1)}
   for split in ("val", "test"):
-    ev = protocol.evaluate(cfg, data_path, {"ours": (mcfg, state.params)}, split=split,
+    ev = protocol.evaluate(typed, data_path, {"ours": (mcfg, state.params)}, split=split,
                            methods=(), log=lambda s: None)
     result[split] = {"sequence": ev["sequence"].tolist(),
                      "scores": {k: v[0].tolist() for k, v in ev["scores"]["ours"].items()}}

@@ -81,7 +81,7 @@ def lam_arg(text: str) -> float | str:
   return value
 
 
-def fold_lam(lam: float | str, config: dict, data_path, model_config, params, measured,
+def fold_lam(lam: float | str, config, data_path, model_config, params, measured,
              log: Callable[[str], None] = print, layer: str = "st_mamba0") -> tuple[float, dict | None]:
   """``(lam, rule record)``: ``lam`` itself, or for ``"balanced"`` the one measured on ``measured``
   (the MMD term at ``layer``)."""
@@ -101,7 +101,7 @@ def fold_lam(lam: float | str, config: dict, data_path, model_config, params, me
 AUTO_LAYER_BATCHES, AUTO_LAYER_DRAWS = 8, 16
 
 
-def fold_layer(layer: str, config: dict, data_path, model_config, params, measured,
+def fold_layer(layer: str, config, data_path, model_config, params, measured,
                log: Callable[[str], None] = print) -> tuple[str, dict | None]:
   """``(layer, rule record)``: ``layer`` itself, or for ``"auto"`` the one whose features of
   ``measured`` (the fold's training scans) stand furthest from the synthetic training inputs'."""
@@ -109,7 +109,7 @@ def fold_layer(layer: str, config: dict, data_path, model_config, params, measur
     return layer, None
   from experiments.studies.alignment import chosen_layer, layer_separation
   from nlosjax.train import make_loader, select_frames
-  loader = make_loader(config, data_path, "train", batch_size=int(config["train"]["batch_size"]),
+  loader = make_loader(config, data_path, "train", batch_size=config.train.batch_size,
                        shuffle=True, seed=0)
   try:
     synthetic = np.concatenate([select_frames(loader.batch(k)["measurement"], model_config.frames)
@@ -124,7 +124,7 @@ def fold_layer(layer: str, config: dict, data_path, model_config, params, measur
                  "separation": separation}
 
 
-def align_folds(config: dict, data_path, model_config, params, inputs: dict, workdir, variant: str, *,
+def align_folds(config, data_path, model_config, params, inputs: dict, workdir, variant: str, *,
                 steps: int = 100, lam: float | str = 1.0, learning_rate: float = 1e-4, validate=None,
                 layer: str = "st_mamba0",
                 before_fold: Callable[[str], bool] | None = None,
@@ -206,8 +206,8 @@ def main(argv=None) -> int:
   if len(files) < 2:
     raise SystemExit("leave-one-scan-out needs at least two measured scans")
   config, trained = load_source(args.checkpoint, args.variants)
-  config = T.with_defaults(config)
-  data_path = pathlib.Path(args.data or config["data"]["path"])
+  config = T.read_preset(config)
+  data_path = pathlib.Path(args.data or config.data.path)
   T.ensure_dataset(config, data_path)
   validate = protocol.validation_psnr(config, data_path)
   for variant in args.variants:

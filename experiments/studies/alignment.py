@@ -35,7 +35,6 @@ import numpy as np
 import optax
 
 from nlosjax import losses
-from nlosjax.train.config import run_config
 from nlosjax.train.step import make_targets
 
 __all__ = ["DEFAULT_LAYER", "layer_features", "all_layer_features", "layer_separation", "chosen_layer",
@@ -230,7 +229,7 @@ def term_gradient_norms(config, data_path, model_config, params, measured: np.nd
     return optax.global_norm(g_syn), optax.global_norm(g_mmd), terms[1]
 
   run = operator_args.bind(norms, model_config.physics_operators())
-  loader = make_loader(config, data_path, "train", batch_size=run_config(config).train.batch_size,
+  loader = make_loader(config, data_path, "train", batch_size=config.train.batch_size,
                        shuffle=True, seed=seed)
   rng = np.random.default_rng(seed)
   key = jax.random.key(seed)
@@ -272,7 +271,7 @@ def align(config, data_path, model_config, params, measured: np.ndarray, workdir
   """Run the second stage (module docstring) for ``steps`` steps; returns ``(params, record)``.
 
   Args:
-    config: the run config of the synthetic data and loss (a :class:`~nlosjax.train.RunConfig` or its dict).
+    config: the run config of the synthetic data and loss (a :class:`~nlosjax.train.RunConfig`).
     data_path: its dataset file (the ``train`` split is read).
     model_config, params: the trained network (its config at the data's Setup).
     measured: ``[M, F, T, h, w]`` unlabelled measured inputs at the same Setup, ``M >= 1``.
@@ -304,7 +303,7 @@ def align(config, data_path, model_config, params, measured: np.ndarray, workdir
     return optax.apply_updates(p, updates), opt_state, terms
 
   run = operator_args.bind(step, model_config.physics_operators())
-  batch_size = run_config(config).train.batch_size
+  batch_size = config.train.batch_size
   loader = make_loader(config, data_path, "train", batch_size=batch_size, shuffle=True, seed=seed)
   rng = np.random.default_rng(seed)
   key = jax.random.key(seed)

@@ -84,14 +84,18 @@ def load_model(spec: str):
   from nlosjax import inference, train
   run = study_run(pathlib.Path(spec), "benchmarks/results")
   config = run["config"]
-  mcfg = train.model_config_for(config, inference.training_setup(config), run["variant"])
+  typed = train.RunConfig.from_dict(config)
+  mcfg = train.model_config_for(typed, inference.training_setup(typed), run["variant"])
   params, _ = inference.restore_params(run["checkpoints"], mcfg, step=run["step"],
                                        config_file=run["source"])
   return mcfg, params, config
 
 
 def score_set(config, path, models: dict, settings: dict, thresholds: dict, log=print) -> dict:
-  """Every classic method and model on the test split of ``path``: per-frame scores and ratios."""
+  """Every classic method and model on the test split of ``path``: per-frame scores and ratios.
+
+  ``config``: the :class:`~nlosjax.train.RunConfig` the file is read with.
+  """
   from nlosjax.evaluation import protocol
   ev = protocol.evaluate(config, path, {k: [(m, p)] for k, (m, p) in models.items()},
                          classic_settings=settings, model_thresholds=thresholds, log=log)
@@ -190,23 +194,23 @@ def main(argv=None) -> int:
   for label, spec in specs.items():
     mcfg, params, cfg = load_model(spec)
     models[label] = (mcfg, params)
-    configs_of[label] = T.with_defaults(cfg)
+    configs_of[label] = T.read_preset(cfg)
     print(f"[{label}] {spec}")
   first = configs_of[next(iter(models))]
   for cfg in configs_of.values():
-    T.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
+    T.ensure_dataset(cfg, pathlib.Path(cfg.data.path))
   print("validation: tuning the classic methods and the models' surface thresholds ...")
-  val_path = pathlib.Path(first["data"]["path"])
+  val_path = pathlib.Path(first.data.path)
   settings = tune_classic(first, val_path, print)
   best = max(settings, key=lambda m: settings[m]["psnr"])     # chosen on validation, as the main job
   learned = protocol.tune_model_thresholds(first, val_path, {k: [v] for k, v in models.items()})
   thresholds = {v: c["threshold"] for v, c in learned.items()}
   preset = configs.get_config("cpu")["independent"]
   ind_path = args.independent or preset["path"]
-  ind = ensure_independent_set(ind_path, first["data"], args.sequences, args.frames, args.seed)
+  ind = ensure_independent_set(ind_path, first.to_dict()["data"], args.sequences, args.frames, args.seed)
   sets = {"independent": (ind, first)}
   for label, cfg in configs_of.items():
-    p = str(cfg["data"]["path"])
+    p = str(cfg.data.path)
     if p not in [v[0] for v in sets.values()]:
       sets[f"test split of {label}'s data"] = (p, cfg)    # read with the config it was made with
   out = pathlib.Path(args.out)

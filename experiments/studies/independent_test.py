@@ -55,7 +55,7 @@ def main(argv=None):
   choices = json.loads(chosen.read_text()) if chosen.exists() else {}
   settings, best = choices.get("classic", {}), choices.get("best_classic")
   thresholds = {v: c["threshold"] for v, c in choices.get("learned", {}).items()}
-  evaluation = protocol.evaluate(config, data, trained, classic_settings=settings,
+  evaluation = protocol.evaluate(T.RunConfig.from_dict(config), data, trained, classic_settings=settings,
                                  model_thresholds=thresholds)
   table, comparisons = protocol.tabulate(evaluation, best_classic_method=best)
   cmd = "python -m experiments.studies.independent_test " + " ".join(sys.argv[1:] if argv is None else argv)

@@ -46,18 +46,20 @@ def load_candidate(source: str, variant: str):
   return mcfg, params, train.with_defaults(config)
 
 
-def validation_file(config: dict) -> tuple[pathlib.Path, dict]:
-  """The config's validation split, in a file of its own when the training file is absent."""
+def validation_file(config: dict) -> tuple:
+  """The config's validation split, in a file of its own when the training file is absent, and the
+  :class:`~nlosjax.train.RunConfig` that reads it."""
   from nlosjax import train
   path = pathlib.Path(config["data"]["path"])
   if path.exists():
-    return path, config
+    return path, train.RunConfig.from_dict(config)
   cfg = copy.deepcopy(config)
   counts = dict(cfg["data"].get("num_sequences", {}))
   cfg["data"]["num_sequences"] = {"train": 0, "test": 0, "val": counts.get("val", 8)}
   cfg["data"]["path"] = str(path.with_name(f"{path.stem}-val.h5"))
-  train.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
-  return pathlib.Path(cfg["data"]["path"]), cfg
+  typed = train.RunConfig.from_dict(cfg)
+  train.ensure_dataset(typed, pathlib.Path(cfg["data"]["path"]))
+  return pathlib.Path(cfg["data"]["path"]), typed
 
 
 def main(argv=None) -> int:

@@ -134,7 +134,7 @@ def simulated_inputs(cfg: dict) -> tuple[np.ndarray, np.ndarray]:
   from nlosjax import train as T
   from nlosjax.data.dataset import open_dataset
   path = pathlib.Path(cfg["data"]["path"])
-  T.ensure_dataset(cfg, path)
+  T.ensure_dataset(T.RunConfig.from_dict(cfg), path)
   data = cfg["data"]
   s, o = int(data["input_stride"]), int(data["input_offset"])
   xs, seq = [], []

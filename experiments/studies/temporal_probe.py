@@ -106,7 +106,8 @@ def main(argv=None):
     sapply, sapply_zeroed = _intensity_fns(STMambaNet(scfg))
     single = {v: [] for v in SINGLE_VARIANTS}
     zeroed["Ours-S"] = []
-  loader = T.make_loader(config, config["data"]["path"], args.split, batch_size=8, shuffle=False, seed=0)
+  loader = T.make_loader(T.RunConfig.from_dict(config), config["data"]["path"],
+                         args.split, batch_size=8, shuffle=False, seed=0)
   outs = {v: [] for v in VARIANTS}
   gt = []
   try:

@@ -70,7 +70,7 @@ def run_short(base: dict, row: str, seed: int, workdir: pathlib.Path, results: p
   from nlosjax import train as T
   cfg = short_config(base, row, seed)
   data_path = pathlib.Path(cfg["data"]["path"])
-  T.ensure_dataset(cfg, data_path)
+  T.ensure_dataset(T.RunConfig.from_dict(cfg), data_path)
   folder = run_dir(workdir, BUDGET, row, seed)
   folder.mkdir(parents=True, exist_ok=True)
   _, _, test = train_and_score(cfg, folder, ROWS[row][1], print)

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from nlosjax.evaluation import baselines, figures, report, scores
-from nlosjax.train.config import RunConfig, run_config
+from nlosjax.train.config import RunConfig, require_run_config
 from nlosjax.variants import COMPARISONS, VARIANTS
 
 __all__ = ["load_split", "model_images", "validation_psnr", "surface_cut", "choose_surface_threshold",
@@ -39,7 +39,7 @@ __all__ = ["load_split", "model_images", "validation_psnr", "surface_cut", "choo
 MODEL_THRESHOLDS = (0.0,) + tuple(baselines.THRESHOLDS)
 
 
-def load_split(config: RunConfig | dict, data_path, split: str, *, batch_size: int) -> dict:
+def load_split(config: RunConfig, data_path, split: str, *, batch_size: int) -> dict:
   """Ground truth and middle-frame input of every example of ``split``.
 
   Returns:
@@ -49,7 +49,8 @@ def load_split(config: RunConfig | dict, data_path, split: str, *, batch_size: i
     the open ``loader`` (unshuffled) feeds :func:`model_images`; close it.
   """
   from nlosjax.train import make_loader
-  loader = make_loader(config, data_path, split, batch_size=batch_size, shuffle=False, seed=0)
+  loader = make_loader(require_run_config(config, "load_split"), data_path, split, batch_size=batch_size,
+                       shuffle=False, seed=0)
   gi, gd, mid, seq, frame = [], [], [], [], []
   for step in range(len(loader)):
     b = loader.batch(step)
@@ -96,10 +97,10 @@ def model_images(mcfg, params, loader) -> dict:
   return {"intensity": np.concatenate(inten), "depth": np.concatenate(depth)}
 
 
-def validation_psnr(config: RunConfig | dict, data_path, *, split: str = "val") -> Callable:
+def validation_psnr(config: RunConfig, data_path, *, split: str = "val") -> Callable:
   """``(model_config, params) -> mean intensity PSNR (dB)`` on ``split``: the checkpoint criterion."""
   from nlosjax import metrics
-  config = run_config(config)
+  config = require_run_config(config, "validation_psnr")
   batch_size = config.train.eval_batch
 
   def score(mcfg, params) -> float:
@@ -131,7 +132,7 @@ def _as_seeds(models) -> list:
   return [models] if isinstance(models, tuple) else list(models)
 
 
-def tune_model_thresholds(config: RunConfig | dict, data_path, trained: dict, *, split: str = "val",
+def tune_model_thresholds(config: RunConfig, data_path, trained: dict, *, split: str = "val",
                           thresholds=MODEL_THRESHOLDS, log: Callable[[str], None] = print) -> dict:
   """Each learned variant's surface threshold, chosen on ``split`` as for the classic methods.
 
@@ -145,7 +146,7 @@ def tune_model_thresholds(config: RunConfig | dict, data_path, trained: dict, *,
   Returns:
     ``variant -> {"threshold": float, "f1": float, "f1_by_threshold": {str(th): float}}``.
   """
-  config = run_config(config)
+  config = require_run_config(config, "tune_model_thresholds")
   batch_size = config.train.eval_batch
   data = load_split(config, data_path, split, batch_size=batch_size)
   out = {}
@@ -180,7 +181,7 @@ def choose_surface_threshold(images: list[dict], gt_depth, thresholds=MODEL_THRE
   return {"threshold": float(best), "f1": f1[best], "f1_by_threshold": f1}
 
 
-def evaluate(config: RunConfig | dict, data_path, trained: dict, *, split: str = "test",
+def evaluate(config: RunConfig, data_path, trained: dict, *, split: str = "test",
              methods: tuple[str, ...] = baselines.CLASSIC_METHODS,
              classic_settings: dict | None = None, model_thresholds: dict | None = None,
              log: Callable[[str], None] = print) -> dict:
@@ -207,7 +208,7 @@ def evaluate(config: RunConfig | dict, data_path, trained: dict, *, split: str =
     each sequence's first evaluated frame).
   """
   from tqdm import tqdm
-  config = run_config(config)
+  config = require_run_config(config, "evaluate")
   batch_size = config.train.eval_batch
   classic_settings = classic_settings or {}
   model_thresholds = model_thresholds or {}

@@ -19,7 +19,8 @@ One concern per module, each usable alone; everything is importable from
   :func:`run_signature`.
 * :mod:`~nlosjax.train.config` -- :class:`RunConfig`: a run's config typed, one schema per
   section (:class:`TrainConfig`, :class:`DataConfig`, :class:`BaselineConfig`) and
-  :func:`run_config`, the one reader of a preset's dict (unknown keys raise).
+  :meth:`RunConfig.from_dict`, the one reader of a preset's dict (unknown keys raise);
+  the library's functions take a :class:`RunConfig` only (:func:`require_run_config`).
 * :mod:`~nlosjax.train.config_record` -- :func:`model_record`: a model config
   field by field as JSON, and :func:`compare_model` (the one rule: a field a file
   predates passes at its default; ``repr`` strings of older files are parsed).
@@ -48,7 +49,7 @@ from nlosjax.train.config import (
     RunConfig,
     TrainConfig,
     read_preset,
-    run_config,
+    require_run_config,
     with_defaults,
 )
 from nlosjax.train.config_record import compare as compare_model
@@ -73,7 +74,7 @@ from nlosjax.train.stopping import StopRule, plateau_reached, read_curve, stop_r
 
 __all__ = [
     "BATCH_KEYS", "BaselineConfig", "Checkpointer", "DataConfig", "OptimConfig", "RunConfig", "StateExport",
-    "StopRule", "TRAIN_DEFAULTS", "TrainConfig", "TrainState", "read_preset", "run_config",
+    "StopRule", "TRAIN_DEFAULTS", "TrainConfig", "TrainState", "read_preset", "require_run_config",
     "TrainingPaused", "export_state", "import_state",
     "USM_RECIPES", "VARIANT_FRAMES", "abstract_train_state", "compare_model", "create_train_state",
     "ensure_dataset", "initialize_distributed", "learning_rate_at", "make_loader", "make_mesh",

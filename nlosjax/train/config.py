@@ -1,4 +1,4 @@
-"""A run's config, typed: one schema per section and :func:`run_config`, the one reader of a preset's dict.
+"""A run's config, typed: one schema per section and :meth:`RunConfig.from_dict`, the one reader of a preset's dict.
 
 A preset (``experiments/configs``) writes a nested dict of plain values (``data``,
 ``model``, ``train``, ``usm``, ``lfe``, ``ik``). :meth:`RunConfig.from_dict` reads it
@@ -9,9 +9,10 @@ section's keys, for the command line's overrides too), a key no section reads is
 fields. A key the config leaves out takes its default where it has one; the data
 section's Setup keys are needed only by what builds a Setup from them.
 
-The library's functions take a :class:`RunConfig`; during the move they also accept
-the dict and read it here (:func:`run_config`), so nothing in ``nlosjax`` indexes a
-config dict. :meth:`RunConfig.to_dict` is what a run records (``config.json``).
+The library's functions take a :class:`RunConfig` only (a dict raises ``TypeError``,
+:func:`require_run_config`); the application reads its preset once, at its entry
+(:func:`read_preset`, which fills the ``train`` defaults, or :meth:`RunConfig.from_dict`).
+:meth:`RunConfig.to_dict` is what a run records (``config.json``).
 """
 
 from __future__ import annotations
@@ -306,7 +307,7 @@ def with_defaults(config: Mapping) -> dict:
   return {**config, "train": {**_thaw(TRAIN_DEFAULTS), **(config.get("train") or {})}}
 
 
-def read_preset(config: "RunConfig | Mapping") -> RunConfig:
+def read_preset(config: RunConfig | Mapping) -> RunConfig:
   """The one way the application's entry points read a config: a :class:`RunConfig` as it is,
   a preset's dict with its ``train`` defaults filled (:func:`with_defaults`) and read once."""
   if isinstance(config, RunConfig):
@@ -359,6 +360,15 @@ def section_schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
   return set(), set()
 
 
-def run_config(config: "RunConfig | Mapping") -> RunConfig:
-  """``config`` as a :class:`RunConfig` (read by :meth:`RunConfig.from_dict` when it is a dict)."""
-  return RunConfig.from_dict(config)
+def require_run_config(config: RunConfig, where: str = "the library") -> RunConfig:
+  """``config`` itself where it is a :class:`RunConfig`; ``TypeError`` naming the fix otherwise.
+
+  The library never reads a config dict: a preset's dict is read once, where the application
+  takes it (:func:`read_preset` fills the ``train`` defaults; :meth:`RunConfig.from_dict` reads
+  it as it is, as a run's ``config.json``).
+  """
+  if not isinstance(config, RunConfig):
+    raise TypeError(f"{where} takes a nlosjax.train.RunConfig, got {type(config).__name__}; read a "
+                    "preset's dict once with nlosjax.train.read_preset(d) (train defaults filled) or "
+                    "RunConfig.from_dict(d) (as it is, e.g. a run's config.json)")
+  return config

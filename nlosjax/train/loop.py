@@ -21,7 +21,7 @@ import numpy as np
 
 from nlosjax import losses
 from nlosjax.train.checkpoint import Checkpointer, run_signature
-from nlosjax.train.config import BASELINES, RunConfig, model_class, run_config
+from nlosjax.train.config import BASELINES, RunConfig, model_class, require_run_config
 from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
 from nlosjax.train.run_state import StateExport, TrainingPaused, copy_logs, export_state, import_state, read_meta
 from nlosjax.train.sharding import mesh_for, shard_batch, to_host
@@ -37,7 +37,7 @@ if TYPE_CHECKING:
 VARIANT_FRAMES = {name: v.frames for name, v in VARIANTS.items()}
 
 
-def model_config_for(config: RunConfig | dict, setup, variant: str):
+def model_config_for(config: RunConfig, setup, variant: str):
   """The model config of ``variant`` for a dataset's Setup.
 
   ``"ours"`` / ``"ours_s"``: a :class:`~nlosjax.models.network.ModelConfig` from
@@ -51,7 +51,7 @@ def model_config_for(config: RunConfig | dict, setup, variant: str):
   """
   if variant not in VARIANT_FRAMES:
     raise ValueError(f"variant must be one of {tuple(VARIANT_FRAMES)}, got {variant!r}")
-  cfg = run_config(config)
+  cfg = require_run_config(config, "model_config_for")
   cls = model_class(variant)
   if variant in BASELINES:
     baseline = dict(cfg.baselines[variant].model)
@@ -68,7 +68,7 @@ def select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
   return measurement[:, mid - frames // 2:mid + frames // 2 + 1]
 
 
-def make_loader(config: RunConfig | dict, path, split: str, *, batch_size: int, shuffle: bool, seed: int,
+def make_loader(config: RunConfig, path, split: str, *, batch_size: int, shuffle: bool, seed: int,
                 shard: tuple[int, int] = (0, 1), window: int = 3):
   """The config's :class:`~nlosjax.data.dataset.TripletLoader` of ``split`` (the model's under-scan offset checked).
 
@@ -78,7 +78,7 @@ def make_loader(config: RunConfig | dict, path, split: str, *, batch_size: int, 
   variant reads, a wider one serves a network of more frames).
   """
   from nlosjax.data.dataset import TripletLoader
-  data = run_config(config).data
+  data = require_run_config(config, "make_loader").data
   opts = data.loader
   return TripletLoader(path, split=split, batch_size=batch_size, stride=data.stride(), offset=data.input_offset,
                        seed=seed, shuffle=shuffle, drop_remainder=shuffle,
@@ -86,7 +86,7 @@ def make_loader(config: RunConfig | dict, path, split: str, *, batch_size: int, 
                        prefetch_size=opts.prefetch, shard=shard, window=window)
 
 
-def ensure_dataset(config: RunConfig | dict, path: pathlib.Path, log: Callable[[str], None] = print) -> None:
+def ensure_dataset(config: RunConfig, path: pathlib.Path, log: Callable[[str], None] = print) -> None:
   """Generate the config's dataset at ``path``, or add the sequences an existing file lacks.
 
   An existing file made with the same data configuration but fewer sequences
@@ -100,7 +100,7 @@ def ensure_dataset(config: RunConfig | dict, path: pathlib.Path, log: Callable[[
   """
   from nlosjax.data.dataset import extend_dataset, write_dataset
   path = pathlib.Path(path)
-  cfg = run_config(config)
+  cfg = require_run_config(config, "ensure_dataset")
   spec = cfg.data.spec()
   workers = cfg.train.data_workers
   if path.exists():
@@ -128,7 +128,7 @@ def read_metrics(path) -> list[dict]:
   return rows
 
 
-def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, folder: str | None = None,
+def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: str | None = None,
                 validate: Callable[[Any, Any], float] | None = None,
                 log: Callable[[str], None] = print,
                 export: StateExport | None = None, loader: TripletLoader | None = None,
@@ -136,7 +136,7 @@ def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, f
   """Train one variant (a name of :data:`nlosjax.variants.VARIANTS`), resuming from ``workdir/<folder>``.
 
   Args:
-    config: the run config (:class:`~nlosjax.train.config.RunConfig`, or the dict it reads);
+    config: the run config (a :class:`~nlosjax.train.config.RunConfig`; a dict raises ``TypeError``);
       the seed is ``train.seed``.
     data_path: the dataset file.
     workdir: the run folder.
@@ -175,7 +175,7 @@ def train_model(config: RunConfig | dict, data_path, workdir, variant: str, *, f
   from tqdm import tqdm
 
   from nlosjax.models.network import format_summary, model_summary
-  config = run_config(config)
+  config = require_run_config(config, "train_model")
   tr = config.train
   steps, batch_size, seed = tr.steps, tr.batch_size, tr.seed
   stop = tr.stop
@@ -357,7 +357,7 @@ def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpoint
   return best
 
 
-def training_recipe(config: RunConfig | dict, variant: str) -> tuple[OptimConfig, losses.LossWeights]:
+def training_recipe(config: RunConfig, variant: str) -> tuple[OptimConfig, losses.LossWeights]:
   """``(optimiser, loss weights)`` a variant trains with.
 
   The config's ``train.optim`` and ``train.loss``, except for the baselines: USM with
@@ -366,7 +366,7 @@ def training_recipe(config: RunConfig | dict, variant: str) -> tuple[OptimConfig
   and I-K always) with Ours' recipe, its own section's ``optim`` entries (e.g. its own
   learning rate, chosen on validation) replacing ``train.optim``'s.
   """
-  cfg = run_config(config)
+  cfg = require_run_config(config, "training_recipe")
   optim = cfg.train.optim
   if variant in BASELINES:
     section = cfg.baselines[variant]

@@ -34,14 +34,14 @@ def make_mesh(devices=None) -> Mesh:
 
 
 def mesh_for(config) -> Mesh:
-  """The data-parallel mesh of a run (a :class:`~nlosjax.train.config.RunConfig` or its dict): every device,
+  """The data-parallel mesh of a run (a :class:`~nlosjax.train.config.RunConfig`): every device,
   or the first ``train.devices``.
 
   With several processes (``jax.distributed``) the mesh spans every process's
   devices and ``train.devices`` must be None.
   """
-  from nlosjax.train.config import run_config
-  n = run_config(config).train.devices
+  from nlosjax.train.config import require_run_config
+  n = require_run_config(config, "mesh_for").train.devices
   if n is None:
     return make_mesh()
   n = int(n)

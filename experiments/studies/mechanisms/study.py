@@ -36,9 +36,9 @@ def _subsample(rows: list[dict], n: int = LOSS_POINTS) -> list[dict]:
 
 def test_frames(cfg: dict, data_path) -> tuple[np.ndarray, np.ndarray]:
   """``(sequence [N], frame [N])`` of the test split's examples in evaluation order (middle frame index)."""
-  from nlosjax.train import make_loader
+  from nlosjax.train import RunConfig, make_loader
   bs = int(cfg["train"].get("eval_batch_size", cfg["train"]["batch_size"]))
-  loader = make_loader(cfg, data_path, "test", batch_size=bs, shuffle=False, seed=0)
+  loader = make_loader(RunConfig.from_dict(cfg), data_path, "test", batch_size=bs, shuffle=False, seed=0)
   try:
     batches = [loader.batch(i) for i in range(len(loader))]
   finally:
@@ -57,13 +57,14 @@ def train_and_score(cfg: dict, folder: pathlib.Path, variant: str, log: Callable
   from nlosjax import train as T
   from nlosjax.evaluation import protocol
   data_path = pathlib.Path(cfg["data"]["path"])
-  validate = protocol.validation_psnr(cfg, data_path)
-  mcfg, state = T.train_model(cfg, data_path, folder, variant, folder="model", validate=validate,
+  typed = T.RunConfig.from_dict(cfg)
+  validate = protocol.validation_psnr(typed, data_path)
+  mcfg, state = T.train_model(typed, data_path, folder, variant, folder="model", validate=validate,
                               log=log, export=export)
   params = T.to_host(state.params)
   t0 = time.perf_counter()
-  tuned = protocol.tune_model_thresholds(cfg, data_path, {variant: [(mcfg, params)]}, log=log)[variant]
-  ev = protocol.evaluate(cfg, data_path, {variant: [(mcfg, params)]}, split="test", methods=(),
+  tuned = protocol.tune_model_thresholds(typed, data_path, {variant: [(mcfg, params)]}, log=log)[variant]
+  ev = protocol.evaluate(typed, data_path, {variant: [(mcfg, params)]}, split="test", methods=(),
                          model_thresholds={variant: tuned["threshold"]}, log=log)
   sequence, frame = test_frames(cfg, data_path)
   if not np.array_equal(sequence, np.asarray(ev["sequence"])):
@@ -103,7 +104,7 @@ def run_one(base: dict, budget: str, row: str, seed: int, stop: dict, workdir: p
   from nlosjax import train as T
   cfg = run_config(base, budget, row, seed, stop, keep_loss)
   data_path = pathlib.Path(cfg["data"]["path"])
-  T.ensure_dataset(cfg, data_path, log=log)
+  T.ensure_dataset(T.RunConfig.from_dict(cfg), data_path, log=log)
   folder = run_dir(workdir, budget, row, seed)
   folder.mkdir(parents=True, exist_ok=True)
   write_json(folder / "run.json", {"budget": budget, "row": row, "seed": seed, "config": cfg})
@@ -148,11 +149,12 @@ def probe_model(cfg: dict, data_path, mcfg, params, log: Callable[[str], None] =
   from experiments.studies.mechanisms import probe as P
   from nlosjax import metrics
   from nlosjax.evaluation import protocol
-  from nlosjax.train import select_frames
+  from nlosjax.train import RunConfig, select_frames
   ssms, blocks = P.ssm_paths(params), P.gate_paths(params)
   fn = P.probed_apply(mcfg, ssms, blocks)
   bs = int(cfg["train"].get("eval_batch_size", cfg["train"]["batch_size"]))
-  data = protocol.load_split(cfg, data_path, "val", batch_size=bs)
+  typed = RunConfig.from_dict(cfg)
+  data = protocol.load_split(typed, data_path, "val", batch_size=bs)
   try:
     inputs = [select_frames(data["loader"].batch(i)["measurement"], mcfg.frames)
               for i in range(len(data["loader"]))]
@@ -178,7 +180,7 @@ def probe_model(cfg: dict, data_path, mcfg, params, log: Callable[[str], None] =
     modules.append({"module": p, "block": block, "psnr": psnr[p], "drop_db": psnr["none"] - psnr[p],
                     "gate_mean": gates.get(block)})
   log(f"[probe] intact {psnr['none']:.2f} dB; every SSM bypassed {psnr['all']:.2f} dB")
-  intact = protocol.validation_psnr(cfg, data_path)(mcfg, params)
+  intact = protocol.validation_psnr(typed, data_path)(mcfg, params)
   return {"split": "val", "n_frames": int(len(data["intensity"])), "intact_psnr": intact,
           "probe_intact_psnr": psnr["none"],
           "all_bypassed_psnr": psnr["all"], "all_drop_db": psnr["none"] - psnr["all"],
@@ -201,8 +203,9 @@ def probe_run_dir(folder: pathlib.Path, results: pathlib.Path, log: Callable[[st
   cfg = meta["config"]
   data_path = pathlib.Path(cfg["data"]["path"])
   variant = ROWS[meta["row"]][1]
-  mcfg, state = T.train_model(cfg, data_path, folder, variant, folder="model",
-                              validate=protocol.validation_psnr(cfg, data_path), log=log)
+  typed = T.RunConfig.from_dict(cfg)
+  mcfg, state = T.train_model(typed, data_path, folder, variant, folder="model",
+                              validate=protocol.validation_psnr(typed, data_path), log=log)
   result = probe_model(cfg, data_path, mcfg, T.to_host(state.params), log=log)
   path = run_json(results, meta["budget"], meta["row"], int(meta["seed"]))
   if path.exists():

@@ -41,13 +41,14 @@ def score_untrained(cfg: dict, *, methods=UNTRAINED, csa_frames: int | None = No
   """
   from nlosjax.evaluation import baselines, protocol, scores
   from nlosjax.physics import intensity_depth
-  from nlosjax.train import ensure_dataset
+  from nlosjax.train import RunConfig, ensure_dataset
   data_path = pathlib.Path(cfg["data"]["path"])
-  ensure_dataset(cfg, data_path)
+  typed = RunConfig.from_dict(cfg)
+  ensure_dataset(typed, data_path)
   bs = int(cfg["train"].get("eval_batch_size", cfg["train"]["batch_size"]))
   classic = tuple(m for m in methods if m in baselines.CLASSIC_METHODS)
   t0 = time.perf_counter()
-  val = protocol.load_split(cfg, data_path, "val", batch_size=bs)
+  val = protocol.load_split(typed, data_path, "val", batch_size=bs)
   val["loader"].close()
   settings = baselines.tune(val["measurement"], val["intensity"], val["depth"], val["setup"], val["stride"],
                             methods=classic, log=log) if classic else {}
@@ -57,13 +58,13 @@ def score_untrained(cfg: dict, *, methods=UNTRAINED, csa_frames: int | None = No
                                             val["depth"][pick], val["setup"], val["stride"], log=log),
                        "val_frames": [int(i) for i in pick]}
   out = {"data": str(data_path), "methods": {}}
-  ev = protocol.evaluate(cfg, data_path, {}, split="test", methods=classic, classic_settings=settings, log=log)
+  ev = protocol.evaluate(typed, data_path, {}, split="test", methods=classic, classic_settings=settings, log=log)
   for m in classic:
     out["methods"][m] = {"settings": _plain_setting(settings[m]),
                          "test": {"sequence": ev["sequence"], "frame": ev["frame"],
                                   "scores": {k: np.asarray(v) for k, v in ev["scores"][m].items()}}}
   if "csa" in methods:
-    test = protocol.load_split(cfg, data_path, "test", batch_size=bs)
+    test = protocol.load_split(typed, data_path, "test", batch_size=bs)
     test["loader"].close()
     s = settings["csa"]
     vol = np.concatenate([np.asarray(baselines.csa_volume(test["measurement"][i:i + bs], test["setup"],

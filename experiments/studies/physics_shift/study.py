@@ -129,11 +129,11 @@ def test_sets(base: dict, conditions, physics=None) -> dict:
   sets = {}
   for design in CANDIDATES:
     cfg = design_config(base, design, physics)
-    T.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
+    T.ensure_dataset(T.RunConfig.from_dict(cfg), pathlib.Path(cfg["data"]["path"]))
     sets[f"val:{design}"] = (pathlib.Path(cfg["data"]["path"]), cfg, "val")
   for family in FAMILIES:
     cfg = family_set_config(base, family, physics)
-    T.ensure_dataset(cfg, pathlib.Path(cfg["data"]["path"]))
+    T.ensure_dataset(T.RunConfig.from_dict(cfg), pathlib.Path(cfg["data"]["path"]))
     sets[f"family:{family}"] = (pathlib.Path(cfg["data"]["path"]), cfg)
   for cond in conditions:
     path = heldout.ensure_condition(heldout_path(base, cond), base["data"], cond, SEQUENCES, FRAMES,
@@ -162,12 +162,14 @@ def _scores(ev: dict, method: str) -> dict:
 def score_model(cfg: dict, val_path, mcfg, params, variant: str, sets: dict, names,
                 log: Callable[[str], None] = print) -> dict:
   """The model's surface threshold on ``val_path``'s validation split, then per-frame scores on each set."""
+  from nlosjax import train as T
   from nlosjax.evaluation import protocol
-  tuned = protocol.tune_model_thresholds(cfg, val_path, {variant: [(mcfg, params)]}, log=log)[variant]
+  tuned = protocol.tune_model_thresholds(T.RunConfig.from_dict(cfg), val_path, {variant: [(mcfg, params)]},
+                                         log=log)[variant]
   out = {"surface_threshold": tuned["threshold"], "sets": {}}
   for name in names:
     path, set_cfg, *split = sets[name]
-    read = {**set_cfg, "train": cfg["train"]}
+    read = T.RunConfig.from_dict({**set_cfg, "train": cfg["train"]})
     ev = protocol.evaluate(read, path, {variant: [(mcfg, params)]}, methods=(), split=(split or ["test"])[0],
                            model_thresholds={variant: tuned["threshold"]}, log=log)
     out["sets"][name] = {"sequence": np.asarray(ev["sequence"]), "frame": np.asarray(ev["frame"]),
@@ -177,9 +179,11 @@ def score_model(cfg: dict, val_path, mcfg, params, variant: str, sets: dict, nam
 
 def classic_record(cfg: dict, val_path, settings: dict, sets: dict, name: str, log=print) -> dict:
   """Every classic method on set ``name`` with ``settings`` (tuned on ``val_path``'s validation split)."""
+  from nlosjax import train as T
   from nlosjax.evaluation import baselines, protocol
   path, set_cfg, *_ = sets[name]
-  ev = protocol.evaluate({**set_cfg, "train": cfg["train"]}, path, {}, classic_settings=settings, log=log)
+  read = T.RunConfig.from_dict({**set_cfg, "train": cfg["train"]})
+  ev = protocol.evaluate(read, path, {}, classic_settings=settings, log=log)
   return {"set": name, "tuned_on": str(val_path), "best": max(settings, key=lambda m: settings[m]["psnr"]),
           "val_psnr": {m: settings[m]["psnr"] for m in settings},
           "sequence": np.asarray(ev["sequence"]), "frame": np.asarray(ev["frame"]),
@@ -213,14 +217,15 @@ def train_run(cfg: dict, folder: pathlib.Path, variant: str, stop: dict, log=pri
   if meta is not None:
     write_json(folder / "run.json", {**meta, "config": cfg})
   data_path = pathlib.Path(cfg["data"]["path"])
-  T.ensure_dataset(cfg, data_path, log=log)
-  validate = protocol.validation_psnr(cfg, data_path)
+  typed = T.RunConfig.from_dict(cfg)
+  T.ensure_dataset(typed, data_path, log=log)
+  validate = protocol.validation_psnr(typed, data_path)
   export = None
   if state is not None:
     from nlosjax.data.dataset import dataset_identity
     digest, fingerprint = dataset_identity(data_path)
     export = T.StateExport(state, data_digest=digest, data_fingerprint=fingerprint, deadline=deadline)
-  mcfg, trained = T.train_model(cfg, data_path, folder, variant, folder="model", validate=validate, log=log,
+  mcfg, trained = T.train_model(typed, data_path, folder, variant, folder="model", validate=validate, log=log,
                                 export=export)
   curve = T.read_curve(folder / "model")
   record = {"steps_taken": curve["steps_taken"], "stop_reason": curve["stop_reason"],
@@ -299,8 +304,9 @@ def run_classic(base: dict, design: str, name: str, sets: dict, results, preset:
   if tuning.exists():
     settings = json.loads(tuning.read_text())["settings"]
   else:
-    T.ensure_dataset(cfg, val_path, log=log)
-    settings = tune_classic(cfg, val_path, log)
+    typed = T.RunConfig.from_dict(cfg)
+    T.ensure_dataset(typed, val_path, log=log)
+    settings = tune_classic(typed, val_path, log)
     write_json(tuning, {"design": design, "tuned_on": str(val_path), "settings": settings,
                         "machine": machine()})
   record = classic_record(cfg, val_path, settings, sets, name, log)

@@ -137,20 +137,21 @@ def train_run(run: Run, *, deadline: float | None, allow_data_change: bool = Fal
   from nlosjax.data.dataset import dataset_identity
   from nlosjax.evaluation import protocol
   config = run_config(run)
+  typed = train.RunConfig.from_dict(config)
   data_path = pathlib.Path(config["data"]["path"])
   data_path.parent.mkdir(parents=True, exist_ok=True)
-  train.ensure_dataset(config, data_path, log=log)   # a file of another config is refused
+  train.ensure_dataset(typed, data_path, log=log)   # a file of another config is refused
   digest, fingerprint = dataset_identity(data_path)
   log(f"[{run.name}] data {data_path} (content digest {digest})")
   export = train.StateExport(state_folder(run), data_digest=digest, data_fingerprint=fingerprint,
                              deadline=deadline, allow_data_change=allow_data_change)
   _record_invocation(run, digest)
-  validate = protocol.validation_psnr(config, data_path)
+  validate = protocol.validation_psnr(typed, data_path)
   wd = workdir(run)
   wd.mkdir(parents=True, exist_ok=True)
   (wd / "config.json").write_text(json.dumps(config, indent=2, default=str) + "\n")
   try:
-    train.train_model(config, data_path, wd, run.variant, validate=validate, log=log, export=export)
+    train.train_model(typed, data_path, wd, run.variant, validate=validate, log=log, export=export)
   except train.TrainingPaused as e:
     log(str(e))
     return False
@@ -356,8 +357,8 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
   from nlosjax import train
   from nlosjax.evaluation import protocol
   config, trained = cli.load_source(a.source, [a.variant])
-  config = train.with_defaults(config)
-  data_path = store.data_path(pathlib.Path(config["data"]["path"]).name)   # made in the store, checked strictly
+  config = train.read_preset(config)
+  data_path = store.data_path(pathlib.Path(config.data.path).name)   # made in the store, checked strictly
   data_path.parent.mkdir(parents=True, exist_ok=True)
   train.ensure_dataset(config, data_path, log=log)   # a file of another config is refused
   validate = protocol.validation_psnr(config, data_path)
