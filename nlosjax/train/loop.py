@@ -182,7 +182,8 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
   if stop.rule == "plateau" and validate is None:
     raise ValueError('train.stop.rule "plateau" needs the validate callback')
   steps = stop.horizon(steps)       # the plateau rule: its max_steps, also the schedule's horizon
-  vdir = pathlib.Path(workdir) / (folder or variant)
+  label = folder or variant              # the model's folder, and its name in logs and progress bars
+  vdir = pathlib.Path(workdir) / label
   vdir.mkdir(parents=True, exist_ok=True)
   primary = jax.process_index() == 0
   if not primary:
@@ -192,7 +193,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
                          shard=(jax.process_index(), jax.process_count()))
   try:                                  # the loader is closed however training ends
     mcfg = model_config_for(config, loader.setup, variant) if model_config is None else model_config
-    log(f"[{variant}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{variant}] "))
+    log(f"[{label}] " + format_summary(model_summary(mcfg)).replace("\n", f"\n[{label}] "))
     model = network(mcfg)
     optim, weights = training_recipe(config, variant)
     mesh = mesh_for(config)
@@ -208,7 +209,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     restored = ckpt.restore_latest(state)
     if restored is not None:
       state, start = restored
-      log(f"[{variant}] resumed from step {start} ({ckpt.directory})")
+      log(f"[{label}] resumed from step {start} ({ckpt.directory})")
     name = folder or variant
     imported_best = None
     exported = read_meta(export.folder(name)) if export is not None else None
@@ -221,7 +222,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
       copy_logs(export.folder(name), vdir)
       ckpt.save(state, start, force=True)
       ckpt.wait()
-      log(f"[{variant}] resumed from step {start} of the exported state {export.folder(name)}"
+      log(f"[{label}] resumed from step {start} of the exported state {export.folder(name)}"
           f"{meta['data_check'].describe()}")
     elif exported is not None and exported["step"] > start:
       raise ValueError("resuming from an exported state needs a single process; resume once with one, "
@@ -264,7 +265,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     t_start = time.perf_counter()
     # Batches are a function of the step; with data.loader.prefetch they are read that many
     # steps ahead in a thread while the step runs (the same batches).
-    with open(log_path, "a") as f, tqdm(total=steps, initial=start, desc=f"train {variant}",
+    with open(log_path, "a") as f, tqdm(total=steps, initial=start, desc=f"train {label}",
                                         unit="step", dynamic_ncols=True, mininterval=2.0,
                                         disable=not primary) as bar, \
          contextlib.closing(loader.iterate(start, max(0, steps - start))) as batches:
@@ -280,7 +281,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
         if done % log_every == 0 or done == steps or validating:
           m = {k: float(v) for k, v in to_host(metrics).items()}
           if not all(math.isfinite(v) for v in m.values()):
-            raise FloatingPointError(f"[{variant}] non-finite metrics at step {done}: {m}")
+            raise FloatingPointError(f"[{label}] non-finite metrics at step {done}: {m}")
           row = {"step": done, "time_s": round(time.perf_counter() - t_start, 3), **m}
           f.write(json.dumps(row) + "\n")
           f.flush()
@@ -304,13 +305,12 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
           ckpt.close()
           if tracker is not None:
             tracker.best.close()
-          loader.close()
-          log(f"[{variant}] paused at step {done} (deadline); state exported to {export.folder(name)}")
+          log(f"[{label}] paused at step {done} (deadline); state exported to {export.folder(name)}")
           raise TrainingPaused(variant, done, export.folder(name))
     batches.close()
     loader.close()
     if tracker is not None:
-      chosen = _finish_plateau(tracker, state, ckpt, vdir, variant, primary, log)
+      chosen = _finish_plateau(tracker, state, ckpt, vdir, label, primary, log)
       export_now(state)                   # with the final curve and selection.json
       return mcfg, chosen
     last = state
@@ -324,7 +324,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
       best = max(selection["val_psnr"], key=lambda k: (selection["val_psnr"][k], k))
       state = candidates[best]
       selection["step"] = int(best)
-      log(f"[{variant}] checkpoint chosen on validation: step {best} "
+      log(f"[{label}] checkpoint chosen on validation: step {best} "
           f"({', '.join(f'{k}: {v:.2f} dB' for k, v in selection['val_psnr'].items())})")
     ckpt.close()
     if primary:
@@ -336,12 +336,12 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
 
 
 def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpointer, vdir: pathlib.Path,
-                    variant: str, primary: bool, log: Callable[[str], None]) -> TrainState:
+                    label: str, primary: bool, log: Callable[[str], None]) -> TrainState:
   """End a plateau run: the best state, the final curve and ``selection.json``."""
   done = tracker.curve[-1]["step"] if tracker.curve else int(state.step)
   reason = tracker.reason(done)
   if reason is None:
-    raise RuntimeError(f"[{variant}] the plateau run ended at step {done} without a stop reason")
+    raise RuntimeError(f"[{label}] the plateau run ended at step {done} without a stop reason")
   best = tracker.best_state(state)
   ckpt.close()
   tracker.best.close()
@@ -352,7 +352,7 @@ def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpoint
                "val_psnr": {p["step"]: p["val_psnr"] for p in tracker.curve}}
   if primary:
     (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-  log(f"[{variant}] stopped after {done} steps ({reason}); best on validation: step {int(best.step)}"
+  log(f"[{label}] stopped after {done} steps ({reason}); best on validation: step {int(best.step)}"
       f" ({summary['best_val_psnr']:.2f} dB)")
   return best
 
