@@ -21,7 +21,8 @@ return. Probes, each on fixed seeds:
 * ``scripts/dry_run``: ``python -m benchmarks.dry_run --config TINY``: the dry run's plan of
   each variant, times left out (:data:`UNTIMED`);
 * ``scripts/hlo_gpu``: ``python -m benchmarks.hlo_gpu --config TINY --batch 2``: the lowered
-  step's HLO and StableHLO texts (for CUDA and for this machine), fingerprinted;
+  step's HLO and StableHLO texts (for CUDA and for this machine), fingerprinted without the
+  HLO's source locations (a file's lines, the checkout's path);
 * ``scripts/model``: ``benchmarks.model``'s model configs of the ``cpu`` preset (Ours, USM);
 * ``scripts/step_profile``: ``python -m benchmarks.step_profile --config TINY --steps 1``:
   the input shape and the names of the profiled parts and op kinds;
@@ -61,6 +62,7 @@ import hashlib
 import io
 import json
 import pathlib
+import re
 import sys
 import tempfile
 import time
@@ -73,6 +75,7 @@ TINY = "tiny-probe"
 UNTIMED = frozenset({"time_s", "eval_s", "val_s", "train_wall_s", "wall_s", "seconds", "machine", "date",
                      "data", "path", "commit", "code_digest", "compile_s", "step_s", "run_s", "op_s",
                      "lower_s", "trace_s", "events_per_step", "with_metadata", "t_full", "t_gated",
+                     "t_compile", "t_estimate",
                      "source", "exported", "command", "checkpoint", "workdir", "dataset", "record",
                      "memory_bytes", "memory_source", "load"})
 
@@ -86,6 +89,19 @@ def leaves(value, prefix: str, out: dict) -> None:
 def fingerprint(text: str) -> np.ndarray:
   """The SHA-256 of ``text`` as 32 numbers: equal texts, equal arrays; any change moves it."""
   return np.frombuffer(hashlib.sha256(text.encode()).digest(), np.uint8).astype(np.float64)
+
+
+#: An HLO text's source locations (``debug_info``): which file and line traced an op, not the
+#: program; in an op's metadata, and the module's tables of files, functions, lines and frames.
+SOURCE = re.compile(r'\s*(?:source_(?:file="[^"]*"|line=\d+|end_line=\d+|column=\d+|end_column=\d+)'
+                    r'|stack_frame_id=\d+)')
+FRAMES = re.compile(r"^(?:FileNames|FunctionNames|FileLocations|StackFrames)\n(?:.+\n)*\n?", re.M)
+
+
+def program_fingerprint(hlo: str) -> np.ndarray:
+  """:func:`fingerprint` of an HLO text without its source locations: the same program traced from
+  another checkout, or from a file whose lines moved, has the same fingerprint."""
+  return fingerprint(SOURCE.sub("", FRAMES.sub("", hlo)))
 
 
 def plain(value):
@@ -172,7 +188,7 @@ def probe_hlo_gpu(tmp: pathlib.Path, out: dict) -> None:
     H.main(["--config", TINY, "--batch", "2", "--out", str(tmp / "hlo_gpu.md")])
   for i, info in enumerate(kept):
     for key in ("hlo", "stablehlo"):
-      out[f"scripts/hlo_gpu/{i}/{key}"] = fingerprint(info[key])
+      out[f"scripts/hlo_gpu/{i}/{key}"] = program_fingerprint(info[key])
     leaves(plain({k: v for k, v in info.items() if k not in ("hlo", "stablehlo")}), f"scripts/hlo_gpu/{i}", out)
 
 

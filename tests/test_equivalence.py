@@ -381,6 +381,14 @@ def test_the_scripts_probe_holds_the_scripts_it_runs_and_fingerprints_programs(m
     assert configs.get_config("cpu") == configs.get_config("cpu")
   with pytest.raises(ValueError):
     configs.get_config(P.TINY)
+  hlo = ('HloModule m\n\nFileNames\n1 "a.py"\n\nStackFrames\n1 {file_location_id=1 parent_frame_id=1}\n\n'
+         'ENTRY e {\n  x = f32[] parameter(0), metadata={op_name="x" source_file="/a/b.py" source_line=3 '
+         'stack_frame_id=1}\n}\n')
+  moved = hlo.replace('"a.py"', '"c.py"').replace("/a/b.py", "/tmp/c.py").replace("source_line=3", "source_line=9")
+  assert np.array_equal(P.program_fingerprint(hlo), P.program_fingerprint(moved))   # where it was traced from
+  assert P.SOURCE.sub("", P.FRAMES.sub("", hlo)) == \
+      'HloModule m\n\nENTRY e {\n  x = f32[] parameter(0), metadata={op_name="x"}\n}\n'
+  assert not np.array_equal(P.program_fingerprint(hlo), P.program_fingerprint(hlo.replace("f32[]", "f16[]")))
   kept = []
   with P.wrapped(P, "plain", kept):
     P.plain({"a": 1})
