@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments import provenance as _machine
+from nlosjax.variants import OURS
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "compile.md"
 MB = 1e6
@@ -144,7 +145,7 @@ def report(result: dict, command: str) -> str:
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--config", default="paper", help="preset (default: paper)")
-  parser.add_argument("--variant", default="ours", help="model variant (default: ours)")
+  parser.add_argument("--variant", default=OURS, help="model variant (default: ours)")
   parser.add_argument("--batch", type=int, default=1, help="batch of the compiled programs (default: 1)")
   parser.add_argument("--repeats", type=int, default=2, help="rounds per way (default: 2)")
   parser.add_argument("--out", default=str(DEFAULT_OUT), help="results file ('-': print only)")

@@ -32,6 +32,7 @@ from nlosjax import physics, plan, train
 from nlosjax.data import io
 from nlosjax.physics import Setup
 from nlosjax.ssm import resolve_method, selective_scan
+from nlosjax.variants import OURS, OURS_S
 
 GIB = 2.0 ** 30
 #: Correctness limits. The scans run in float32 against a float64 loop: relative error (max
@@ -51,13 +52,13 @@ SEED = 0
 #: the classic methods' timing; ``scan_shapes``: benchmarks.scan's shapes (the paper's own are
 #: added from the paper part's model; tiny: those alone, one shape); ``spatial_factor``: of the
 #: shipped scan.
-FULL = {"train": ("cpu", "ours", 2, {}, {}), "paper": ("paper", "ours", None, {}, {}),
+FULL = {"train": ("cpu", OURS, 2, {}, {}), "paper": ("paper", OURS, None, {}, {}),
         "classic": (128, 512), "scan_shapes": scan_bench.DEFAULT_SHAPES, "scan_repeats": 5,
         "spatial_factor": 1, "max_batch": 1024, "repeats": 5}
 _TINY_DATA = {"grid": 16, "num_bins": 64, "bin_width": 264e-12}
 _TINY_MODEL = {"dilations": (1,), "volume_features": 1, "refine_width": 1}
-TINY = {"train": ("cpu", "ours_s", 2, _TINY_DATA, _TINY_MODEL),
-        "paper": ("cpu", "ours_s", 2, _TINY_DATA, _TINY_MODEL),
+TINY = {"train": ("cpu", OURS_S, 2, _TINY_DATA, _TINY_MODEL),
+        "paper": ("cpu", OURS_S, 2, _TINY_DATA, _TINY_MODEL),
         "classic": (32, 128), "scan_shapes": (), "scan_repeats": 2,
         "spatial_factor": 2, "max_batch": 2, "repeats": 2}
 

@@ -41,6 +41,7 @@ import sys
 import time
 
 from experiments import provenance as _machine
+from nlosjax.variants import OURS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "hlo_gpu.md"
@@ -1008,7 +1009,7 @@ def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--config", default="paper", help="preset name (default: %(default)s)")
   parser.add_argument("--batch", type=int, default=4, help="global batch (default: %(default)s)")
-  parser.add_argument("--variant", default="ours", help="model variant (default: %(default)s)")
+  parser.add_argument("--variant", default=OURS, help="model variant (default: %(default)s)")
   parser.add_argument("--out", default=str(DEFAULT_OUT), help="Markdown output")
   args = parser.parse_args(argv)
   if args.batch < 1:
@@ -1025,7 +1026,7 @@ def main(argv=None) -> int:
   here = census(info_here.pop("hlo"), info_here.pop("stablehlo"), info_here["model"])
   command = "python -m benchmarks.hlo_gpu" + "".join(
       f" {flag} {value}" for flag, value, default in (
-          ("--config", args.config, "paper"), ("--batch", args.batch, "4"), ("--variant", args.variant, "ours"))
+          ("--config", args.config, "paper"), ("--batch", args.batch, "4"), ("--variant", args.variant, OURS))
       if str(value) != default)
   if pathlib.Path(args.out).resolve() != DEFAULT_OUT:
     command += f" --out {args.out}"

@@ -54,6 +54,7 @@ import time
 import traceback
 
 from experiments import provenance as _machine_facts
+from nlosjax.variants import OURS, USM
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "model.md"
 GIB = 1024.0 ** 3
@@ -63,14 +64,14 @@ def _config(name: str, frames: int):
   import dataclasses
 
   from nlosjax.models import ModelConfig
-  if name in ("cpu", "usm"):   # what the cpu preset trains, on its data's Setup
+  if name in ("cpu", USM):   # what the cpu preset trains, on its data's Setup
     from experiments import configs
     from nlosjax import train
     preset = train.read_preset(configs.get_config("cpu"))
     setup = preset.data.spec().setup
-    if name == "usm":                  # USM reconstructs one frame
-      return train.model_config_for(preset, setup, "usm")
-    return dataclasses.replace(train.model_config_for(preset, setup, "ours"), frames=frames)
+    if name == USM:                  # USM reconstructs one frame
+      return train.model_config_for(preset, setup, USM)
+    return dataclasses.replace(train.model_config_for(preset, setup, OURS), frames=frames)
   if name == "paper":
     return ModelConfig.paper(frames=frames)
   raise ValueError(f"unknown config {name!r}; choose cpu, usm or paper")
@@ -319,8 +320,8 @@ def to_markdown(rows, cmd, load_before, load_after) -> str:
 
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument("--configs", nargs="+", default=["cpu", "usm", "paper"],
-                 choices=["cpu", "usm", "paper"])
+  p.add_argument("--configs", nargs="+", default=["cpu", USM, "paper"],
+                 choices=["cpu", USM, "paper"])
   p.add_argument("--frames", type=int, nargs="+", default=[3])
   p.add_argument("--batch", type=int, default=1)
   p.add_argument("--repeats", type=int, default=1)
@@ -334,7 +335,7 @@ def main(argv=None):
   load_before = tuple(round(v, 2) for v in os.getloadavg())
   rows = []
   for name in args.configs:
-    for frames in ([1] if name == "usm" else args.frames):     # USM reconstructs one frame
+    for frames in ([1] if name == USM else args.frames):     # USM reconstructs one frame
       r = run_isolated(name, frames, args.batch, args.repeats, args.forward, args.time_limit,
                        args.reference)
       print({k: v for k, v in r.items()}, flush=True)

@@ -21,6 +21,8 @@ import sys
 import tempfile
 import time
 
+from nlosjax.variants import OURS
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "prefetch.md"
 
@@ -49,11 +51,11 @@ def train_seconds_per_step(config: dict, data_path, workdir: pathlib.Path, ahead
   cfg["data"]["loader"] = {**cfg["data"].get("loader", {}), "in_memory": False, "prefetch": ahead}
   skip = max(1, steps // 4)
   cfg["train"].update(steps=steps, log_every=1, checkpoint_every=steps, select_checkpoint="last",
-                      variants=["ours"])
+                      variants=[OURS])
   cfg["train"].pop("stop", None)
   cfg = T.read_preset(cfg)
-  _, state = T.train_model(cfg, data_path, workdir, "ours", log=lambda s: None)
-  rows = [json.loads(line) for line in (workdir / "ours" / "metrics.jsonl").read_text().splitlines()]
+  _, state = T.train_model(cfg, data_path, workdir, OURS, log=lambda s: None)
+  rows = [json.loads(line) for line in (workdir / OURS / "metrics.jsonl").read_text().splitlines()]
   t = {r["step"]: r["time_s"] for r in rows}
   return (t[steps] - t[skip]) / (steps - skip), T.to_host(state.params)
 

@@ -27,11 +27,12 @@ import tempfile
 import time
 
 from experiments import provenance as _machine
+from nlosjax.variants import OURS, OURS_S
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "reconstruct_time.md"
 DEFAULT_CAPTURE = "nlosjax/data/scans/data_exit_sign.mat"
-LEARNED = ("ours", "ours_s")
+LEARNED = (OURS, OURS_S)
 CLASSIC = ("lct", "phasor", "rsd")
 GOAL_S = 10.0
 _SHAPE = re.compile(r"\(T, H, W\) = \((\d+), (\d+), (\d+)\)")

@@ -34,6 +34,7 @@ import tempfile
 import time
 
 from experiments import provenance as _machine
+from nlosjax.variants import OURS, OURS_S
 
 DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "step_profile.md"
 RATE = 0.5           # Poisson rate per bin of the synthetic measurement
@@ -229,7 +230,7 @@ def render(results: list[dict], command: str, config_name: str) -> str:
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--config", default="cpu", help="preset name (default: %(default)s)")
-  parser.add_argument("--variants", nargs="+", default=["ours_s", "ours"],
+  parser.add_argument("--variants", nargs="+", default=[OURS_S, OURS],
                       help="model variants to profile (default: %(default)s)")
   parser.add_argument("--steps", type=int, default=5, help="timed and profiled steps each (default: %(default)s)")
   parser.add_argument("--out", default=str(DEFAULT_OUT), help="Markdown output")

@@ -56,7 +56,7 @@ import time
 
 import numpy as np
 
-from nlosjax.variants import VARIANTS
+from nlosjax.variants import OURS, VARIANTS
 
 #: The learned methods: ``model`` (the variant named by ``--variant``) and each variant by name.
 LEARNED = ("model", *VARIANTS)
@@ -323,7 +323,7 @@ def trained_model(args):
     if args.pretrained is not None:
       raise ValueError(f"--checkpoint {args.checkpoint} and --pretrained {args.pretrained}: give one")
     return cio.load_trained(args.checkpoint, args.variant)
-  name, variant = args.pretrained or DEFAULT_PRETRAINED, args.variant or "ours"
+  name, variant = args.pretrained or DEFAULT_PRETRAINED, args.variant or OURS
   shipped = cio.pretrained_names()
   if (name, variant) not in shipped:
     have = ", ".join(f"{n} ({v})" for n, v in shipped) or "none"

@@ -3,6 +3,7 @@
 from experiments import configs
 from nlosjax import train as T
 from nlosjax.data.scenes import params as scene_params
+from nlosjax.variants import OURS, USM
 
 # 16 x 16 capture, every 4th point in (4 x 4), 64 bins of 264 ps; a model a few thousand parameters big.
 # The cpu preset's first data recipe: the light-cone renderer, 1e3-1e4 photons, and the
@@ -30,7 +31,7 @@ def tiny_config(data_path, **train):
   cfg["data"].update(TINY_DATA, path=str(data_path))
   cfg["data"]["scene"] = {**cfg["data"]["scene"], **LCT_SCENE}
   cfg["model"] = dict(TINY_MODEL)
-  cfg["usm"] = {"recipe": "ours", "model": dict(TINY_USM)}
+  cfg[USM] = {"recipe": OURS, "model": dict(TINY_USM)}
   cfg["train"] = {"steps": 4, "batch_size": 2, "log_every": 1, "checkpoint_every": 2,
                   "eval_batch_size": 2, **train}
   return T.with_defaults(cfg)

@@ -32,6 +32,7 @@ from nlosjax import pretrained
 from nlosjax.models.network import triplets  # noqa: F401  (re-exported: part of this module's API)
 from nlosjax.physics.setup import Setup
 from nlosjax.pretrained import VARIANTS  # the trained models a run folder holds: one source
+from nlosjax.variants import OURS
 
 
 def _holds_checkpoint(ckpt: pathlib.Path) -> bool:
@@ -231,7 +232,7 @@ def pretrained_names(root=None) -> list[tuple[str, str]]:
   return pretrained.shipped(root)
 
 
-def load_pretrained(name: str = "cpu", variant: str = "ours", *, setup: Setup | None = None,
+def load_pretrained(name: str = "cpu", variant: str = OURS, *, setup: Setup | None = None,
                     root=None):
   """Weights shipped inside the package: ``(model_config, params, provenance)``; compiles nothing.
 

@@ -306,12 +306,13 @@ def _model_fields(config) -> set:
 
 def verdict(config: RunConfig, plan: StepPlan, memory: int | None, variant: str) -> str | None:
   """None when ``plan`` fits ``MEMORY_FRACTION`` of ``memory`` (or memory is unknown), else the error message."""
+  config = require_run_config(config, "verdict")
   if memory is None:
     return None
   limit = int(MEMORY_FRACTION * memory)
   if plan.peak_bytes <= limit:
     return None
-  fixes = "\n".join(f"  - {f}" for f in _fixes(require_run_config(config, "verdict"), plan, limit))
+  fixes = "\n".join(f"  - {f}" for f in _fixes(config, plan, limit))
   return (f"[{variant}] the {plan.kind} step plans {plan.peak_bytes / GIB:.2f} GiB per device, more than "
           f"{MEMORY_FRACTION:.0%} of the device's {memory / GIB:.2f} GiB ({limit / GIB:.2f} GiB); "
           f"batch {plan.batch} over {plan.devices} device(s). Fixes:\n{fixes}")

@@ -28,19 +28,22 @@ class Variant:
   family: str
 
 
+#: The variants' names, spelled here only: code that selects a variant names it by these.
+OURS, OURS_S, USM, LFE, IK = "ours", "ours_s", "usm", "lfe", "ik"
+
 #: Every variant, in order of preference: a run or weights folder read without naming a
 #: variant gives the first it holds. Tables print them in the reverse order (baselines first).
 VARIANTS = {v.name: v for v in (
-    Variant("ours", "Ours", 3, "stmamba"),        # the paper's method
-    Variant("ours_s", "Ours-S", 1, "stmamba"),   # the paper's single-frame ablation
-    Variant("usm", "USM", 1, "usm"),
-    Variant("lfe", "LFE", 1, "lfe"),
-    Variant("ik", "I-K", 1, "ik"),
+    Variant(OURS, "Ours", 3, "stmamba"),        # the paper's method
+    Variant(OURS_S, "Ours-S", 1, "stmamba"),   # the paper's single-frame ablation
+    Variant(USM, "USM", 1, "usm"),
+    Variant(LFE, "LFE", 1, "lfe"),
+    Variant(IK, "I-K", 1, "ik"),
 )}
 
 #: The paired differences every results table reports, ``(a, b)`` for ``a - b``, where both ran
 #: (each variant also against the best classic method).
-COMPARISONS = (("ours", "ours_s"), ("ours", "usm"), ("ours_s", "usm"), ("ours", "lfe"), ("ours", "ik"))
+COMPARISONS = ((OURS, OURS_S), (OURS, USM), (OURS_S, USM), (OURS, LFE), (OURS, IK))
 
 
 def variant(name: str) -> Variant:

@@ -47,8 +47,9 @@ class _Killed(Exception):
 @pytest.mark.full
 def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for_bit(data_path, tmp_path):
   cfg = _plateau_config(data_path)
+  config = RunConfig.from_dict(cfg)
   quiet = lambda s: None
-  _, straight = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", validate=_score, log=quiet)
+  _, straight = T.train_model(config, data_path, tmp_path / "a", "ours_s", validate=_score, log=quiet)
   # The interrupted run: killed inside the validation of step 6, after that step's checkpoint
   # and before its export (the export still holds step 4, the last finished validation).
   calls = []
@@ -61,7 +62,7 @@ def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for
 
   export = T.StateExport(tmp_path / "state", data_digest=dataset_digest(data_path))
   with pytest.raises(_Killed):
-    T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=dying, log=quiet,
+    T.train_model(config, data_path, tmp_path / "b", "ours_s", validate=dying, log=quiet,
                   export=export)
   meta = run_state.read_meta(tmp_path / "state" / "ours_s")
   assert meta["step"] == 4 and meta["best_step"] in (2, 4)
@@ -71,7 +72,7 @@ def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for
   shutil.rmtree(tmp_path / "state")
   messages = []
   moved = T.StateExport(tmp_path / "clone" / "state", data_digest=dataset_digest(data_path))
-  _, resumed = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "c", "ours_s", validate=_score,
+  _, resumed = T.train_model(config, data_path, tmp_path / "c", "ours_s", validate=_score,
                              log=messages.append, export=moved)
   assert any("resumed from step 4 of the exported state" in m for m in messages)
   _assert_same_tree(straight.params, resumed.params)          # the best state, chosen alike
@@ -95,15 +96,16 @@ def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for
 @pytest.mark.full
 def test_a_run_past_its_deadline_pauses_exported_and_continues_to_the_same_parameters(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=5, checkpoint_every=4)
+  config = RunConfig.from_dict(cfg)
   quiet = lambda s: None
-  _, straight = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", log=quiet)
+  _, straight = T.train_model(config, data_path, tmp_path / "a", "ours_s", log=quiet)
   paused = T.StateExport(tmp_path / "state", deadline=0.0)       # already past: pause after step 1
   with pytest.raises(T.TrainingPaused) as info:
-    T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", log=quiet, export=paused)
+    T.train_model(config, data_path, tmp_path / "b", "ours_s", log=quiet, export=paused)
   assert info.value.step == 1
   assert run_state.read_meta(tmp_path / "state/ours_s")["step"] == 1
   shutil.rmtree(tmp_path / "b")
-  _, resumed = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "c", "ours_s", log=quiet,
+  _, resumed = T.train_model(config, data_path, tmp_path / "c", "ours_s", log=quiet,
                              export=T.StateExport(tmp_path / "state"))
   _assert_same_tree(straight.params, resumed.params)
   _assert_same_tree(straight.opt_state, resumed.opt_state)

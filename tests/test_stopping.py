@@ -134,8 +134,9 @@ def test_a_plateau_run_stops_where_its_validations_say_and_keeps_the_best(data_p
 def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path, tmp_path, monkeypatch):
   from nlosjax.evaluation import protocol
   cfg = tiny_config(data_path, stop=plateau(patience=2, min_delta_db=0.0), optim=OPTIM)
-  real = protocol.validation_psnr(RunConfig.from_dict(cfg), data_path)
-  _, straight = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", validate=real, log=quiet)
+  config = RunConfig.from_dict(cfg)
+  real = protocol.validation_psnr(config, data_path)
+  _, straight = T.train_model(config, data_path, tmp_path / "a", "ours_s", validate=real, log=quiet)
 
   class Kill(Exception):
     pass
@@ -154,7 +155,7 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
 
   monkeypatch.setattr(loop, "make_train_step", killing_step)
   with pytest.raises(Kill):
-    T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=real, log=quiet)
+    T.train_model(config, data_path, tmp_path / "b", "ours_s", validate=real, log=quiet)
   monkeypatch.setattr(loop, "make_train_step", make_step)
   assert [p["step"] for p in T.read_curve(tmp_path / "b" / "ours_s")["curve"]] == [2, 4]
 
@@ -164,13 +165,13 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
 
   messages = []
   with pytest.raises(Kill):
-    T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=killing_validate,
+    T.train_model(config, data_path, tmp_path / "b", "ours_s", validate=killing_validate,
                   log=messages.append)
   assert any("resumed from step 4" in m for m in messages)
   assert [p["step"] for p in T.read_curve(tmp_path / "b" / "ours_s")["curve"]] == [2, 4]
 
   messages = []
-  _, resumed = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=real,
+  _, resumed = T.train_model(config, data_path, tmp_path / "b", "ours_s", validate=real,
                              log=messages.append)
   assert any("resumed from step 6" in m for m in messages)
   ca, cb = (T.read_curve(tmp_path / x / "ours_s") for x in ("a", "b"))
@@ -189,7 +190,7 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
 
   monkeypatch.setattr(loop, "make_train_step", lambda *a, **k: no_step)
   before = (tmp_path / "b" / "ours_s" / "metrics.jsonl").read_text()
-  _, again = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", validate=killing_validate,
+  _, again = T.train_model(config, data_path, tmp_path / "b", "ours_s", validate=killing_validate,
                            log=quiet)
   assert (tmp_path / "b" / "ours_s" / "metrics.jsonl").read_text() == before
   assert_same_tree(T.to_host(straight.params), T.to_host(again.params))

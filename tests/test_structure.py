@@ -145,3 +145,37 @@ def test_no_import_cycle_among_nlosjax_modules():
   cycles = _cycles(_import_graph())
   assert not cycles, "modules that import each other (directly or round a circle):\n" + "\n".join(
       " <-> ".join(c) for c in cycles)
+
+
+# ------------------------------------------------------------- variant names in one place
+#: Files that may spell a variant's name: the registry, and the equivalence probes, which run on
+#: an older commit's tree too (one whose registry may not have the names to import).
+SPELLED_AT = ("nlosjax/variants.py", "benchmarks/equivalence_probe*.py")
+
+
+def _spelled_variant_names(path: pathlib.Path, names) -> list[int]:
+  """Lines of ``path`` whose code (docstrings aside, f-strings included) holds a variant name as a string."""
+  tree = ast.parse(path.read_text())
+  docstrings = set()
+  for node in ast.walk(tree):
+    if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+      docstrings |= {id(s.value) for s in node.body if isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant)}
+  return sorted({n.lineno for n in ast.walk(tree) if isinstance(n, ast.Constant) and n.value in names
+                 and isinstance(n.value, str) and id(n) not in docstrings})
+
+
+def test_variant_names_are_spelled_only_in_the_registry(tmp_path):
+  from nlosjax.variants import IK, LFE, OURS, OURS_S, USM, VARIANTS
+  names = set(VARIANTS)
+  assert names == {OURS, OURS_S, USM, LFE, IK}
+  allowed = {p for pattern in SPELLED_AT for p in ROOT.glob(pattern)}
+  assert ROOT / "nlosjax/variants.py" in allowed and len(allowed) > 1
+  bad = [f"{path.relative_to(ROOT)}:{line}" for package in ("nlosjax", "experiments", "benchmarks")
+         for path in sorted((ROOT / package).rglob("*.py")) if path not in allowed
+         for line in _spelled_variant_names(path, names)]
+  assert not bad, "variant names spelled outside nlosjax.variants (import OURS, USM, ... from it):\n" + "\n".join(bad)
+  # The finder sees a name in code and in an f-string, and not in a docstring or a longer name.
+  sample = tmp_path / "sample.py"
+  sample.write_text('"""Trains "ours"."""\n\ndef f(x):\n  """Reads ``"usm"``."""\n  return x["ours_s"]\n\n'
+                    'y = f"{d[\'lfe\']}"\nz = "ours_f5"\n')
+  assert _spelled_variant_names(sample, names) == [5, 7]

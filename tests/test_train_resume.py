@@ -26,12 +26,13 @@ def data_path(tmp_path_factory):
 @pytest.mark.full
 def test_resume_after_a_kill_matches_an_uninterrupted_run(data_path, tmp_path):
   cfg = tiny_config(data_path)
-  _, straight = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", log=lambda s: None)
+  config = RunConfig.from_dict(cfg)
+  _, straight = T.train_model(config, data_path, tmp_path / "a", "ours_s", log=lambda s: None)
   # "Killed" after step 2: a run with steps=2 leaves the checkpoint at 2; the rerun resumes.
   T.train_model(RunConfig.from_dict({**cfg, "train": {**cfg["train"], "steps": 2}}), data_path, tmp_path / "b",
                 "ours_s", log=lambda s: None)
   messages = []
-  _, resumed = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "b", "ours_s", log=messages.append)
+  _, resumed = T.train_model(config, data_path, tmp_path / "b", "ours_s", log=messages.append)
   assert any("resumed from step 2" in m for m in messages)
   assert int(resumed.step) == int(straight.step) == 4
   jax.tree.map(lambda a, b: np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0,
@@ -45,7 +46,8 @@ def test_resume_after_a_kill_matches_an_uninterrupted_run(data_path, tmp_path):
 @pytest.mark.full
 def test_checkpoint_of_another_config_or_corrupt_raises_and_is_kept(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=2)
-  T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path, "ours_s", log=lambda s: None)
+  config = RunConfig.from_dict(cfg)
+  T.train_model(config, data_path, tmp_path, "ours_s", log=lambda s: None)
   ckpt = tmp_path / "ours_s" / "checkpoints"
   before = sorted(p.name for p in ckpt.iterdir())
   other = {**cfg, "model": {**cfg["model"], "width": 6}}
@@ -57,7 +59,7 @@ def test_checkpoint_of_another_config_or_corrupt_raises_and_is_kept(data_path, t
     if f.is_file() and "state" in str(f) and f.stat().st_size > 64:
       f.write_bytes(b"\0" * 16)
   with pytest.raises(ValueError, match="checkpoint .*2"):
-    T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path, "ours_s", log=lambda s: None)
+    T.train_model(config, data_path, tmp_path, "ours_s", log=lambda s: None)
   assert (ckpt / "2").exists()
 
 
@@ -68,8 +70,9 @@ def test_two_hundred_steps_stay_finite_at_the_lowest_efficiency_and_exposure(tmp
   cfg = tiny_config(path, steps=200, log_every=1, checkpoint_every=200)
   low = configs.get_config("cpu")["data"]
   cfg["data"].update(efficiency=(low["efficiency"][0],) * 2, photons=(low["photons"][0],) * 2)
-  T.ensure_dataset(RunConfig.from_dict(cfg), path, log=lambda s: None)
-  T.train_model(RunConfig.from_dict(cfg), path, tmp_path, "ours_s", log=lambda s: None)  # raises on a non-finite metric
+  config = RunConfig.from_dict(cfg)
+  T.ensure_dataset(config, path, log=lambda s: None)
+  T.train_model(config, path, tmp_path, "ours_s", log=lambda s: None)  # raises on a non-finite metric
   rows = [json.loads(l) for l in (tmp_path / "ours_s" / "metrics.jsonl").read_text().splitlines()]
   assert [r["step"] for r in rows] == list(range(1, 201))
   for key in ("loss", "l2_grads", "l2_updates"):
@@ -82,12 +85,12 @@ def test_two_hundred_steps_stay_finite_at_the_lowest_efficiency_and_exposure(tmp
 def test_a_passed_loader_and_model_config_are_what_trains(data_path, tmp_path):
   # The trade-off study's path: train_model with its own loader and network.
   cfg = tiny_config(data_path)
-  _, default = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", log=lambda s: None)
-  run = T.RunConfig.from_dict(cfg)
+  run = RunConfig.from_dict(cfg)
+  _, default = T.train_model(run, data_path, tmp_path / "a", "ours_s", log=lambda s: None)
   loader = T.make_loader(run, data_path, "train", batch_size=run.train.batch_size, shuffle=True,
                          seed=run.train.seed)
   mcfg = T.model_config_for(run, loader.setup, "ours_s")
-  _, passed = T.train_model(RunConfig.from_dict(cfg), None, tmp_path / "b", "ours_s", log=lambda s: None,
+  _, passed = T.train_model(run, None, tmp_path / "b", "ours_s", log=lambda s: None,
                             loader=loader, model_config=mcfg)
   jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
                default.params, passed.params)
@@ -103,7 +106,7 @@ def test_a_passed_loader_and_model_config_are_what_trains(data_path, tmp_path):
                         offset=run.data.input_offset, seed=run.train.seed, shuffle=True, drop_remainder=True)
   wider = T.model_config_for(RunConfig.from_dict({**cfg, "model": {**cfg["model"], "width": 6}}), loader.setup,
                              "ours_s")
-  got, state = T.train_model(RunConfig.from_dict(cfg), None, tmp_path / "c", "ours_s", folder="wide",
+  got, state = T.train_model(run, None, tmp_path / "c", "ours_s", folder="wide",
                              log=lambda s: None,
                              loader=recording, model_config=wider)
   assert read == list(range(run.train.steps))
@@ -124,5 +127,5 @@ def test_a_passed_loader_and_model_config_are_what_trains(data_path, tmp_path):
   failing = Failing(data_path, split="train", batch_size=run.train.batch_size, stride=run.data.stride(),
                     offset=run.data.input_offset, seed=run.train.seed, shuffle=True, drop_remainder=True)
   with pytest.raises(OSError, match="the disk went away"):
-    T.train_model(RunConfig.from_dict(cfg), None, tmp_path / "d", "ours_s", log=lambda s: None, loader=failing)
+    T.train_model(run, None, tmp_path / "d", "ours_s", log=lambda s: None, loader=failing)
   assert closed and not failing.dataset._file   # h5py: a closed file is falsy

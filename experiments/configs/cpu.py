@@ -13,6 +13,8 @@ Why the less obvious values are what they are: docs/decisions.md, "The cpu prese
 choices" and, for USM, "USM at the cpu preset" and "USM's learning rate".
 """
 
+from nlosjax.variants import OURS, OURS_S, USM
+
 
 def get_config() -> dict:
   data = {
@@ -92,7 +94,7 @@ def get_config() -> dict:
       "log_every": 10,             # steps
       "checkpoint_every": 50,      # steps
       "eval_batch_size": 8,
-      "variants": ("ours_s", "ours"),   # add "usm" to train the learned baseline too
+      "variants": (OURS_S, OURS),   # add "usm" to train the learned baseline too
       # The last five checkpoints (steps 200-400) are kept; the one with the best validation PSNR is evaluated.
       "keep_checkpoints": 5,
       "select_checkpoint": "val",
@@ -108,7 +110,7 @@ def get_config() -> dict:
   # USM (nlosjax.models.usm), the learned baseline, trained when "usm" is in train.variants;
   # docs/decisions.md, "USM at the cpu preset" and "USM's learning rate".
   usm = {
-      "recipe": "ours",            # Ours' data, steps, optimiser and loss ("published": USM's own)
+      "recipe": OURS,            # Ours' data, steps, optimiser and loss ("published": USM's own)
       # Branch kernels for stride 4; branches and fusion cut to 2 channels for 2 CPU cores.
       "model": {"trn_kernels": (3, 5, 9), "trn_width": 2, "fusion_widths": (2,)},
   }
@@ -117,4 +119,4 @@ def get_config() -> dict:
   # ("gen3": experiments.independent_set/3); a file of another version is refused.
   independent = {"path": "runs/data/independent-cpu-v3-gen3.h5", "sequences": 8, "frames": 8,
                  "seed": 2026}
-  return {"data": data, "model": model, "train": train, "usm": usm, "independent": independent}
+  return {"data": data, "model": model, "train": train, USM: usm, "independent": independent}

@@ -23,6 +23,7 @@ import dataclasses
 
 from experiments.configs import cpu
 from nlosjax.models.network import ModelConfig
+from nlosjax.variants import OURS, OURS_S, USM
 
 #: Steps of batch 4 per epoch over 150 sequences of 30 training triplets.
 STEPS_PER_EPOCH = 150 * 30 // 4
@@ -70,7 +71,7 @@ def get_config() -> dict:
       "keep_checkpoints": 5,
       "select_checkpoint": "val",  # the kept checkpoint with the best validation PSNR is evaluated
       "eval_batch_size": 4,
-      "variants": ("ours_s", "ours"),
+      "variants": (OURS_S, OURS),
       "data_workers": 2,           # processes generating the data
       "check_memory": True,        # refuse a run whose predicted memory exceeds the device's
       "optim": {
@@ -83,4 +84,4 @@ def get_config() -> dict:
       "loss": {},                  # the paper's loss weights (Sec. 5.1)
   }
   usm = {"recipe": "published", "model": {}}   # USM's own optimiser, loss and widths
-  return {"data": data, "model": model, "train": train, "usm": usm}
+  return {"data": data, "model": model, "train": train, USM: usm}

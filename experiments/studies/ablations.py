@@ -39,6 +39,7 @@ import sys
 import time
 
 from nlosjax.stats import format_interval as cell
+from nlosjax.variants import OURS
 
 #: row -> (spatial, temporal, L_pf, L_reg, model overrides, loss overrides, optim overrides)
 ROWS = {
@@ -67,7 +68,7 @@ def row_config(base: dict, row: str, steps: int, seed: int | None = None) -> dic
   tr["steps"] = int(steps)
   tr["loss"] = {**tr.get("loss", {}), **loss}
   tr["optim"] = {**tr.get("optim", {}), **optim}
-  tr["variants"] = ("ours",)
+  tr["variants"] = (OURS,)
   if seed is not None:
     tr["seed"] = int(seed)
   return cfg
@@ -93,15 +94,15 @@ def run_row(base: dict, row: str, steps: int, workdir: pathlib.Path, seed: int |
   typed = T.RunConfig.from_dict(cfg)
   T.ensure_dataset(typed, data_path)
   t0 = time.perf_counter()
-  mcfg, state = T.train_model(typed, data_path, out, "ours", log=lambda s: None)
+  mcfg, state = T.train_model(typed, data_path, out, OURS, log=lambda s: None)
   train_s = time.perf_counter() - t0
   result = {"row": row, "seed": seed, "steps": steps, "train_s": round(train_s, 1)}
   for split in ("val", "test"):
-    ev = protocol.evaluate(typed, data_path, {"ours": (mcfg, state.params)}, split=split,
+    ev = protocol.evaluate(typed, data_path, {OURS: (mcfg, state.params)}, split=split,
                            methods=(), log=lambda s: None)
     result[split] = {"sequence": ev["sequence"].tolist(),
-                     "scores": {k: v[0].tolist() for k, v in ev["scores"]["ours"].items()}}
-  rows = T.read_metrics(out / "ours" / "metrics.jsonl")
+                     "scores": {k: v[0].tolist() for k, v in ev["scores"][OURS].items()}}
+  rows = T.read_metrics(out / OURS / "metrics.jsonl")
   result["final_loss"] = rows[-1]["loss"] if rows else None
   out.mkdir(parents=True, exist_ok=True)
   cached.write_text(json.dumps(result) + "\n")

@@ -36,6 +36,7 @@ import optax
 
 from nlosjax import losses
 from nlosjax.train.step import make_targets
+from nlosjax.variants import OURS, OURS_S
 
 __all__ = ["DEFAULT_LAYER", "layer_features", "all_layer_features", "layer_separation", "chosen_layer",
            "standardised_mmd2", "align_loss", "align", "term_gradient_norms", "balanced_lam"]
@@ -185,7 +186,7 @@ def _loss_fn(config, model_config, *, lam: float, samples: int, layer: str):
   """:func:`align_loss` bound to the run's model, loss weights and wavelet."""
   from nlosjax.physics import illumination_wavelet
   from nlosjax.train.loop import training_recipe
-  _, weights = training_recipe(config, "ours" if model_config.frames > 1 else "ours_s")
+  _, weights = training_recipe(config, OURS if model_config.frames > 1 else OURS_S)
   wavelet = (illumination_wavelet(model_config.setup, cycles=model_config.wavelet_cycles,
                                   sampling_coeff=model_config.wavelet_sampling)
              if weights.phasor_field else None)

@@ -43,6 +43,7 @@ import time
 import numpy as np
 
 from nlosjax.stats import format_interval as cell
+from nlosjax.variants import OURS
 
 #: Extra per-frame scores of this report: name -> (header, digits).
 RATIOS = {"brightness": ("brightness ratio (1 = true)", 3), "extent": ("extent ratio (1 = true)", 3)}
@@ -78,7 +79,7 @@ def load_model(spec: str):
   if spec.startswith("pretrained:"):
     from nlosjax import inference
     name, _, variant = spec[len("pretrained:"):].partition("/")
-    mcfg, params, provenance = inference.load_pretrained(name, variant or "ours")
+    mcfg, params, provenance = inference.load_pretrained(name, variant or OURS)
     return mcfg, params, provenance["config"]
   from experiments.export_weights import study_run
   from nlosjax import inference, train

@@ -31,6 +31,7 @@ import sys
 import numpy as np
 
 from nlosjax.stats import format_interval as cell
+from nlosjax.variants import OURS, OURS_S
 
 
 def load_candidate(source: str, variant: str):
@@ -68,7 +69,7 @@ def main(argv=None) -> int:
   from nlosjax.evaluation import protocol, scores
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--model", action="append", required=True, metavar="LABEL=SOURCE")
-  parser.add_argument("--variants", nargs="+", default=["ours", "ours_s"])
+  parser.add_argument("--variants", nargs="+", default=[OURS, OURS_S])
   parser.add_argument("--methods", nargs="*", default=[],
                       help="classic methods scored beside the models on each validation split")
   parser.add_argument("--out", default="benchmarks/results/preset_choice.md")

@@ -28,6 +28,8 @@ import sys
 
 import numpy as np
 
+from nlosjax.variants import OURS, OURS_S
+
 VARIANTS = ("real neighbours", "middle frame copied", "neighbours zero", "neighbours swapped")
 SINGLE_VARIANTS = ("middle frame", "mean of the three frames")
 
@@ -95,14 +97,14 @@ def main(argv=None):
   from nlosjax.models.network import STMambaNet
   run = pathlib.Path(args.checkpoint)
   config = T.with_defaults(json.loads((run / "config.json").read_text()))
-  mcfg, params, _ = inference.load_trained(run / "ours", step=_chosen_step(run / "ours"))
+  mcfg, params, _ = inference.load_trained(run / OURS, step=_chosen_step(run / OURS))
   if mcfg.frames != 3:
-    raise SystemExit(f"{run / 'ours'} is a {mcfg.frames}-frame model; the probe needs 3 frames")
+    raise SystemExit(f"{run / OURS} is a {mcfg.frames}-frame model; the probe needs 3 frames")
   apply, apply_zeroed = _intensity_fns(STMambaNet(mcfg))
   zeroed = {"Ours": []}
   single = None
-  if (run / "ours_s").is_dir():
-    scfg, sparams, _ = inference.load_trained(run / "ours_s", step=_chosen_step(run / "ours_s"))
+  if (run / OURS_S).is_dir():
+    scfg, sparams, _ = inference.load_trained(run / OURS_S, step=_chosen_step(run / OURS_S))
     sapply, sapply_zeroed = _intensity_fns(STMambaNet(scfg))
     single = {v: [] for v in SINGLE_VARIANTS}
     zeroed["Ours-S"] = []

@@ -45,12 +45,13 @@ from experiments.studies.mechanisms.design import (
 )
 from experiments.studies.mechanisms.records import _array, load_runs, write_json
 from experiments.studies.mechanisms.report import same_frames, stack_scores
+from nlosjax.variants import OURS_S
 
 #: The short schedule: peak learning rate and cosine horizon (= the most steps); all else the study's.
 SHORT = {"learning_rate": 3e-3, "max_steps": 400}
 BUDGET = "full"
 NAME = "time_to_plateau"
-DEFAULT_ROWS = ("full", "ours_s")
+DEFAULT_ROWS = ("full", OURS_S)
 
 
 def short_config(base: dict, row: str, seed: int) -> dict:

@@ -25,13 +25,13 @@ from typing import Any, Mapping
 from nlosjax import losses
 from nlosjax.train.optimizer import OptimConfig
 from nlosjax.train.stopping import StopRule
-from nlosjax.variants import VARIANTS
+from nlosjax.variants import LFE, OURS, OURS_S, USM, VARIANTS
 from nlosjax.variants import variant as variant_info
 
 #: USM's training recipes (``usm.recipe``): "ours" trains it with the config's ``train.optim``
 #: and ``train.loss`` (Ours' recipe, the like-for-like default); "published" with USM's own
 #: (:data:`nlosjax.models.usm.PUBLISHED_OPTIM`, ``PUBLISHED_LOSS``).
-USM_RECIPES = ("ours", "published")
+USM_RECIPES = (OURS, "published")
 #: The variants with a section of their own (``usm``, ``lfe``, ``ik``: every variant not built by
 #: ST-Mamba, :data:`nlosjax.variants.VARIANTS`): a ``model`` and an ``optim``.
 BASELINES = tuple(name for name, v in VARIANTS.items() if v.family != "stmamba")
@@ -85,7 +85,7 @@ class TrainConfig:
   checkpoint_every: int = 50
   keep_checkpoints: int = 2
   eval_batch_size: int | None = None
-  variants: tuple[str, ...] = ("ours_s", "ours")
+  variants: tuple[str, ...] = (OURS_S, OURS)
   data_workers: int = 1
   optim: OptimConfig = OptimConfig()
   loss: losses.LossWeights = losses.LossWeights()
@@ -141,14 +141,14 @@ class BaselineConfig:
 
   model: Mapping[str, Any] = dataclasses.field(default_factory=_frozen)
   optim: Mapping[str, Any] = dataclasses.field(default_factory=_frozen)
-  recipe: str = "ours"
+  recipe: str = OURS
 
   @classmethod
   def from_dict(cls, name: str, section: Mapping | None) -> "BaselineConfig":
     d = dict(section or {})
     for path, sub in (((name,), d), ((name, "model"), d.get("model")), ((name, "optim"), d.get("optim"))):
       _check_section(path, sub or {})
-    recipe = d.get("recipe", "ours")
+    recipe = d.get("recipe", OURS)
     if recipe not in USM_RECIPES:
       raise ValueError(f"config usm.recipe must be one of {USM_RECIPES}, got {recipe!r}")
     return cls(model=_frozen(d.get("model")), optim=_frozen(d.get("optim")), recipe=recipe)
@@ -160,10 +160,10 @@ def model_class(variant: str) -> type:
   if family == "stmamba":
     from nlosjax.models.network import ModelConfig
     return ModelConfig
-  if family == "usm":
+  if family == USM:
     from nlosjax.models.usm import USMConfig
     return USMConfig
-  if family == "lfe":
+  if family == LFE:
     from nlosjax.models.lfe import LFEConfig
     return LFEConfig
   from nlosjax.models.ik import IKConfig
@@ -275,7 +275,7 @@ class RunConfig:
     """
     out = {"data": _thaw(self.data.section), "model": _thaw(self.model), "train": _train_dict(self.train)}
     for name, b in self.baselines.items():
-      out[name] = {"model": _thaw(b.model), "optim": _thaw(b.optim), **({"recipe": b.recipe} if name == "usm" else {})}
+      out[name] = {"model": _thaw(b.model), "optim": _thaw(b.optim), **({"recipe": b.recipe} if name == USM else {})}
     out.update(_thaw(self.extra))
     return out
 
@@ -354,7 +354,7 @@ def section_schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
   if path == ("train", "optim") or (len(path) == 2 and path[0] in BASELINES and path[1] == "optim"):
     return _field_names(OptimConfig), set()
   if len(path) == 1 and path[0] in BASELINES:
-    return ({"recipe"} if path[0] == "usm" else set()), {"model", "optim"}
+    return ({"recipe"} if path[0] == USM else set()), {"model", "optim"}
   if len(path) == 2 and path[0] in BASELINES and path[1] == "model":
     return _field_names(model_class(path[0]), ("setup", "stride")), set()
   return set(), set()

@@ -28,7 +28,7 @@ from nlosjax.train.sharding import mesh_for, shard_batch, to_host
 from nlosjax.train.state import TrainState, create_train_state, network
 from nlosjax.train.step import BATCH_KEYS, make_train_step
 from nlosjax.train.stopping import BEST_FOLDER, PlateauTracker
-from nlosjax.variants import VARIANTS
+from nlosjax.variants import USM, VARIANTS
 
 if TYPE_CHECKING:
   from nlosjax.data.dataset import TripletLoader
@@ -210,19 +210,18 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     if restored is not None:
       state, start = restored
       log(f"[{label}] resumed from step {start} ({ckpt.directory})")
-    name = folder or variant
     imported_best = None
-    exported = read_meta(export.folder(name)) if export is not None else None
+    exported = read_meta(export.folder(label)) if export is not None else None
     if exported is not None and exported["step"] > start and primary:
-      state, imported_best, meta = import_state(export.folder(name), state, signature=signature, model=mcfg,
+      state, imported_best, meta = import_state(export.folder(label), state, signature=signature, model=mcfg,
                                                 data_digest=export.data_digest,
                                                 data_fingerprint=export.data_fingerprint,
                                                 allow_data_change=export.allow_data_change)
       start = int(state.step)
-      copy_logs(export.folder(name), vdir)
+      copy_logs(export.folder(label), vdir)
       ckpt.save(state, start, force=True)
       ckpt.wait()
-      log(f"[{label}] resumed from step {start} of the exported state {export.folder(name)}"
+      log(f"[{label}] resumed from step {start} of the exported state {export.folder(label)}"
           f"{meta['data_check'].describe()}")
     elif exported is not None and exported["step"] > start:
       raise ValueError("resuming from an exported state needs a single process; resume once with one, "
@@ -256,7 +255,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
       best_state = None
       if best_step is not None and best_step != exported_best["step"]:
         best_state = current if best_step == int(current.step) else tracker.best_state(current)
-      export_state(export.folder(name), vdir, to_host(current), signature=signature,
+      export_state(export.folder(label), vdir, to_host(current), signature=signature,
                    best=None if best_state is None else to_host(best_state),
                    best_step=best_step, data_digest=export.data_digest,
                    data_fingerprint=export.data_fingerprint)
@@ -305,8 +304,8 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
           ckpt.close()
           if tracker is not None:
             tracker.best.close()
-          log(f"[{label}] paused at step {done} (deadline); state exported to {export.folder(name)}")
-          raise TrainingPaused(variant, done, export.folder(name))
+          log(f"[{label}] paused at step {done} (deadline); state exported to {export.folder(label)}")
+          raise TrainingPaused(variant, done, export.folder(label))
     batches.close()
     loader.close()
     if tracker is not None:
@@ -370,7 +369,7 @@ def training_recipe(config: RunConfig, variant: str) -> tuple[OptimConfig, losse
   optim = cfg.train.optim
   if variant in BASELINES:
     section = cfg.baselines[variant]
-    if variant == "usm" and section.recipe == "published":
+    if variant == USM and section.recipe == "published":
       from nlosjax.models.usm import PUBLISHED_LOSS, PUBLISHED_OPTIM
       return OptimConfig(**PUBLISHED_OPTIM), losses.LossWeights(**PUBLISHED_LOSS)
     optim = dataclasses.replace(optim, **section.optim)   # LFE's, I-K's "transient" is their input

@@ -9,25 +9,26 @@ import pathlib
 from experiments.studies.ablations import ROWS as ABLATION_ROWS
 from experiments.studies.ablations import row_config
 from experiments.studies.mechanisms.records import load_runs
+from nlosjax.variants import IK, LFE, OURS, OURS_S, USM
 
 #: row -> (row of experiments.studies.ablations.ROWS it is built from, variant trained, label).
 ROWS = {
-    "full": ("full", "ours", "Ours"),
-    "ours_s": ("full", "ours_s", "Ours-S (middle frame only)"),
-    "no_ssm": ("no_ssm", "ours", "Ours, every SSM the identity"),
-    "bidirectional": ("bidirectional", "ours", "Ours, bidirectional T-Mamba"),
-    "no_pf": ("no_pf", "ours", "Ours without L_pf"),
-    "usm": ("full", "usm", "USM"),
-    "lfe": ("full", "lfe", "LFE"),
-    "ik": ("full", "ik", "I-K (approximation)"),
+    "full": ("full", OURS, "Ours"),
+    OURS_S: ("full", OURS_S, "Ours-S (middle frame only)"),
+    "no_ssm": ("no_ssm", OURS, "Ours, every SSM the identity"),
+    "bidirectional": ("bidirectional", OURS, "Ours, bidirectional T-Mamba"),
+    "no_pf": ("no_pf", OURS, "Ours without L_pf"),
+    USM: ("full", USM, "USM"),
+    LFE: ("full", LFE, "LFE"),
+    IK: ("full", IK, "I-K (approximation)"),
 }
-MAIN_ROWS = ("full", "ours_s", "no_ssm")
+MAIN_ROWS = ("full", OURS_S, "no_ssm")
 EXTRA_ROWS = ("bidirectional", "no_pf")
 #: Rows beside the study for Table 1 at the plateau (``--rows usm lfe ik``): the learned baselines
 #: USM, LFE and I-K (:mod:`nlosjax.models.ik`, an approximation from its public summary) on the
 #: same data, under the same stopping rule and recipe as Ours (``usm.recipe = "ours"``; LFE and
 #: I-K always train with Ours' recipe); the report pairs each with Ours and Ours-S seed by seed.
-TABLE1_ROWS = ("usm", "lfe", "ik")
+TABLE1_ROWS = (USM, LFE, IK)
 #: Photon budget -> divisor of the preset's ``data.photons`` and ``data.ambient``.
 BUDGETS = {"full": 1, "tenth": 10}
 #: Loss weights per budget over the config's ``train.loss``, chosen on validation. At a tenth
@@ -51,8 +52,8 @@ TINY_DESIGN = {"budgets": ("full",), "rows": ("full", "no_ssm"), "seeds": (0,)}
 #: The run whose model the SSM probe reads (per budget).
 PROBE = ("full", 0)
 #: Paired differences of the report: (a, b) -> a - b.
-PAIRS = (("full", "no_ssm"), ("full", "ours_s"), ("full", "bidirectional"), ("full", "no_pf"),
-         ("full", "usm"), ("ours_s", "usm"), ("full", "lfe"), ("ours_s", "lfe"), ("full", "ik"), ("ours_s", "ik"))
+PAIRS = (("full", "no_ssm"), ("full", OURS_S), ("full", "bidirectional"), ("full", "no_pf"),
+         ("full", USM), (OURS_S, USM), ("full", LFE), (OURS_S, LFE), ("full", IK), (OURS_S, IK))
 #: Report columns: metric -> (header, digits).
 COLUMNS = {"psnr": ("PSNR (dB) ↑", 2), "ssim": ("SSIM ↑", 3), "rmse_object": ("object depth RMSE (m) ↓", 3),
            "recall": ("object recall ↑", 3), "temporal_psnr": ("temporal PSNR (dB) ↑", 2)}
@@ -130,7 +131,7 @@ def essentials(cfg: dict) -> dict:
   out = {"data": {k: cfg["data"][k] for k in data_keys if k in cfg["data"]},
          "model": dict(cfg.get("model", {})),
          "train": {k: tr.get(k) for k in ("seed", "batch_size", "eval_batch_size", "optim", "loss", "stop")}}
-  for baseline in ("usm", "lfe", "ik"):       # a learned baseline's widths and recipe
+  for baseline in (USM, LFE, IK):       # a learned baseline's widths and recipe
     if baseline in tuple(tr.get("variants", ())):
       out[baseline] = dict(cfg.get(baseline, {}))
   return out

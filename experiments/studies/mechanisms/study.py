@@ -34,11 +34,13 @@ def _subsample(rows: list[dict], n: int = LOSS_POINTS) -> list[dict]:
   return [{k: r[k] for k in ("step", "loss", "time_s") if k in r} for r in keep]
 
 
-def test_frames(cfg: dict, data_path) -> tuple[np.ndarray, np.ndarray]:
-  """``(sequence [N], frame [N])`` of the test split's examples in evaluation order (middle frame index)."""
-  from nlosjax.train import RunConfig, make_loader
-  bs = int(cfg["train"].get("eval_batch_size", cfg["train"]["batch_size"]))
-  loader = make_loader(RunConfig.from_dict(cfg), data_path, "test", batch_size=bs, shuffle=False, seed=0)
+def test_frames(config, data_path) -> tuple[np.ndarray, np.ndarray]:
+  """``(sequence [N], frame [N])`` of the test split's examples in evaluation order (middle frame index).
+
+  ``config``: the run's :class:`nlosjax.train.RunConfig`.
+  """
+  from nlosjax.train import make_loader
+  loader = make_loader(config, data_path, "test", batch_size=config.train.eval_batch, shuffle=False, seed=0)
   try:
     batches = [loader.batch(i) for i in range(len(loader))]
   finally:
@@ -66,7 +68,7 @@ def train_and_score(cfg: dict, folder: pathlib.Path, variant: str, log: Callable
   tuned = protocol.tune_model_thresholds(typed, data_path, {variant: [(mcfg, params)]}, log=log)[variant]
   ev = protocol.evaluate(typed, data_path, {variant: [(mcfg, params)]}, split="test", methods=(),
                          model_thresholds={variant: tuned["threshold"]}, log=log)
-  sequence, frame = test_frames(cfg, data_path)
+  sequence, frame = test_frames(typed, data_path)
   if not np.array_equal(sequence, np.asarray(ev["sequence"])):
     raise RuntimeError("the test loader's sequence order differs from protocol.evaluate's")
   test = {"split": "test", "data": str(data_path), "sequence": sequence, "frame": frame,

@@ -25,6 +25,8 @@ from typing import Callable
 
 import numpy as np
 
+from nlosjax.variants import OURS_S
+
 #: The methods scored: the classic five and CSA, in the paper's Table 1 order where it has them.
 UNTRAINED = ("lct", "rsd", "fk", "csa", "fbp", "phasor")
 
@@ -100,7 +102,7 @@ def load_untrained(results: pathlib.Path) -> dict:
 
 
 #: The learned rows each method without training is paired with.
-PAIRED_WITH = ("full", "ours_s")
+PAIRED_WITH = ("full", OURS_S)
 
 
 def untrained_lines(record: dict, learned: dict, budget: str) -> list[str]:

@@ -15,6 +15,7 @@ import numpy as np
 
 from experiments.studies.physics_shift import heldout, study
 from nlosjax import stats
+from nlosjax.variants import OURS, OURS_S
 
 #: The goal margin over the best classic method on a held-out family or condition (dB).
 GOAL_MARGIN_DB = 1.0
@@ -55,7 +56,7 @@ def compare(runs: dict, classic: dict, name: str, design: str) -> dict | None:
   """Ours and Ours-S of ``design`` on set ``name`` against the best classic method there."""
   from nlosjax.evaluation import scores
   c = classic.get((study.classic_design(name), name))
-  ours = runs.get((design, "ours"), {}).get("sets", {}).get(name)
+  ours = runs.get((design, OURS), {}).get("sets", {}).get(name)
   if c is None or ours is None:
     return None
   seq = np.asarray(c["sequence"])
@@ -81,8 +82,8 @@ def compare(runs: dict, classic: dict, name: str, design: str) -> dict | None:
     out["learned"][variant] = {k: stats.summarize(by(_arr(r["scores"][k]))) for k in metrics}
     out["diff"][variant] = {k: stats.paired_difference(by(_arr(r["scores"][k])), by(_arr(c["methods"][best][k])))
                             for k in metrics}
-  if "ours_s" in out["learned"]:
-    a, b = (_arr(runs[(design, v)]["sets"][name]["scores"]["psnr"]) for v in ("ours", "ours_s"))
+  if OURS_S in out["learned"]:
+    a, b = (_arr(runs[(design, v)]["sets"][name]["scores"]["psnr"]) for v in (OURS, OURS_S))
     out["ours_vs_ours_s"] = stats.paired_difference(by(a), by(b))
   return out
 
@@ -111,7 +112,7 @@ def _mean(runs: dict, design: str, variant: str, name: str) -> dict | None:
 
 
 def _goal(c: dict) -> str:
-  d = c["diff"].get("ours")
+  d = c["diff"].get(OURS)
   if d is None:
     return "—"
   psnr_ok = d["psnr"]["mean"] >= GOAL_MARGIN_DB
@@ -123,12 +124,12 @@ def _goal(c: dict) -> str:
 def _row(label: str, c: dict | None) -> str:
   if c is None:
     return f"| {label} | " + " | ".join(["(not run)"] * 7) + " |"
-  lo = c["learned"]
+  lo, diff = c["learned"], c["diff"].get(OURS, {})
   best = c["best"]
-  return (f"| {label} | {_cell(lo.get('ours', {}).get('psnr'))} | {_cell(lo.get('ours_s', {}).get('psnr'))} | "
+  return (f"| {label} | {_cell(lo.get(OURS, {}).get('psnr'))} | {_cell(lo.get(OURS_S, {}).get('psnr'))} | "
           f"{best} {_cell(c['classic'][best]['psnr'])} | "
-          f"{_cell(c['diff'].get('ours', {}).get('psnr'), signed=True)} | "
-          f"{_cell(c['diff'].get('ours', {}).get('recall'), 3, signed=True)} | "
+          f"{_cell(diff.get('psnr'), signed=True)} | "
+          f"{_cell(diff.get('recall'), 3, signed=True)} | "
           f"{_cell(c.get('ours_vs_ours_s'), signed=True)} | {_goal(c)} |")
 
 
@@ -233,15 +234,16 @@ def _wider_scenes(runs: dict, classic: dict, conditions) -> list[str]:
   for cond in conditions:
     for design in WIDER:
       c = compare(runs, classic, f"heldout:{cond}", design)
-      if c is None or "ours" not in c["learned"]:
+      if c is None or OURS not in c["learned"]:
         lines.append(f"| {cond} | {design} | " + " | ".join(["(not run)"] * 6) + " |")
         continue
       best, obj = c["best"], "intensity_mae_object"
-      scored = obj in c["learned"]["ours"]          # records written before it was scored lack it
-      lines.append(f"| {cond} | {design} | {_cell(c['learned']['ours']['psnr'])} | "
-                   f"{_cell(c['diff']['ours']['psnr'], signed=True)} | "
-                   + (f"{_cell(c['learned']['ours'][obj], 3)} | {best} {_cell(c['classic'][best][obj], 3)} | "
-                      f"{_cell(c['diff']['ours'][obj], 3, signed=True)} | " if scored else "not scored | " * 3)
+      scored = obj in c["learned"][OURS]          # records written before it was scored lack it
+      ours, diff = c["learned"][OURS], c["diff"][OURS]
+      lines.append(f"| {cond} | {design} | {_cell(ours['psnr'])} | "
+                   f"{_cell(diff['psnr'], signed=True)} | "
+                   + (f"{_cell(ours[obj], 3)} | {best} {_cell(c['classic'][best][obj], 3)} | "
+                      f"{_cell(diff[obj], 3, signed=True)} | " if scored else "not scored | " * 3)
                    + f"{_cell(c.get('ours_vs_ours_s'), signed=True)} |")
   return lines
 
@@ -263,9 +265,9 @@ def plot(runs: dict, classic: dict, conditions, path: pathlib.Path) -> None:
       if d is None:
         continue
       c = compare(runs, classic, name, d)
-      if c is None or "ours" not in c["diff"]:
+      if c is None or OURS not in c["diff"]:
         continue
-      s = c["diff"]["ours"]["psnr"]
+      s = c["diff"][OURS]["psnr"]
       xs.append(i + (k - 1.5) * width)
       ys.append(s["mean"])
       lo.append(s["mean"] - s["ci95"][0])

@@ -26,6 +26,7 @@ from typing import Callable
 import numpy as np
 
 from nlosjax.data.dataset.physics import FAMILIES, PhysicsMix
+from nlosjax.variants import OURS, OURS_S
 
 #: design -> the families its training data draws from (``base``: the preset's own data).
 #: ``wide``: every family, and scenes wider than the preset's (:func:`wide_scene`).
@@ -46,7 +47,7 @@ def wide_scene(scene: dict) -> dict:
   return {**scene, "size_range": (round(0.6 * s0, 4), round(s1 * 5 / 3, 4)),
           "lateral_extent": round(1.4 * scene["lateral_extent"], 4),
           "depth_range": (round(0.8 * z0, 4), round(z1 * 4 / 3, 4))}
-VARIANTS = ("ours", "ours_s")
+VARIANTS = (OURS, OURS_S)
 #: Test sequences per set and frames per sequence.
 SEQUENCES, FRAMES = 8, 8
 #: Seed of the held-out renderer's sets.
@@ -159,6 +160,12 @@ def _scores(ev: dict, method: str) -> dict:
   return {k: np.asarray(v).reshape(-1) for k, v in s.items()}
 
 
+def _set_reader(set_cfg: dict, cfg: dict):
+  """The :class:`nlosjax.train.RunConfig` that reads a scored set: its own data, the run's train section."""
+  from nlosjax import train as T
+  return T.RunConfig.from_dict({**set_cfg, "train": cfg["train"]})
+
+
 def score_model(cfg: dict, val_path, mcfg, params, variant: str, sets: dict, names,
                 log: Callable[[str], None] = print) -> dict:
   """The model's surface threshold on ``val_path``'s validation split, then per-frame scores on each set."""
@@ -169,9 +176,8 @@ def score_model(cfg: dict, val_path, mcfg, params, variant: str, sets: dict, nam
   out = {"surface_threshold": tuned["threshold"], "sets": {}}
   for name in names:
     path, set_cfg, *split = sets[name]
-    read = T.RunConfig.from_dict({**set_cfg, "train": cfg["train"]})
-    ev = protocol.evaluate(read, path, {variant: [(mcfg, params)]}, methods=(), split=(split or ["test"])[0],
-                           model_thresholds={variant: tuned["threshold"]}, log=log)
+    ev = protocol.evaluate(_set_reader(set_cfg, cfg), path, {variant: [(mcfg, params)]}, methods=(),
+                           split=(split or ["test"])[0], model_thresholds={variant: tuned["threshold"]}, log=log)
     out["sets"][name] = {"sequence": np.asarray(ev["sequence"]), "frame": np.asarray(ev["frame"]),
                          "scores": _scores(ev, variant)}
   return out
@@ -179,11 +185,9 @@ def score_model(cfg: dict, val_path, mcfg, params, variant: str, sets: dict, nam
 
 def classic_record(cfg: dict, val_path, settings: dict, sets: dict, name: str, log=print) -> dict:
   """Every classic method on set ``name`` with ``settings`` (tuned on ``val_path``'s validation split)."""
-  from nlosjax import train as T
   from nlosjax.evaluation import baselines, protocol
   path, set_cfg, *_ = sets[name]
-  read = T.RunConfig.from_dict({**set_cfg, "train": cfg["train"]})
-  ev = protocol.evaluate(read, path, {}, classic_settings=settings, log=log)
+  ev = protocol.evaluate(_set_reader(set_cfg, cfg), path, {}, classic_settings=settings, log=log)
   return {"set": name, "tuned_on": str(val_path), "best": max(settings, key=lambda m: settings[m]["psnr"]),
           "val_psnr": {m: settings[m]["psnr"] for m in settings},
           "sequence": np.asarray(ev["sequence"]), "frame": np.asarray(ev["frame"]),

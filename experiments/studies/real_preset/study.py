@@ -9,6 +9,7 @@ import time
 from typing import Callable
 
 from experiments import store
+from nlosjax.variants import OURS, OURS_S
 
 STUDY = "real_preset"
 #: Where the committed run states live: ``state/<run>/<model folder>/``.
@@ -40,15 +41,15 @@ class Run:
 #: a held-out classifier tells from the measured scans' 57 % of the time
 #: (benchmarks/results/realism_v5.md; v4: 92 %, the shipped weights' data: 97 %).
 RUNS = (
-    Run("v5-ours_s", "experiments/configs/real_v5.py", "ours_s"),
-    Run("v5-ours", "experiments/configs/real_v5.py", "ours"),
+    Run("v5-ours_s", "experiments/configs/real_v5.py", OURS_S),
+    Run("v5-ours", "experiments/configs/real_v5.py", OURS),
     # A second seed of the candidate preset_choice_real.md preferred for Ours-S, so its lead
     # over the shipped weights can carry an interval over seeds too.
-    Run("v5-ours_s-seed1", "experiments/configs/real_v5.py", "ours_s", seed=1),
+    Run("v5-ours_s-seed1", "experiments/configs/real_v5.py", OURS_S, seed=1),
     # The cpu preset's short schedule (experiments/studies/time_to_plateau.py, SHORT: peak 3e-3, cosine
     # over 400 steps), unchanged, on the v5 candidate: does it reach the plateau sooner here too?
-    Run("v5-ours_s-short", "experiments/configs/real_v5.py", "ours_s", learning_rate=3e-3, max_steps=400),
-    Run("v5-ours-short", "experiments/configs/real_v5.py", "ours", learning_rate=3e-3, max_steps=400),
+    Run("v5-ours_s-short", "experiments/configs/real_v5.py", OURS_S, learning_rate=3e-3, max_steps=400),
+    Run("v5-ours-short", "experiments/configs/real_v5.py", OURS, learning_rate=3e-3, max_steps=400),
 )
 
 
@@ -289,15 +290,15 @@ class Alignment:
 #: the ``balanced`` pair sets ``lam`` per fold from the training side alone: the MMD
 #: gradient as large as the synthetic one at the start (``experiments.studies.align --lam balanced``).
 ALIGNMENTS = (
-    Alignment("align-ours_s", "pretrained:real", "ours_s"),
-    Alignment("align-ours", "pretrained:real", "ours"),
-    Alignment("align-ours_s-balanced", "pretrained:real", "ours_s", "balanced", "align-balanced"),
-    Alignment("align-ours-balanced", "pretrained:real", "ours", "balanced", "align-balanced"),
+    Alignment("align-ours_s", "pretrained:real", OURS_S),
+    Alignment("align-ours", "pretrained:real", OURS),
+    Alignment("align-ours_s-balanced", "pretrained:real", OURS_S, "balanced", "align-balanced"),
+    Alignment("align-ours-balanced", "pretrained:real", OURS, "balanced", "align-balanced"),
     # The first block's features of measured and simulated inputs differ by no more than the
     # MMD's own noise (real_adapt.md), so these align, per fold, the layer where the fold's
     # training scans stand furthest off (experiments.studies.align --layer auto), lam balanced there.
-    Alignment("align-ours_s-layer", "pretrained:real", "ours_s", "balanced", "align-layer", "auto"),
-    Alignment("align-ours-layer", "pretrained:real", "ours", "balanced", "align-layer", "auto"),
+    Alignment("align-ours_s-layer", "pretrained:real", OURS_S, "balanced", "align-layer", "auto"),
+    Alignment("align-ours-layer", "pretrained:real", OURS, "balanced", "align-layer", "auto"),
 )
 
 

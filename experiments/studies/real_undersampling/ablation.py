@@ -14,6 +14,7 @@ from experiments.studies.real_undersampling.protocol import (
   run,
   scene_name,
 )
+from nlosjax.variants import USM
 
 #: What each ablation zeroes in an ST-Mamba network (parameter path prefixes). With
 #: ``spread/to_transient`` zero the recovered transient is the skip alone: the sparse
@@ -96,7 +97,7 @@ def aligned_run(files, strides, results, workdir) -> dict:
 
 def adapted_models(trained: dict) -> dict:
   """``"<variant>|adapted" -> (model_config, params, True)`` for each ST-Mamba network (not USM)."""
-  return {f"{v}|adapted": (mcfg, params, True) for v, (mcfg, params) in trained.items() if v != "usm"}
+  return {f"{v}|adapted": (mcfg, params, True) for v, (mcfg, params) in trained.items() if v != USM}
 
 
 ADAPTATION_TEXT = ("Each network fitted to each scan before reconstructing it (`nlosjax.adaptation.adapt` with"

@@ -11,9 +11,10 @@ from experiments.provenance import ROOT as REPO
 from experiments.reconstruct import DEFAULT_PRETRAINED
 from nlosjax.evaluation.baselines import CLASSIC_METHODS
 from nlosjax.evaluation.report import METHOD_LABELS
+from nlosjax.variants import OURS, OURS_S, USM
 
 CLASSIC = CLASSIC_METHODS
-VARIANTS = ("ours_s", "ours", "usm")
+VARIANTS = (OURS_S, OURS, USM)
 LABELS = METHOD_LABELS
 #: CSA's l1 weight (a share of max(A^T b)) by stride, from csa_choice.md.
 CSA_TAU_REL = {4: 0.1, 8: 0.03}

@@ -14,6 +14,7 @@ import pathlib
 from experiments.provenance import ROOT
 from nlosjax.evaluation.baselines import CLASSIC_METHODS
 from nlosjax.evaluation.report import METHOD_LABELS
+from nlosjax.variants import OURS, OURS_S, USM
 
 DEFAULT_OUT_DIR = ROOT / "benchmarks" / "results"
 DEFAULT_WORKDIR = pathlib.Path("runs/tradeoff")
@@ -49,13 +50,13 @@ class Learned:
   label: str
   frames: int
   model: tuple = ()
-  variant: str = "ours"
+  variant: str = OURS
 
 
 LEARNED = (
-    Learned("usm", "USM", 1, variant="usm"),
-    Learned("ours_s", "Ours-S", 1),
-    Learned("ours", "Ours", 3),
+    Learned(USM, "USM", 1, variant=USM),
+    Learned(OURS_S, "Ours-S", 1),
+    Learned(OURS, "Ours", 3),
     Learned("ours_f5", "Ours, 5 frames", 5),
     Learned("ours_w4", "Ours, width 4", 3, (("width", 4),)),
     Learned("ours_w16", "Ours, width 16", 3, (("width", 16),)),
@@ -71,9 +72,9 @@ def learned_config(config, setup, spec: Learned):
   ``config``: a :class:`~nlosjax.train.RunConfig`.
   """
   from nlosjax.models.network import ModelConfig
-  if spec.variant == "usm":
+  if spec.variant == USM:
     from nlosjax.train import model_config_for
-    return model_config_for(config, setup, "usm")
+    return model_config_for(config, setup, USM)
   kw = {**config.model, **dict(spec.model), "frames": spec.frames}
   return ModelConfig(setup=setup, stride=config.data.stride(), **kw)
 

@@ -10,6 +10,7 @@ import math
 from experiments.configs import get_config
 from experiments.studies.tradeoff.configs import CLASSIC, GOAL_HALVING, LABELS, LEARNING_RATE
 from experiments.studies.tradeoff.pareto import learned_beats_classic, pareto_front, pareto_points, recommend
+from nlosjax.variants import OURS, OURS_S
 
 
 def _main_job_steps() -> int:
@@ -139,7 +140,7 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
       ("gating", "Time gating on: a Setup depth range = the scenes' 0.5-1.5 m (off: the method"
        " table)", None),
   ]
-  extra_rows = {"frames": ["ours_s", "ours"], "model": ["ours"], "kernel": ["ours"]}
+  extra_rows = {"frames": [OURS_S, OURS], "model": [OURS], "kernel": [OURS]}
   for knob, title, note in sections:
     rs = [r for r in rows if r["knob"] == knob]
     if not rs:
@@ -201,7 +202,7 @@ def gating_markdown(res: dict) -> list[str]:
     lab = LABELS.get(method) or METHOD_LABELS[method]
     out.append(f"| {lab} | " + " | ".join(_ms(rr[k]["time"]) for k in labels) + " | " +
                " | ".join(f"{rr[a]['time'] / rr[b]['time']:.2f}x" for a, b in halvings) + " |")
-  lct, ours = g["lct"], g["ours"]
+  lct, ours = g["lct"], g[OURS]
   r_lct, r_ours = lct["R"]["time"] / lct["R/2"]["time"], ours["R"]["time"] / ours["R/2"]["time"]
   f_lct = lct["full"]["time"] / lct["full/2"]["time"]
   f_ours = ours["full"]["time"] / ours["full/2"]["time"]
@@ -249,12 +250,12 @@ def gating_markdown(res: dict) -> list[str]:
           "| range | LCT Nt / Nv / Lv / Nu | LCT input | v-axis | output | Ours Tw | Ours front |"
           " Ours volume |", "|---|---|---|---|---|---|---|---|"]
   for lab in labels:
-    a, b = st["lct"][lab], st["ours"][lab]
+    a, b = st["lct"][lab], st[OURS][lab]
     out.append(f"| {lab} | {a['nt']} / {a['nv']} / {a['lv']} / {a['nu']} | {_ms(a['input'] / B)} |"
                f" {_ms(a['v-axis'] / B)} | {_ms(a['output'] / B)} | {b['tw']} |"
                f" {_ms(b['front'] / B)} | {_ms(b['volume'] / B)} |")
   a, b = st["lct"]["R"], st["lct"]["R/2"]
-  c, d = st["ours"]["R"], st["ours"]["R/2"]
+  c, d = st[OURS]["R"], st[OURS]["R/2"]
   out += ["", f"From R to R/2 the LCT stages get {a['input'] / b['input']:.2f}x (input),"
           f" {a['v-axis'] / b['v-axis']:.2f}x (v-axis) and {a['output'] / b['output']:.2f}x (output)"
           f" faster; the network's front {c['front'] / max(d['front'], 1e-12):.2f}x and its volume"

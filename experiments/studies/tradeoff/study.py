@@ -30,6 +30,7 @@ from experiments.studies.tradeoff.runners import evaluate, interleaved_times
 from experiments.studies.tradeoff.stages import lct_stage_executables, network_volume_executable
 from experiments.studies.tradeoff.training import train_learned
 from nlosjax.evaluation import baselines
+from nlosjax.variants import OURS, OURS_S, USM
 
 
 def run(args) -> dict:
@@ -109,7 +110,7 @@ def run(args) -> dict:
     add("method", method, labels[method], "classic" if method in CLASSIC else "learned", m,
         setting=labels[method])
 
-  for method in CLASSIC + ("usm", "ours_s", "ours"):
+  for method in CLASSIC + (USM, OURS_S, OURS):
     jobs.append(("method", f"method {method}", lambda method=method: job_method(method)))
 
   def job_csa():
@@ -152,12 +153,12 @@ def run(args) -> dict:
         "classic" if method in CLASSIC else "learned", m, capture=f"x{e:g}", setting=f"x{e:g}")
 
   for e in EXPOSURES:
-    for method in CLASSIC + ("usm", "ours_s", "ours"):
+    for method in CLASSIC + (USM, OURS_S, OURS):
       jobs.append(("exposure", f"exposure {method} x{e:g}",
                    lambda method=method, e=e: job_exposure(method, e)))
 
   for spec in LEARNED:
-    if spec.name not in ("usm", "ours_s", "ours"):
+    if spec.name not in (USM, OURS_S, OURS):
       knob = "frames" if spec.model == () else "model"
       jobs.append((knob, f"{knob} {spec.name}", lambda spec=spec, knob=knob: add(
           knob, spec.name, spec.label, "learned", learned(spec.name), setting=spec.label)))
@@ -165,10 +166,10 @@ def run(args) -> dict:
   for method in ("associative", "chunked"):
     jobs.append(("kernel", f"kernel {method}", lambda method=method: add(
         "kernel", f"ours@{method}", f"Ours, {method} scan", "learned",
-        learned("ours", trained("ours")[0].replace(scan_method=method)), setting=method)))
+        learned(OURS, trained(OURS)[0].replace(scan_method=method)), setting=method)))
   jobs.append(("kernel", "precision bfloat16", lambda: add(
       "kernel", "ours@bf16", "Ours, bfloat16 activations", "learned",
-      learned("ours", trained("ours")[0].replace(dtype="bfloat16")), setting="bfloat16")))
+      learned(OURS, trained(OURS)[0].replace(dtype="bfloat16")), setting="bfloat16")))
 
   # ---- time gating: accuracy inside each range; the stage profile's executables
   ranges = depth_ranges(depth_range, setup.max_depth,
@@ -197,29 +198,29 @@ def run(args) -> dict:
         add("gating", f"{method}@R", f"{labels[method]}, gated {rng[0]:g}-{rng[1]:g} m",
             "classic" if method in CLASSIC else "learned", m, setting=f"{rng[0]:g}-{rng[1]:g} m")
 
-  for method in CLASSIC + ("ours",):
+  for method in CLASSIC + (OURS,):
     jobs.append(("gating", f"gating {method}", lambda method=method: job_gating(method)))
 
   def job_gated_ours_s():
     z = depth_range
-    m = learned("ours_s", trained("ours_s")[0].with_setup(setup.with_depth_range(*z)))
-    add("gating", "ours_s@R", f"{labels['ours_s']}, gated {z[0]:g}-{z[1]:g} m", "learned", m,
+    m = learned(OURS_S, trained(OURS_S)[0].with_setup(setup.with_depth_range(*z)))
+    add("gating", "ours_s@R", f"{labels[OURS_S]}, gated {z[0]:g}-{z[1]:g} m", "learned", m,
         setting=f"{z[0]:g}-{z[1]:g} m")
 
   jobs.append(("gating", "gating ours_s (R only)", job_gated_ours_s))
 
   def job_stages():
     x_full = np.asarray(upsample_scan(inputs[1][:B, 0], setup.grid, stride))
-    stages: dict = {"lct": {}, "ours": {}}
+    stages: dict = {"lct": {}, OURS: {}}
     for label, rng, ap in ranges:
       su = gated_setup(setup, rng, ap)
       ex, stages["lct"][label] = lct_stage_executables(su, x_full)
       for k, v in ex.items():
         extra[(f"lct:{k}", label)] = v
-      fn, fargs, tw = network_volume_executable(trained("ours")[0].with_setup(su),
-                                                trained("ours")[1], B)
+      fn, fargs, tw = network_volume_executable(trained(OURS)[0].with_setup(su),
+                                                trained(OURS)[1], B)
       extra[("ours:volume", label)] = (fn, fargs)
-      stages["ours"][label] = {"tw": tw}
+      stages[OURS][label] = {"tw": tw}
     res["stages"] = stages
 
   jobs.append(("gating", "stage profile", job_stages))
@@ -253,9 +254,9 @@ def run(args) -> dict:
     st = res["stages"]["lct"][label]
     for k in ("input", "v-axis", "output"):
       st[k] = per_call[(f"lct:{k}", label)]
-    net = res["stages"]["ours"][label]
+    net = res["stages"][OURS][label]
     net["volume"] = per_call[("ours:volume", label)]
-    net["whole"] = gating["ours"][label]["time"] * B
+    net["whole"] = gating[OURS][label]["time"] * B
     net["front"] = max(net["whole"] - net["volume"], 0.0)
   for d in [*res["configs"], *(g for rr in gating.values() for g in rr.values())]:
     d["key"] = repr(d["key"])
