@@ -504,7 +504,7 @@ def _train_step_measure(ctx, cfg: dict, variant: str) -> dict:
   p = step["plan"]
   memory, source = plan.device_memory()
   reduced_from = None
-  if plan.verdict(cfg, p, memory, variant) is not None:
+  if plan.verdict(train.RunConfig.from_dict(cfg), p, memory, variant) is not None:
     fits = fitting_batch(p, memory)
     if fits is not None and ctx.fits(1.2 * step["compile_s"], f"a train step at batch {fits}"):
       reduced_from = step["batch"]
@@ -517,7 +517,8 @@ def _train_step_measure(ctx, cfg: dict, variant: str) -> dict:
          "planned_peak_bytes": p.peak_bytes,
          "planned": {"argument": p.argument_bytes, "output": p.output_bytes, "temp": p.temp_bytes,
                      "alias": p.alias_bytes}, "flops": p.flops, "device_memory": memory,
-         "device_memory_source": source, "fits": plan.verdict(cfg, p, memory, variant) is None}
+         "device_memory_source": source,
+         "fits": plan.verdict(train.RunConfig.from_dict(cfg), p, memory, variant) is None}
   ctx.data["train"] = row
   ctx.save()
   state = train_state_for(step)
