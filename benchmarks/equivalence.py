@@ -96,7 +96,8 @@ TOLERANCE = 1e-5
 NAME = "equivalence"
 #: Modules and folders moved since a base, old path -> new path (a folder ends in ``/``): the
 #: library's application and study instruments moved out of ``nlosjax``, the studies out of
-#: ``benchmarks``. Only code moved unchanged belongs here.
+#: ``benchmarks``, then each single-file study into a folder of its own (its ``__init__.py``).
+#: Only code moved unchanged belongs here (a moved module whose code changed too counts as changed).
 MOVES = {
     "nlosjax/main_job.py": "experiments/main_job.py",
     "nlosjax/models/probe.py": "experiments/studies/mechanisms/probe.py",
@@ -105,9 +106,12 @@ MOVES = {
     "experiments/align.py": "experiments/studies/align.py",
     "experiments/real_undersampling/": "experiments/studies/real_undersampling/",
     **{f"benchmarks/{name}/": f"experiments/studies/{name}/" for name in ("mechanisms", "physics_shift")},
-    **{f"benchmarks/{name}.py": f"experiments/studies/{name}.py"
+    **{f"benchmarks/{name}.py": f"experiments/studies/{name}/__init__.py"
        for name in ("generalisation", "realism", "ablations", "preset_choice", "time_to_plateau",
                     "stopping_replay", "independent_test", "temporal_probe")},
+    **{f"experiments/studies/{name}.py": f"experiments/studies/{name}/__init__.py"
+       for name in ("generalisation", "realism", "ablations", "preset_choice", "time_to_plateau",
+                    "stopping_replay", "independent_test", "temporal_probe", "table1")},
 }
 
 #: Functions and classes renamed since a base, old name -> new name (whole words; names
@@ -119,7 +123,8 @@ RENAMED = {
 
 
 def _dotted(path: str) -> str:
-  return path.removesuffix("/").removesuffix(".py").replace("/", ".")
+  """The module name of a file or folder path (a package's ``__init__.py`` is the package)."""
+  return path.removesuffix("/").removesuffix(".py").removesuffix("/__init__").replace("/", ".")
 
 
 def moved_path(path: str) -> str:
@@ -392,9 +397,9 @@ def state_at(base: str, name: str, show) -> str | None:
   """The state column ``base``'s committed index (:data:`INDEX_PATH`) gave results file ``name``,
   or None where that commit has no index or no row for it. ``show(commit, path)``: a file's text."""
   text = show(base, INDEX_PATH)
-  prefix = f"| [{name}.md](results/{name}.md) |"
+  row = re.compile(rf"\| \[{re.escape(name)}\.md\]\([^)]*/{re.escape(name)}\.md\) \|")  # wherever it lay
   for line in (text or "").splitlines():
-    if line.startswith(prefix):
+    if row.match(line):
       cells = [c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]]
       return cells[6] if len(cells) == 9 else None   # file, what, command, date, machine, commit, state
   return None
@@ -412,10 +417,12 @@ def _carried_at(entry, base: str, results: pathlib.Path, files) -> tuple[str, se
   every commit a results file was current at.
   """
   from benchmarks.results_header import GitFiles as _GitFiles
-  own = results / f"{entry.name}.md"
+  own = entry.path or results / f"{entry.name}.md"
   show = _GitFiles()
   try:
-    at_base = show(base, f"benchmarks/results/{entry.name}.md")
+    # where the file lies today, else where every results file lay before studies kept their own
+    at_base = next((text for where in (_repo_path(own), f"benchmarks/results/{entry.name}.md")
+                    if where and (text := show(base, where)) is not None), None)
     if at_base is None or not own.exists() or own.read_text() != at_base:
       return None
     said = state_at(base, entry.name, show) or ""
@@ -425,6 +432,12 @@ def _carried_at(entry, base: str, results: pathlib.Path, files) -> tuple[str, se
     return found.group(1), _changed_code(entry, base, show, files)
   finally:
     show.close()
+
+
+def _repo_path(path: pathlib.Path) -> str | None:
+  """``path`` relative to the repository root, as git names it; None for a path outside it."""
+  path = pathlib.Path(path).resolve()
+  return path.relative_to(provenance.ROOT).as_posix() if path.is_relative_to(provenance.ROOT) else None
 
 
 def _current_closure(results: pathlib.Path, name: str, files) -> set[str] | None:

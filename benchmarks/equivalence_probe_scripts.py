@@ -47,7 +47,12 @@ return. Probes, each on fixed seeds:
 * ``scripts/align``: the alignment stage's leave-one-scan-out folds (``align_folds``, 2 steps,
   ``lam`` balanced, layer ``auto``, each rule on 2 batches or draws) on two stand-in measured
   scans of the tiny main-job run's Ours: every number of each fold's record and the aligned
-  parameters.
+  parameters;
+* ``scripts/csa``: ``python -m experiments.studies.csa``'s scoring (``score``, ``choose``) on one
+  validation frame of the tiny data, one stride, two prior weights: every PSNR and FISTA count;
+* ``scripts/stopping_replay``: the stopping-rule replay on the committed records of the
+  mechanism and time-to-plateau studies (each tree reads its own copy, where it keeps them):
+  every replayed curve and every candidate rule's row.
 
 Like the other probes it uses interfaces the compared commits share (a function whose
 argument became a typed config is handed what each tree's library takes).
@@ -374,12 +379,38 @@ def probe_align(tmp: pathlib.Path, out: dict) -> None:
         out[f"scripts/align/{fold.parent.relative_to(tmp / 'align')}/{k}"] = f[k]
 
 
+def probe_csa(tmp: pathlib.Path, out: dict) -> None:
+  from experiments.studies.csa import __main__ as study  # its command's own module
+  main_job_run(tmp)  # makes the tiny data
+  with quiet():
+    res = study.score(tmp / "data" / "tiny.h5", 1, [1], [4], [0.03, 0.3], log=lambda s: None)
+  for key in ("csa", "iterations"):
+    for (s, t), v in sorted(res[key].items()):
+      out[f"scripts/csa/{key}/{s}/{t:g}"] = np.asarray(v, np.float64)
+  for m in study.CLASSIC:
+    out[f"scripts/csa/{m}/4"] = np.asarray(res[m][4], np.float64)
+  out["scripts/csa/chosen"] = np.asarray(study.choose(res, [4], [0.03, 0.3])[4], np.float64)
+
+
+def probe_stopping_replay(tmp: pathlib.Path, out: dict) -> None:
+  import inspect
+
+  from experiments.studies import stopping_replay as S
+  if "records" in inspect.signature(S.curves).parameters:     # today: each study's own results folder
+    runs = S.curves()
+  else:                                                        # before studies kept their own results
+    runs = S.curves(S.ROOT / "benchmarks" / "results")
+  for name, run in sorted(runs.items()):
+    out[f"scripts/stopping_replay/curve/{name}"] = np.asarray(run["points"], np.float64)
+  leaves(plain(S.compare(runs)), "scripts/stopping_replay/compare", out)
+
+
 PROBES = {"compile": probe_compile, "dry_run": probe_dry_run, "hlo_gpu": probe_hlo_gpu, "model": probe_model,
           "step_profile": probe_step_profile, "prefetch": probe_prefetch, "depth_range": probe_depth_range,
           "realism": probe_realism, "preset_choice": probe_preset_choice,
           "independent_test": probe_independent_test, "time_to_plateau": probe_time_to_plateau,
           "generalisation": probe_generalisation, "export": probe_export, "real_preset": probe_real_preset,
-          "align": probe_align}
+          "align": probe_align, "csa": probe_csa, "stopping_replay": probe_stopping_replay}
 
 
 def main(argv=None) -> int:

@@ -1,8 +1,10 @@
-"""Write ``benchmarks/README.md``, the index of ``benchmarks/results/``, from the results files.
+"""Write ``benchmarks/README.md``, the index of every results file, from the results files.
 
     python -m benchmarks.index             # rewrite benchmarks/README.md, print each file's state
     python -m benchmarks.index --check     # exit 1 if it differs from what the files say
 
+Results files live in ``benchmarks/results/`` (performance) and in each study's own
+``experiments/studies/<study>/results/`` (:func:`benchmarks.results_header.results_folders`).
 Each row is read from one results file's header: its title, the command that
 wrote it ("Produced by `...`"), its date, machine and commit, and its code
 digest (``- Code: `...```, written by ``experiments.provenance.code_line``: a
@@ -19,11 +21,12 @@ files themselves.
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import re
 import sys
 
-from benchmarks.results_header import Entry, git_output, read_entry
+from benchmarks.results_header import Entry, git_output, read_entry, results_folders
 from benchmarks.results_header import GitFiles as _GitFiles
 from benchmarks.results_header import same_code as _same_code
 from experiments import provenance
@@ -76,23 +79,24 @@ GOALS = {
     "tradeoff": "halving the depth range cuts LCT and network time by >= 1.6x",
 }
 
-HEADER = """# Benchmarks: an index
+HEADER = """# Benchmarks and studies: an index of every results file
 
 Each benchmark measures its candidates and what they are judged against (FFT floors, exp floors,
 NumPy/SciPy twins, the full model) side by side in one run and prints ratios, since absolute
-times on a shared machine move between runs. Each results file in `results/` is written whole
-by the command named in its first lines ("Produced by `...`"), with the date, machine and
-commit, and a digest of the project modules that command may run. The "state" column recomputes
-that digest on the tree this index was written from: **current** means the code is the same,
-**stale since <commit>** names the first later commit that changed one of those modules (and
-which ones). A stale file is regenerated with its command; until then the README and `docs/`
-mark the numbers they quote from it as stale. The command column gives the command as it is
-typed today, and the one that ran where a study has moved since. The numbers are in the files. Files a later study
-supersedes are kept, unindexed, in `results/archive/`, whose README names what replaces each.
+times on a shared machine move between runs. Performance results live in `results/`; each study
+of `experiments/studies/` keeps its own in its `results/` folder, beside its code and committed
+run states. Each results file is written whole by the command named in its first lines
+("Produced by `...`"), with the date, machine and commit, and a digest of the project modules
+that command may run. The "state" column recomputes that digest on the tree this index was
+written from: **current** means the code is the same, **stale since <commit>** names the first
+later commit that changed one of those modules (and which ones). A stale file is regenerated with
+its command; until then the README and `docs/` mark the numbers they quote from it as stale. The
+command column gives the command as it is typed today, and the one that ran where a study or its
+results have moved since. The numbers are in the files. Files a later study supersedes are kept,
+unindexed, in `experiments/studies/archive/`, whose README names what replaces each.
 `pip install -e ".[bench]"` installs PyTorch and mambapy, needed only for
-`benchmarks/scan_torch.py`. The studies that write results here live in `experiments/studies/`.
-Imports run downward only: `nlosjax` <- `experiments` <- `benchmarks` (provenance and the NumPy
-twins live in `experiments/`).
+`benchmarks/scan_torch.py`. Imports run downward only: `nlosjax` <- `experiments` (the application,
+then its studies) <- `benchmarks` (provenance and the NumPy twins live in `experiments/`).
 
 This file is written by `python -m benchmarks.index` from the results files' headers; rerun it
 after any benchmark (a test fails while it is out of date).
@@ -146,9 +150,20 @@ def state(entry: Entry, files=None) -> str:
   return f"stale {where} ({what})" if what else f"stale {where}"
 
 
-def entries(results: pathlib.Path = RESULTS) -> list[Entry]:
-  """Every ``*.md`` results file, sorted by name."""
-  return [read_entry(p) for p in sorted(results.glob("*.md"))]
+def entries(results: pathlib.Path | None = None) -> list[Entry]:
+  """Every ``*.md`` results file of ``results`` (default: every folder of
+  :func:`~benchmarks.results_header.results_folders`), sorted by name.
+
+  Raises:
+    ValueError: two folders hold results files of the same name (the index and the
+      equivalence check know a file by its name).
+  """
+  folders = results_folders() if results is None else [pathlib.Path(results)]
+  found = sorted((read_entry(p) for f in folders for p in f.glob("*.md")), key=lambda e: e.name)
+  twice = sorted({a.name for a, b in zip(found, found[1:]) if a.name == b.name})
+  if twice:
+    raise ValueError(f"results files named twice: {', '.join(twice)} (a name must say which file)")
+  return found
 
 
 def companions(results: pathlib.Path, stem: str, tables: set[str] | None = None) -> list[str]:
@@ -169,7 +184,7 @@ def companions(results: pathlib.Path, stem: str, tables: set[str] | None = None)
   return out
 
 
-def states(results: pathlib.Path = RESULTS) -> dict[str, str]:
+def states(results: pathlib.Path | None = None) -> dict[str, str]:
   """Each results file's :func:`state`, by file stem; a stale one carried forward says so.
 
   Carried forward: :func:`benchmarks.equivalence.carried_forward` (a committed check showed
@@ -181,12 +196,12 @@ def states(results: pathlib.Path = RESULTS) -> dict[str, str]:
   for e in entries(results):
     st = state(e, files)
     if st.startswith("stale"):
-      st = carried_forward(e, results=results, files=files) or st
+      st = carried_forward(e, results=RESULTS if results is None else results, files=files) or st
     out[e.name] = st
   return out
 
 
-def render(results: pathlib.Path = RESULTS, computed: dict[str, str] | None = None) -> str:
+def render(results: pathlib.Path | None = None, computed: dict[str, str] | None = None) -> str:
   """The index's Markdown text; ``computed``: :func:`states` where the caller has them already."""
   lines = [HEADER, "| results file | what | command | date (UTC) | machine | commit | "
            "state | goal | companions |", "|---|---|---|---|---|---|---|---|---|"]
@@ -195,15 +210,29 @@ def render(results: pathlib.Path = RESULTS, computed: dict[str, str] | None = No
   tables = {e.name for e in found}
   computed = states(results) if computed is None else computed
   for e in found:
-    today = as_moved(e.command)          # the command as it is typed today (a study moved since)
+    today = _outputs_moved(as_moved(e.command), found)   # as typed today (a study or its results moved)
     command = f"`{today}`" + ("" if today == e.command else f" (ran as `{e.command}`)")
-    cells = [f"[{e.name}.md](results/{e.name}.md)", e.title.replace("|", "\\|"),
+    link = pathlib.Path(os.path.relpath(e.path, HERE)).as_posix()
+    cells = [f"[{e.name}.md]({link})", e.title.replace("|", "\\|"),
              command.replace("|", "\\|"), e.date, e.machine, e.commit,
              f"**{st}**" if (st := computed[e.name]) == "current" else st,
              GOALS.get(e.name, "none stated"),
-             ", ".join(companions(results, e.name, tables))]
+             ", ".join(companions(e.path.parent, e.name, tables))]
     lines.append("| " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
+
+
+def _outputs_moved(command: str, found: list[Entry]) -> str:
+  """``command`` with each ``benchmarks/results/<file>`` it names that lives in a study's results
+  folder today written with today's path."""
+  where = {e.name: e.path.parent for e in found}
+
+  def today(m: re.Match) -> str:
+    stem = max((n for n in where if m.group(1) == n or m.group(1).startswith(n + "_")), key=len, default=None)
+    if stem is None or where[stem] == RESULTS:
+      return m.group(0)
+    return (where[stem] / m.group(1)).relative_to(provenance.ROOT).as_posix() + m.group(2)
+  return re.sub(r"benchmarks/results/([A-Za-z0-9_]+)(\.\w+)", today, command)
 
 
 def main(argv=None) -> int:

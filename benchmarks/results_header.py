@@ -5,7 +5,8 @@ command that wrote it, date, machine, commit, and its code digest with the modul
 covers); :class:`GitFiles` reads files at commits through one ``git cat-file`` process;
 :func:`same_code` compares two versions of a module as the code digest does (comments
 and docstrings aside). Both :mod:`benchmarks.index` and :mod:`benchmarks.equivalence`
-import from here, so neither imports the other for them.
+import from here, so neither imports the other for them. :func:`results_folders` lists where
+results files live: ``benchmarks/results/`` (performance) and each study's ``results/``.
 """
 
 from __future__ import annotations
@@ -29,6 +30,14 @@ class Entry:
   commit: str
   digest: str = ""                  # the "- Code: `...`" digest, or "" where the file has none
   modules: tuple[str, ...] = ()     # the modules that digest covers
+  path: pathlib.Path | None = dataclasses.field(default=None, compare=False)   # the file read
+
+
+def results_folders(root: pathlib.Path | None = None) -> list[pathlib.Path]:
+  """Every folder of results files under ``root`` (default: this checkout): ``benchmarks/results``,
+  then ``experiments/studies/<study>/results`` by study name."""
+  root = provenance.ROOT if root is None else pathlib.Path(root)
+  return [root / "benchmarks" / "results", *sorted((root / "experiments" / "studies").glob("*/results"))]
 
 
 def _first(pattern: str, text: str, default: str = "?") -> str:
@@ -54,7 +63,7 @@ def read_entry(path: pathlib.Path) -> Entry:
   commit = _first(r"^- Commit: (.+)$", body)
   code = provenance.CODE_LINE.search(body)
   return Entry(path.stem, _first(r"^# (.+)$", body), command, date, machine, commit,
-               code.group(1) if code else "", tuple(code.group(2).split()) if code else ())
+               code.group(1) if code else "", tuple(code.group(2).split()) if code else (), path)
 
 
 def git_output(*args: str) -> str | None:

@@ -13,7 +13,7 @@ RUN is one of
   ``best_checkpoint/``, ``selection.json`` naming the selected step and the
   stop reason). The run's machine and commit come from ``run.json`` or else
   its record ``RESULTS/mechanisms/<budget>/<row>-seed<k>.json`` (``--results``,
-  default ``benchmarks/results``); the default command is ``python -m
+  default ``experiments/studies/mechanisms/results``); the default command is ``python -m
   experiments.studies.mechanisms --budgets <budget> --rows <row> --seeds <k>``;
 * a run state committed by a study (``--state``, e.g.
   ``experiments/studies/mechanisms/state/<budget>/<row>-seed<k>``: ``model/best.npz``,
@@ -70,6 +70,8 @@ import numpy as np
 from nlosjax.variants import VARIANTS
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
+#: The mechanism study's results folder, whose run records name the machine a run trained on.
+MECHANISM_RECORDS = REPO / "experiments" / "studies" / "mechanisms" / "results"
 TOLERANCE_DB = 1e-3
 
 
@@ -361,7 +363,7 @@ def dataset_facts(data_path, config: dict) -> dict:
 
 
 def export(run_path, name: str, variant: str, *, command: str | None = None, commit: str | None = None,
-           results=REPO / "benchmarks" / "results", data=None, root=None, overwrite: bool = False,
+           results=MECHANISM_RECORDS, data=None, root=None, overwrite: bool = False,
            tolerance_db: float = TOLERANCE_DB, export_command: str = "", preset: str = "cpu",
            log=print) -> dict:
   """Export one finished run (module docstring); returns the provenance written.
@@ -471,8 +473,8 @@ def main(argv=None) -> int:
   p.add_argument("--variant", required=True, choices=tuple(VARIANTS))
   p.add_argument("--command", default=None, help="the training command to record (default: see above)")
   p.add_argument("--commit", default=None, help="the training commit to record (default: the run's record)")
-  p.add_argument("--results", default=str(REPO / "benchmarks" / "results"),
-                 help="where the study's run records are (default benchmarks/results)")
+  p.add_argument("--results", default=str(MECHANISM_RECORDS),
+                 help="where the mechanism study's run records are (default experiments/studies/mechanisms/results)")
   p.add_argument("--data", default=None, help="dataset file (default: the run config's data.path)")
   p.add_argument("--root", default=None, help="weights folder (default: nlosjax/weights of this checkout)")
   p.add_argument("--tolerance-db", type=float, default=TOLERANCE_DB,

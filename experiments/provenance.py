@@ -122,7 +122,8 @@ def load_average(sep: str = " ") -> str:
 def git_commit(repo=None) -> str:
   """The checked-out commit (short hash), with ``+changes`` when tracked code differs from it.
 
-  Changes under ``benchmarks/results/`` (what benchmarks write) do not count.
+  Changes under ``benchmarks/results/`` and ``experiments/studies/*/results/`` (what benchmarks and
+  studies write) do not count.
 
   ``"unknown"`` outside a git checkout. A results file names this so a reader
   can check out the code that wrote it.
@@ -135,8 +136,8 @@ def git_commit(repo=None) -> str:
                           capture_output=True, text=True).stdout.strip()
     # Results files written by this or another benchmark are not code: they do not count.
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
-                            ":(exclude)benchmarks/results"], cwd=where,
-                           check=True, capture_output=True, text=True).stdout.strip()
+                            ":(exclude)benchmarks/results", ":(exclude,glob)experiments/studies/*/results/**"],
+                           cwd=where, check=True, capture_output=True, text=True).stdout.strip()
   except (OSError, subprocess.CalledProcessError):
     return "unknown"
   return head + (" +changes (uncommitted edits to tracked files)" if dirty else "")

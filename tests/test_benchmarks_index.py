@@ -16,8 +16,8 @@ def test_every_results_file_names_its_command_date_machine_commit_and_code_diges
     assert e.command.startswith("python -m "), e
     assert e.date[:4].isdigit() and e.machine != "?" and e.commit != "?", e
     assert len(e.digest) == 12 and e.modules, f"{e.name}.md has no code digest (rerun the command its header names)"
-  for path in index.RESULTS.glob("*.md"):
-    assert "Still holds at" not in path.read_text(), f"{path.name}: the digest replaces hand-written banners"
+  for e in index.entries():
+    assert "Still holds at" not in e.path.read_text(), f"{e.name}.md: the digest replaces hand-written banners"
 
 
 def test_a_header_is_read_as_written_and_a_file_without_a_command_is_refused(tmp_path):
@@ -111,3 +111,41 @@ def test_a_digest_written_by_another_python_is_recomputed_from_its_commit():
   assert provenance.recompute_at_commit(text.replace(commit, commit + " +changes")) is None
   with pytest.raises(ValueError, match="git has no nlosjax/stats.py at commit 0000000"):
     provenance.recompute_at_commit(text.replace(commit, "0000000"))
+
+
+def test_results_are_read_from_benchmarks_and_each_studys_folder_and_a_name_is_one_file(tmp_path, monkeypatch):
+  """Performance results in ``benchmarks/results``, each study's in its own ``results/``; the index
+  links each where it lies, and a name in two folders is refused (records name files by stem)."""
+  from benchmarks import results_header
+  bench, study = tmp_path / "benchmarks" / "results", tmp_path / "experiments" / "studies" / "s" / "results"
+  for folder in (bench, study, tmp_path / "experiments" / "studies" / "t"):      # t keeps no results
+    folder.mkdir(parents=True)
+  assert results_header.results_folders(tmp_path) == [bench, study]
+  head = "# {0}\n\nProduced by `python -m {0}`.\n\n- Date: 2026-01-02\n- Machine: M\n- Commit: 1\n"
+  (bench / "speed.md").write_text(head.format("speed"))
+  (study / "answer.md").write_text(head.format("answer"))
+  (study / "answer.png").write_bytes(b"")
+  monkeypatch.setattr(index, "results_folders", lambda: results_header.results_folders(tmp_path))
+  monkeypatch.setattr(index, "HERE", tmp_path / "benchmarks")
+  found = index.entries()
+  assert [(e.name, e.path) for e in found] == [("answer", study / "answer.md"), ("speed", bench / "speed.md")]
+  text = index.render(computed={"answer": "current", "speed": "current"})
+  assert "| [answer.md](../experiments/studies/s/results/answer.md) |" in text and "| answer.png |" in text
+  assert "| [speed.md](results/speed.md) |" in text
+  (study / "speed.md").write_text(head.format("speed"))
+  with pytest.raises(ValueError, match="named twice: speed"):
+    index.entries()
+
+
+def test_benchmarks_keep_performance_results_only_and_each_study_its_own():
+  """A file in ``benchmarks/results`` was written by a benchmark; one in a study's ``results/`` by
+  that study's command (as typed today)."""
+  from benchmarks.equivalence import as_moved
+  for e in index.entries():
+    folder = e.path.parent.relative_to(provenance.ROOT).as_posix()
+    command = as_moved(e.command)
+    if folder == "benchmarks/results":
+      assert command.startswith("python -m benchmarks."), (e.name, command)
+    else:
+      study = folder.removeprefix("experiments/studies/").removesuffix("/results")
+      assert command.split()[:3] == ["python", "-m", f"experiments.studies.{study}"], (e.name, folder, command)

@@ -201,6 +201,11 @@ def test_a_module_moved_verbatim_is_judged_at_its_new_path(tmp_path, monkeypatch
   assert equivalence.moved_path("b/s/x.py") == "e/t/s/x.py" and equivalence.moved_path("b/sx.py") == "b/sx.py"
   assert equivalence.as_moved('"python -m b.s.cli; see b/s/state and ``b/s``"\nfrom b import s\n') == \
       '"python -m e.t.s.cli; see e/t/s/state and ``e/t/s``"\nfrom e.t import s\n'
+  # A module made a package (its code now the package's __init__.py) keeps its dotted name.
+  monkeypatch.setattr(equivalence, "MOVES", {"s/a.py": "s/a/__init__.py", "b/a.py": "s/a/__init__.py"})
+  assert equivalence.moved_path("s/a.py") == "s/a/__init__.py"
+  assert equivalence.as_moved("from s import a\nimport s.a\nfrom b import a\nx = 's/a.py'\n") == \
+      "from s import a\nimport s.a\nfrom s import a\nx = 's/a/__init__.py'\n"
   monkeypatch.setattr(equivalence, "MOVES", {"a/b/c.py": "d/e.py"})
   # A run of imports the linter re-sorted after the rename does what the base's did; other
   # reorderings of code do not count as the same.
@@ -325,9 +330,11 @@ def test_state_at_reads_the_state_column_of_a_committed_index():
   row = ("| [x.md](results/x.md) | a \\| b | `python -m x` | 2026 | M | abc | carried forward from 1234567 by "
          "equivalence.md | goal | x.json |")
   other = "| [xy.md](results/xy.md) | t | `c` | 2026 | M | abc | stale since 1 (m) | goal |  |"
-  show = lambda commit, path: f"# Index\n\n{other}\n{row}\n" if path == equivalence.INDEX_PATH else None
+  study = "| [s.md](../experiments/studies/s/results/s.md) | t | `c` | 2026 | M | abc | **current** | goal |  |"
+  show = lambda commit, path: f"# Index\n\n{other}\n{row}\n{study}\n" if path == equivalence.INDEX_PATH else None
   assert equivalence.state_at("c", "x", show) == "carried forward from 1234567 by equivalence.md"
   assert equivalence.state_at("c", "xy", show) == "stale since 1 (m)"
+  assert equivalence.state_at("c", "s", show) == "**current**"     # a study's own results folder
   assert equivalence.state_at("c", "z", show) is None
   assert equivalence.state_at("c", "x", lambda commit, path: None) is None
 
@@ -341,7 +348,8 @@ def test_the_studies_probe_runs_the_studies_and_keeps_their_numbers_not_their_ti
   from benchmarks import equivalence_probe_studies as S
   closure = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe_studies"])
   for m in ("experiments/studies/mechanisms/study.py", "experiments/studies/mechanisms/cli.py",
-            "experiments/studies/ablations.py", "experiments/studies/tradeoff/training.py", "experiments/tiny_run.py"):
+            "experiments/studies/ablations/__init__.py", "experiments/studies/tradeoff/training.py",
+            "experiments/tiny_run.py"):
     assert m in closure, m
   assert equivalence.PROBES["studies"].name == "equivalence_probe_studies.py"
   out = {}
@@ -366,11 +374,12 @@ def test_the_scripts_probe_holds_the_scripts_it_runs_and_fingerprints_programs(m
   closure = provenance.code_modules(["benchmarks.equivalence", "benchmarks.equivalence_probe_scripts"])
   for m in ("benchmarks/compile.py", "benchmarks/dry_run.py", "benchmarks/hlo_gpu.py", "benchmarks/model.py",
             "benchmarks/step_profile.py", "benchmarks/prefetch.py", "benchmarks/depth_range.py",
-            "experiments/studies/generalisation.py", "experiments/studies/preset_choice.py",
-            "experiments/studies/realism.py", "experiments/studies/time_to_plateau.py",
+            "experiments/studies/generalisation/__init__.py", "experiments/studies/preset_choice/__init__.py",
+            "experiments/studies/realism/__init__.py", "experiments/studies/time_to_plateau/__init__.py",
             "experiments/studies/real_preset/study.py", "experiments/studies/align.py",
             "experiments/studies/alignment.py", "experiments/export_weights.py",
-            "experiments/studies/independent_test.py"):
+            "experiments/studies/independent_test/__init__.py", "experiments/studies/csa/__main__.py",
+            "experiments/studies/stopping_replay/__init__.py"):
     assert m in closure, m
   assert equivalence.PROBES["scripts"].name == "equivalence_probe_scripts.py"
   a = P.fingerprint("module { }")

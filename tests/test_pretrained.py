@@ -333,7 +333,7 @@ def _state_copy(tmp_path, row="lfe"):
   results = tmp_path / "results"
   shutil.copytree(ROOT / "experiments" / "studies" / "mechanisms" / "state" / "full" / f"{row}-seed0", state)
   (results / "mechanisms" / "full").mkdir(parents=True)
-  shutil.copy(ROOT / "benchmarks" / "results" / "mechanisms" / "full" / f"{row}-seed0.json",
+  shutil.copy(ROOT / "experiments" / "studies" / "mechanisms" / "results" / "mechanisms" / "full" / f"{row}-seed0.json",
               results / "mechanisms" / "full")
   return state, results
 

@@ -16,6 +16,8 @@ def _git(repo, *args):
 def test_git_commit_ignores_results_files_but_not_code(tmp_path):
   _git(tmp_path, "init", "-q")
   (tmp_path / "benchmarks" / "results").mkdir(parents=True)
+  (tmp_path / "experiments" / "studies" / "s" / "results").mkdir(parents=True)
+  (tmp_path / "experiments" / "studies" / "s" / "results" / "b.md").write_text("old\n")
   (tmp_path / "code.py").write_text("x = 1\n")
   (tmp_path / "benchmarks" / "results" / "a.md").write_text("old\n")
   _git(tmp_path, "add", ".")
@@ -24,6 +26,8 @@ def test_git_commit_ignores_results_files_but_not_code(tmp_path):
                         capture_output=True, text=True).stdout.strip()
   assert git_commit(tmp_path) == head
   (tmp_path / "benchmarks" / "results" / "a.md").write_text("new\n")   # a benchmark wrote this
+  assert git_commit(tmp_path) == head
+  (tmp_path / "experiments" / "studies" / "s" / "results" / "b.md").write_text("new\n")   # a study wrote this
   assert git_commit(tmp_path) == head
   (tmp_path / "code.py").write_text("x = 2\n")                          # the code differs
   assert git_commit(tmp_path).startswith(head + " +changes")

@@ -36,7 +36,7 @@ def test_a_hand_worked_curve():
 
 def test_the_recorded_rule_replayed_stops_every_kept_run_where_it_stopped():
   """The replay is exact: the rule the runs trained with, replayed, gives each recorded stop and best."""
-  runs = S.curves(ROOT / "benchmarks" / "results")
+  runs = S.curves()
   plateau = {k: r for k, r in runs.items() if r["stop_reason"] == "plateau"}
   assert len(plateau) >= 40
   for name, run in plateau.items():

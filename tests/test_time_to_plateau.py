@@ -36,7 +36,7 @@ def test_the_report_pairs_each_seed_and_sums_the_steps(tmp_path):
   for s, steps in ((0, 800), (1, 1200)):
     _write(tmp_path, "ours_s", s, study[s], steps, seq, frames, short=False)
     _write(tmp_path, "ours_s", s, study[s] - 2.0, 400, seq, frames, short=True)   # 2 dB lower everywhere
-  assert P.main(["--report-only", "--results", str(tmp_path)]) == 0
+  assert P.main(["--report-only", "--results", str(tmp_path), "--study-results", str(tmp_path)]) == 0
   text = (tmp_path / f"{P.NAME}.md").read_text()
   assert f"| ours_s | 0, 1 | {800 / 2000:.2f} | -2.00 [-2.00, -2.00] |" in text
   assert "- ours_s: 0.40x the steps" in text and "lower (called)." in text
@@ -44,4 +44,4 @@ def test_the_report_pairs_each_seed_and_sums_the_steps(tmp_path):
   # A short run scored on other frames is refused.
   _write(tmp_path, "ours_s", 1, study[1], 400, seq, frames[::-1], short=True)
   with pytest.raises(ValueError, match="different test frames"):
-    P.main(["--report-only", "--results", str(tmp_path)])
+    P.main(["--report-only", "--results", str(tmp_path), "--study-results", str(tmp_path)])

@@ -85,7 +85,7 @@ def get_config() -> dict:
   }
   # Steps, learning rate, weight decay and the object-intensity term chosen on validation:
   # docs/decisions.md, "The cpu preset's choices". The schedule (peak 3e-3, cosine over 400 steps)
-  # is the short one of benchmarks/results/time_to_plateau.md; the plateau-trained studies keep
+  # is the short one of experiments/studies/time_to_plateau/results/time_to_plateau.md; the plateau-trained studies keep
   # the 1e-3 their runs were trained with (experiments.studies.mechanisms.design.STUDY_OPTIM).
   train = {
       "steps": 400,                # the short schedule's horizon

@@ -2,14 +2,14 @@
 
 Not a preset: like ``real_v4`` it replaces ``real``'s data only if its model wins on
 ``real``'s validation split (trained to its plateau by ``experiments.studies.real_preset``,
-compared in ``benchmarks/results/preset_choice_real.md``)::
+compared in ``experiments/studies/preset_choice/results/preset_choice_real.md``)::
 
     python -m experiments.train --config experiments/configs/real_v5.py --workdir runs/real-v5
     python -m experiments.studies.preset_choice --model shipped=pretrained:real --model v5=runs/real-v5
 
 What changes against ``real_v4``, in the order DENALI (CVPR 2026) found them to
 matter (global photon scale, then pulse width, then noise), and why
-(``benchmarks/results/realism_v4.md`` lists the gaps; ``realism_v5.md`` the result):
+(``experiments/studies/realism/results/realism_v4.md`` lists the gaps; ``realism_v5.md`` the result):
 
 * **photon scale**: detected signal per histogram (efficiency x photons) in
   about 450-7500 counts and ambient in about 90-1500, as the measured scans'

@@ -1,12 +1,14 @@
 """Studies: what trains models to answer one question, apart from the library and the main job.
 
-Each study holds its definition and runner (``python -m experiments.studies.<name>``) and,
-for its long runs, under ``state/`` the committed resumable state of each run
-(:mod:`nlosjax.train.run_state`), so a fresh clone continues a run where the last working
-stretch stopped. The long-run studies (``real_preset``, ``csa``) keep datasets and full run
-folders in the store (:mod:`experiments.store`), outside the work tree; the others write under
-``runs/`` in the work tree (``runs/mechanisms``, ``runs/physics_shift``, ...). Reports go to
-``benchmarks/results/`` beside the performance benchmarks', indexed by ``python -m benchmarks.index``.
+Each study is a folder: its definition and runner (``python -m experiments.studies.<name>``), its
+results (``results/``: reports, figures, JSON records) and, for its long runs, under ``state/``
+the committed resumable state of each run (:mod:`nlosjax.train.run_state`), so a fresh clone
+continues a run where the last working stretch stopped. The long-run studies (``real_preset``,
+``csa``) keep datasets and full run folders in the store (:mod:`experiments.store`), outside the
+work tree; the others write under ``runs/`` in the work tree (``runs/mechanisms``,
+``runs/physics_shift``, ...). ``python -m benchmarks.index`` lists every study's results beside the
+performance benchmarks'. Files a later study supersedes are kept in ``archive/``, whose README
+names what replaces each.
 
 * ``mechanisms`` -- does Ours use its SSMs and its neighbour frames (plateau-trained, with
   intervals over seeds); ``mechanisms.probe`` bypasses SSMs of a trained network.

@@ -16,7 +16,7 @@ class OptimConfig:
   Attributes:
     learning_rate: peak learning rate (paper 1e-4).
     weight_decay: decoupled weight decay. The paper prints 0.95; its
-      predecessor USM used 1e-4 (see ``benchmarks/results/archive/table2.md`` for the
+      predecessor USM used 1e-4 (see ``experiments/studies/archive/table2.md`` for the
       measured comparison behind our default).
     warmup_steps: linear warm-up from 0 (0: none).
     cosine: decay to ``end_fraction * learning_rate`` by the last step.

@@ -1,6 +1,6 @@
 """CSA's prior weight chosen on simulated validation sequences, never on measured scans.
 
-    python -m experiments.studies.csa                 # -> benchmarks/results/csa_choice.md
+    python -m experiments.studies.csa                 # -> experiments/studies/csa/results/csa_choice.md
     python -m experiments.studies.csa --sequences 8 --frames 1 4 6 --tau 0.05 0.1 0.2
 
 The ``real`` preset's validation split (the first ``--sequences`` sequences,

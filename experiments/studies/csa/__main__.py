@@ -12,8 +12,7 @@ import numpy as np
 from experiments import provenance
 from experiments.studies import csa as study
 
-REPO = pathlib.Path(__file__).resolve().parents[3]
-OUT = REPO / "benchmarks" / "results" / "csa_choice.md"
+OUT = pathlib.Path(__file__).resolve().parent / "results" / "csa_choice.md"
 CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
 
 

@@ -2,7 +2,7 @@
 
     python -m experiments.studies.mechanisms [--config cpu] [--budgets full tenth] [--rows full ours_s no_ssm]
                                     [--extra-rows] [--seeds 0 1 2] [--max-runs N] [--time-limit-s S]
-                                    [--workdir runs/mechanisms] [--results benchmarks/results]
+                                    [--workdir runs/mechanisms] [--results DIR]
                                     [--report-only] [--untrained] [--probe RUN_DIR] [--tiny]
                                     [--state DIR [--hours H]] [--config.section.key=value ...]
 

@@ -23,7 +23,7 @@ from experiments.studies.mechanisms.design import (
   study_optim,
   study_stop,
 )
-from experiments.studies.mechanisms.records import _array, code_at_start
+from experiments.studies.mechanisms.records import RESULTS, _array, code_at_start
 from experiments.studies.mechanisms.report import write_report
 from experiments.studies.mechanisms.study import probe_run_dir, run_one
 
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
   parser.add_argument("--time-limit-s", type=float, default=None,
                       help="start no run after this many seconds (a started run finishes)")
   parser.add_argument("--workdir", default=None, help="run folders (default: runs/mechanisms)")
-  parser.add_argument("--results", default=None, help="JSON files and report (default: benchmarks/results)")
+  parser.add_argument("--results", default=None, help="JSON files and report (default: the study's results folder)")
   parser.add_argument("--report-only", action="store_true", help="only rewrite the report from the JSON files")
   parser.add_argument("--untrained", action="store_true",
                       help="score Table 1's methods without training (the classic five and CSA, tuned on "
@@ -84,7 +84,7 @@ def main(argv=None) -> int:
   keep_loss = tuple(k[2] for k, _ in map(override_key, overrides) if k[:2] == ("train", "loss") and len(k) == 3)
   command = "python -m experiments.studies.mechanisms " + " ".join(argv)
   workdir = pathlib.Path(args.workdir or ("runs/mechanisms-tiny" if args.tiny else "runs/mechanisms"))
-  results = pathlib.Path(args.results or (workdir / "results" if args.tiny else "benchmarks/results"))
+  results = pathlib.Path(args.results or (workdir / "results" if args.tiny else RESULTS))
   if args.tiny:
     base = tiny_base(workdir)
     design = dict(TINY_DESIGN)

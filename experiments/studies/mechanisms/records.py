@@ -9,6 +9,10 @@ import pathlib
 
 import numpy as np
 
+#: The study's results folder: ``mechanisms.md``, its figure, and the run records under
+#: ``RESULTS/mechanisms/<budget>/``.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+
 _CODE_AT_START: dict = {}
 
 

@@ -2,7 +2,7 @@
 
     python -m experiments.studies.physics_shift [--config cpu] [--designs base mix no_lct ...]
         [--variants ours ours_s] [--conditions base far ...] [--max-runs N] [--time-limit-s S]
-        [--workdir runs/physics_shift] [--results benchmarks/results] [--report-only]
+        [--workdir runs/physics_shift] [--results DIR] [--report-only]
         [--config.section.key=value ...]
 
 Two protocols, every choice on a validation split (:mod:`experiments.studies.physics_shift.study`):

@@ -24,7 +24,8 @@ def main(argv=None) -> int:
   parser.add_argument("--time-limit-s", type=float, default=None,
                       help="start no run after this many seconds (a started run finishes)")
   parser.add_argument("--workdir", default="runs/physics_shift", help="run folders")
-  parser.add_argument("--results", default="benchmarks/results", help="JSON files and report")
+  parser.add_argument("--results", default=str(pathlib.Path(__file__).resolve().parent / "results"),
+                      help="JSON files and report (default: this study's results folder)")
   parser.add_argument("--report-only", action="store_true", help="only rewrite the report from the JSON files")
   parser.add_argument("--state", default=None, metavar="DIR",
                       help="export each run's resumable state to DIR/<design>-<variant> at every checkpoint "

@@ -37,7 +37,8 @@ fold starts (a fold is about 15 minutes of 2 cores). ``--status`` shows the fold
 the hours left::
 
     python -m experiments.studies.real_preset --align --hours 1.5
-    python -m experiments.studies.real_undersampling --adapt --no-timing --out benchmarks/results/real_adapt.md \
+    python -m experiments.studies.real_undersampling --adapt --no-timing \
+        --out experiments/studies/real_undersampling/results/real_adapt.md \
         --aligned <store>/runs/real_preset/align <store>/runs/real_preset/align-balanced
 
 The ``*-balanced`` alignments (``lam`` set per fold from the training side: the MMD

@@ -31,7 +31,8 @@ def main(argv=None) -> int:
     for config in dict.fromkeys(r.config for r in study.RUNS):
       models.append(f"--model {pathlib.Path(config).stem}={study.candidate_workdir(config)}")
     print("python -m experiments.studies.preset_choice " + " ".join(models)
-          + f" --methods {' '.join(CLASSIC_METHODS)} --out benchmarks/results/preset_choice_real.md")
+          + f" --methods {' '.join(CLASSIC_METHODS)}"
+          + " --out experiments/studies/preset_choice/results/preset_choice_real.md")
     return 0
   if args.hours is not None and not args.hours > 0:
     parser.error(f"--hours must be > 0, got {args.hours}")

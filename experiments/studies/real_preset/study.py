@@ -39,7 +39,7 @@ class Run:
 
 #: The runs, in the order they are trained. ``real_v5``: the candidate whose simulated inputs
 #: a held-out classifier tells from the measured scans' 57 % of the time
-#: (benchmarks/results/realism_v5.md; v4: 92 %, the shipped weights' data: 97 %).
+#: (experiments/studies/realism/results/realism_v5.md; v4: 92 %, the shipped weights' data: 97 %).
 RUNS = (
     Run("v5-ours_s", "experiments/configs/real_v5.py", OURS_S),
     Run("v5-ours", "experiments/configs/real_v5.py", OURS),
@@ -283,7 +283,7 @@ class Alignment:
 
 
 #: Alignment from the winner of each variant on validation
-#: (benchmarks/results/preset_choice_real.md), both shipped as ``real``: Ours-S trained on the
+#: (experiments/studies/preset_choice/results/preset_choice_real.md), both shipped as ``real``: Ours-S trained on the
 #: v5 candidate's data (``v5-ours_s``), Ours on the preset's own. Steps, ``lam`` and the
 #: learning rate are the CLI's defaults, fixed before any score was seen. At ``lam = 1`` the
 #: MMD term stayed 0.000-0.1 against a synthetic loss of about 2 (the stage was inert), so

@@ -1,6 +1,6 @@
 """Under-scanning on measured scans: every method on 16 x 16 and 8 x 8 subsets of real 64 x 64 scans.
 
-    python -m experiments.studies.real_undersampling                      # -> benchmarks/results/real.md
+    python -m experiments.studies.real_undersampling                      # -> results/real.md here
     python -m experiments.studies.real_undersampling --data-dir DIR --checkpoint runs/real --out FILE.md
     python -m experiments.studies.real_undersampling --pretrained cpu --no-timing
 
@@ -26,7 +26,7 @@ Protocol (the paper's under-scanning experiment, on measured data):
   under-scanned scans) reconstructs the sparse scan itself, as a masked
   64 x 64 grid, with the t^2 falloff and the prior weight ``CSA_TAU_REL``
   chosen per stride on the ``real`` preset's simulated validation split
-  (``python -m experiments.studies.csa``, ``benchmarks/results/csa_choice.md``),
+  (``python -m experiments.studies.csa``, ``experiments/studies/csa/results/csa_choice.md``),
   never on these scans. It is scored, not a reference, and not run on the
   full scan;
 * the trained networks (Ours-S, Ours and, where trained, USM of ``--checkpoint``,

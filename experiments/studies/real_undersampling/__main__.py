@@ -13,7 +13,6 @@ from experiments.studies.real_undersampling import __doc__ as package_doc
 from experiments.studies.real_undersampling.ablation import ablated_models, adapted_models, aligned_run
 from experiments.studies.real_undersampling.figures import write_figures
 from experiments.studies.real_undersampling.protocol import (
-  REPO,
   binned_classic,
   default_files,
   load_models,
@@ -32,7 +31,7 @@ def main(argv=None):
   add_weight_arguments(parser, "trained run (workdir of python -m experiments.train); 'none' for"
                                " classic only; default: the shipped weights of --pretrained")
   parser.add_argument("--strides", type=int, nargs="+", default=[4, 8])
-  parser.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "real.md"))
+  parser.add_argument("--out", default=str(pathlib.Path(__file__).resolve().parent / "results" / "real.md"))
   parser.add_argument("--no-timing", action="store_true", help="skip the CLI vs twin timing")
   parser.add_argument("--timing-repeats", type=int, default=3)
   parser.add_argument("--json", default=None, help="also write the scores as JSON here")

@@ -22,7 +22,7 @@ CSA_TAU_REL = {4: 0.1, 8: 0.03}
 OPTIONS = {"fbp": {"falloff": "retroreflective"}, "lct": {"snr": 0.8, "falloff": "retroreflective"},
            "fk": {}, "phasor": {}, "rsd": {},
            # tau_rel: chosen on the real preset's simulated validation split, never on these scans
-           # (benchmarks/results/csa_choice.md, python -m experiments.studies.csa); t^2 as LCT's.
+           # (experiments/studies/csa/results/csa_choice.md, python -m experiments.studies.csa); t^2 as LCT's.
            "csa": {"falloff": "retroreflective"}}
 #: The iterative method made for under-scanned scans: scored on the masked sparse scan itself.
 ITERATIVE = ("csa",)

@@ -202,7 +202,7 @@ def write_report(results, out: pathlib.Path, *, timing=None, warm=None, syntheti
       " the retroreflective t² falloff, f-k / phasor / RSD defaults); CSA on the sparse scan itself,"
       " a masked 64 × 64 grid (t² falloff, 200 FISTA iterations, tau_rel "
       + ", ".join(f"{v:g} at stride {k}" for k, v in sorted(CSA_TAU_REL.items()))
-      + ", chosen on the `real` preset's simulated validation split: `benchmarks/results/csa_choice.md`); "
+      + ", chosen on the `real` preset's simulated validation split: `experiments/studies/csa/results/csa_choice.md`); "
       + _network_text(results),
       "",
   ]

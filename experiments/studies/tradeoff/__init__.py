@@ -1,7 +1,7 @@
 """Speed-accuracy trade-offs of every reconstruction knob, on the test split of the CPU-preset data.
 
     python -m experiments.studies.tradeoff [--quick] [--steps N] [--repeats N] [--batch 8] [--knobs ...]
-                                  [--workdir runs/tradeoff] [--out-dir benchmarks/results]
+                                  [--workdir runs/tradeoff] [--out-dir DIR]
 
 For each configuration, on the test split of the CPU preset's dataset
 (``runs/data/cpu-v3.h5``, made if absent; 8 sequences x 6 middle frames = 48
@@ -47,7 +47,7 @@ scan point, the stored exposure, 3 frames, the CPU preset's model, the
   inside each range and a per-stage profile of LCT and the network.
 
 ``--knobs`` runs a subset (``method`` always runs). The quick mode is what
-``benchmarks/results/tradeoff.md`` was produced with (its header gives the seconds).
+``experiments/studies/tradeoff/results/tradeoff.md`` was produced with (its header gives the seconds).
 
 Every learned configuration is trained by this benchmark with one shared
 budget (``--steps``; 150 with ``--quick``) and the CPU preset's optimiser

@@ -1,10 +1,10 @@
 """The plateau rule replayed: would stopping sooner have kept the same validation score? (issue 62)
 
-    python -m experiments.studies.stopping_replay [--results benchmarks/results]
+    python -m experiments.studies.stopping_replay [--results DIR]
 
 Every plateau-trained run we keep has its validation curve on file: the mechanism study's and
-the time-to-plateau records (``RESULTS/mechanisms/<budget>/*.json``,
-``RESULTS/time_to_plateau/*.json``) and the committed states of the long-run studies
+the time-to-plateau records (:data:`RECORDS`: ``mechanisms/<budget>/*.json`` and
+``time_to_plateau/*.json`` in those studies' results folders) and the committed states of the long-run studies
 (``validation_curve.json`` under ``experiments/studies/*/state``, the mechanism study's
 aside, read from its records). Those runs validated every 50 steps and stopped after 4
 validations without a gain above 0.05 dB (``nlosjax.train.StopRule``'s defaults).
@@ -33,6 +33,9 @@ import numpy as np
 
 from experiments import provenance
 
+#: This study's results folder: its reports, figures and JSON records.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+
 ROOT = provenance.ROOT
 NAME = "stopping_replay"
 #: The rule every replayed run was trained with (every, patience); candidates are replayed against it.
@@ -40,12 +43,17 @@ RECORDED = (50, 4)
 #: Candidate rules ``(every, patience)``: fewer validations without gain, or validations half as often.
 CANDIDATES = ((50, 3), (50, 2), (50, 1), (100, 2), (100, 1))
 MIN_DELTA_DB = 0.05
+#: The studies whose run records are replayed: record folder -> the results folder that holds it.
+RECORDS = {name: ROOT / "experiments" / "studies" / name / "results" for name in ("mechanisms", "time_to_plateau")}
 
 
-def curves(results: pathlib.Path, root: pathlib.Path = ROOT) -> dict[str, dict]:
-  """``name -> {"points": [(step, val_psnr, time_s, val_s)], "rule": dict, "stop_reason"}`` of every kept run."""
+def curves(records: dict[str, pathlib.Path] | None = None, root: pathlib.Path = ROOT) -> dict[str, dict]:
+  """``name -> {"points": [(step, val_psnr, time_s, val_s)], "rule": dict, "stop_reason"}`` of every kept run.
+
+  ``records``: ``folder -> results folder`` holding ``folder/**/*-seed*.json`` (default :data:`RECORDS`).
+  """
   out = {}
-  for folder in ("mechanisms", "time_to_plateau"):
+  for folder, results in (RECORDS if records is None else records).items():
     for path in sorted((results / folder).rglob("*-seed*.json")):
       r = json.loads(path.read_text())
       if not r.get("validation_curve"):
@@ -164,12 +172,12 @@ def report(rows: list[dict], runs: dict[str, dict], command: str) -> str:
 
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument("--results", default=str(ROOT / "benchmarks" / "results"))
+  p.add_argument("--results", default=str(RESULTS), help="where the report goes")
   args = p.parse_args(argv)
   results = pathlib.Path(args.results)
-  runs = curves(results)
+  runs = curves()
   if not runs:
-    raise SystemExit(f"{NAME}: no validation curve under {results}")
+    raise SystemExit(f"{NAME}: no validation curve under {' or '.join(map(str, RECORDS.values()))}")
   rows = compare(runs)
   command = ("python -m experiments.studies.stopping_replay "
              + " ".join(sys.argv[1:] if argv is None else argv)).strip()
@@ -177,7 +185,3 @@ def main(argv=None) -> int:
   (results / f"{NAME}.md").write_text(text)
   print(text)
   return 0
-
-
-if __name__ == "__main__":
-  sys.exit(main())

@@ -1,13 +1,14 @@
 """Time to the validation plateau: the study's schedule against a shorter, hotter one (issue 62).
 
     python -m experiments.studies.time_to_plateau [--rows full ours_s] [--seeds 0 1 2]
-                                         [--workdir runs/time_to_plateau] [--results benchmarks/results]
-                                         [--report-only]
+                                         [--workdir runs/time_to_plateau] [--results DIR]
+                                         [--study-results DIR] [--report-only]
 
 The mechanism study (:mod:`experiments.studies.mechanisms`) trains each row of the ``cpu`` preset to its
 validation plateau: peak learning rate 1e-3, a cosine schedule over 3000 steps, the plateau rule
 (:data:`experiments.studies.mechanisms.design.STUDY_STOP`). Its records at the preset's photons
-(``RESULTS/mechanisms/full/<row>-seed<s>.json``) are this comparison's ``study`` side. The
+(``mechanisms/full/<row>-seed<s>.json`` in that study's results folder, ``--study-results``) are
+this comparison's ``study`` side. The
 ``short`` side (:data:`SHORT`) trains the same row from the same seed on the same data, model,
 loss, stopping rule and evaluation, changing two numbers: the peak learning rate and the cosine
 horizon (the most steps). Records: ``RESULTS/time_to_plateau/<row>-seed<s>.json``, the study's
@@ -43,9 +44,13 @@ from experiments.studies.mechanisms.design import (
   run_dir,
   study_optim,
 )
+from experiments.studies.mechanisms.records import RESULTS as STUDY_RESULTS
 from experiments.studies.mechanisms.records import _array, load_runs, write_json
 from experiments.studies.mechanisms.report import same_frames, stack_scores
 from nlosjax.variants import OURS_S
+
+#: This study's results folder: its reports, figures and JSON records.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
 #: The short schedule: peak learning rate and cosine horizon (= the most steps); all else the study's.
 SHORT = {"learning_rate": 3e-3, "max_steps": 400}
@@ -223,7 +228,9 @@ def main(argv=None) -> int:
   parser.add_argument("--rows", nargs="+", choices=list(ROWS), default=list(DEFAULT_ROWS))
   parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
   parser.add_argument("--workdir", default=f"runs/{NAME}")
-  parser.add_argument("--results", default=str(provenance.ROOT / "benchmarks" / "results"))
+  parser.add_argument("--results", default=str(RESULTS), help="its records and report")
+  parser.add_argument("--study-results", default=str(STUDY_RESULTS),
+                      help="the mechanism study's results folder (its records are the study side)")
   parser.add_argument("--report-only", action="store_true")
   args, base, overrides = parse_config(parser, argv)
   from experiments.studies.mechanisms.records import code_at_start
@@ -239,7 +246,7 @@ def main(argv=None) -> int:
           print(f"{NAME}: {record_path(results, row, seed)} exists; delete it to run again")
           continue
         run_short(base, row, seed, pathlib.Path(args.workdir), results)
-  study = {k[1:]: r for k, r in load_runs(results).items() if k[0] == BUDGET}
+  study = {k[1:]: r for k, r in load_runs(pathlib.Path(args.study_results)).items() if k[0] == BUDGET}
   short = load_short(results)
   if not short:
     raise SystemExit(f"{NAME}: no short-schedule record under {results / NAME}")
@@ -248,7 +255,3 @@ def main(argv=None) -> int:
   (results / f"{NAME}.md").write_text(text)
   print(text)
   return 0
-
-
-if __name__ == "__main__":
-  sys.exit(main())

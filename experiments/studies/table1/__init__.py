@@ -1,7 +1,7 @@
-"""Table 1 at the CPU preset over several training seeds: ``benchmarks/results/table1.md``.
+"""Table 1 at the CPU preset over several training seeds: ``experiments/studies/table1/results/table1.md``.
 
     python -m experiments.studies.table1 [--seeds 3] [--config cpu] [--workdir runs/table1]
-                                [--out benchmarks/results/table1.md] [overrides ...]
+                                [--out experiments/studies/table1/results/table1.md] [overrides ...]
 
 Runs the main job (:func:`experiments.main_job.train_and_evaluate`, the code
 behind ``python -m experiments.train``) with ``--seeds`` training seeds per
@@ -13,7 +13,7 @@ differences with their verdicts, the choices made on the validation split),
 and beside it ``table1.json`` (the table, the comparisons and the validation
 choices) and the figures.
 Resumable: a rerun reuses the workdir's finished models. Superseded by the plateau-trained
-mechanism study (``benchmarks/results/archive/README.md``); kept to rerun the paper's table
+mechanism study (``experiments/studies/archive/README.md``); kept to rerun the paper's table
 at a fixed step count. The main job's own time is ``benchmarks/results/main_job.md``'s.
 """
 
@@ -26,13 +26,16 @@ import shutil
 import sys
 import time
 
+#: This study's results folder: its reports, figures and JSON records.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+
 
 def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--config", default="cpu")
   parser.add_argument("--seeds", type=int, default=3)
   parser.add_argument("--workdir", default="runs/table1")
-  parser.add_argument("--out", default="benchmarks/results/table1.md")
+  parser.add_argument("--out", default=str(RESULTS / "table1.md"))
   args, overrides = parser.parse_known_args(argv)
   if args.seeds < 1:
     parser.error(f"--seeds must be >= 1, got {args.seeds}")
@@ -62,7 +65,3 @@ def main(argv=None):
     if src.exists():
       shutil.copyfile(src, out.with_name(f"{out.stem}_{name}.png"))
   print(out.read_text())
-
-
-if __name__ == "__main__":
-  main()

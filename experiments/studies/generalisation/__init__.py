@@ -1,7 +1,7 @@
 """Do learned models keep objects at their true extent and brightness off their own generator?
 
     python -m experiments.studies.generalisation --model LABEL=RUN [--model LABEL=RUN ...]
-        [--sequences 8] [--frames 8] [--seed 2026] [--out benchmarks/results/generalisation.md]
+        [--sequences 8] [--frames 8] [--seed 2026] [--out experiments/studies/generalisation/results/generalisation.md]
 
 ``RUN`` is a finished run of :mod:`experiments.studies.mechanisms` (a folder with
 ``run.json`` and ``model/``, e.g. ``runs/mechanisms/full/full-seed0``) or
@@ -45,6 +45,9 @@ import numpy as np
 from nlosjax.stats import format_interval as cell
 from nlosjax.variants import OURS
 
+#: This study's results folder: its reports, figures and JSON records.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+
 #: Extra per-frame scores of this report: name -> (header, digits).
 RATIOS = {"brightness": ("brightness ratio (1 = true)", 3), "extent": ("extent ratio (1 = true)", 3)}
 COLUMNS = {"psnr": ("PSNR (dB) ↑", 2), "ssim": ("SSIM ↑", 3), "recall": ("object recall ↑", 3),
@@ -81,9 +84,9 @@ def load_model(spec: str):
     name, _, variant = spec[len("pretrained:"):].partition("/")
     mcfg, params, provenance = inference.load_pretrained(name, variant or OURS)
     return mcfg, params, provenance["config"]
-  from experiments.export_weights import study_run
+  from experiments.export_weights import MECHANISM_RECORDS, study_run
   from nlosjax import inference, train
-  run = study_run(pathlib.Path(spec), "benchmarks/results")
+  run = study_run(pathlib.Path(spec), MECHANISM_RECORDS)
   config = run["config"]
   typed = train.RunConfig.from_dict(config)
   mcfg = train.model_config_for(typed, inference.training_setup(typed), run["variant"])
@@ -173,7 +176,7 @@ def main(argv=None) -> int:
   parser.add_argument("--seed", type=int, default=2026)
   parser.add_argument("--independent", default=None,
                       help="independent set file (default: the cpu preset's independent.path)")
-  parser.add_argument("--out", default="benchmarks/results/generalisation.md")
+  parser.add_argument("--out", default=str(RESULTS / "generalisation.md"))
   args = parser.parse_args(argv)
   argv = sys.argv[1:] if argv is None else list(argv)
   from experiments import configs
@@ -241,7 +244,3 @@ def main(argv=None) -> int:
   out.with_suffix(".json").write_text(json.dumps(record, indent=2, default=float) + "\n")
   print(out.read_text())
   return 0
-
-
-if __name__ == "__main__":
-  sys.exit(main())

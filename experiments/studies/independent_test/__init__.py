@@ -2,7 +2,7 @@
 
     python -m experiments.studies.independent_test [--checkpoint runs/default] [--sequences 8]
         [--frames 8] [--seed 2026] [--data PATH] [--first-seed-only]
-        [--out benchmarks/results/table1_independent.md]
+        [--out experiments/studies/independent_test/results/table1_independent.md]
 
 The test file comes from :mod:`experiments.independent_set` (stroke-font
 letters and digits, bar and dot charts and other shapes; other motions, a
@@ -26,6 +26,9 @@ import pathlib
 import sys
 import time
 
+#: This study's results folder: its reports, figures and JSON records.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+
 
 def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -35,7 +38,7 @@ def main(argv=None):
   parser.add_argument("--seed", type=int, default=2026)
   parser.add_argument("--data", default=None,
                       help="independent set (default: the run config's independent.path)")
-  parser.add_argument("--out", default="benchmarks/results/table1_independent.md")
+  parser.add_argument("--out", default=str(RESULTS / "table1_independent.md"))
   parser.add_argument("--first-seed-only", action="store_true",
                       help="score only each variant's own folder, not its -seed<k> folders")
   args = parser.parse_args(argv)
@@ -85,7 +88,3 @@ def main(argv=None):
   from nlosjax.evaluation.figures import plot_comparison
   plot_comparison(evaluation["images"], out.with_name(out.stem + "_comparison.png"))
   print(out.read_text())
-
-
-if __name__ == "__main__":
-  main()

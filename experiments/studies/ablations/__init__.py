@@ -1,7 +1,7 @@
 """The paper's Table 2 ablations at the CPU preset, with one shared training budget.
 
     python -m experiments.studies.ablations [--config cpu] [--steps 150] [--seeds 3] [--workdir runs/ablations]
-                                   [--only full no_pf ...] [--out benchmarks/results/table2.md]
+                                   [--only full no_pf ...] [--out experiments/studies/ablations/results/table2.md]
                                    [--config.section.key=value ...]
 
 Every row trains Ours (three frames, the main job's model and data) for the
@@ -40,6 +40,9 @@ import time
 
 from nlosjax.stats import format_interval as cell
 from nlosjax.variants import OURS
+
+#: This study's results folder: its reports, figures and JSON records.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
 #: row -> (spatial, temporal, L_pf, L_reg, model overrides, loss overrides, optim overrides)
 ROWS = {
@@ -209,7 +212,7 @@ def main(argv=None):
   parser.add_argument("--seeds", type=int, default=3, help="training seeds per row")
   parser.add_argument("--workdir", default="runs/ablations")
   parser.add_argument("--only", nargs="*", default=None, choices=list(ROWS))
-  parser.add_argument("--out", default="benchmarks/results/table2.md")
+  parser.add_argument("--out", default=str(RESULTS / "table2.md"))
   args, overrides = parser.parse_known_args(argv)
   from tqdm import tqdm
 
@@ -237,7 +240,3 @@ def main(argv=None):
   out.write_text(text)
   out.with_suffix(".json").write_text(json.dumps(summary, indent=2) + "\n")
   print(text)
-
-
-if __name__ == "__main__":
-  main()

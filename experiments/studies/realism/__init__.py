@@ -1,7 +1,7 @@
 """Realism audit: the real preset's simulated inputs beside the measured scans, as the network sees them.
 
     python -m experiments.studies.realism [--config real] [--designs base mix] [--data-dir DIR]
-        [--sequences 16] [--out benchmarks/results/realism.md]
+        [--sequences 16] [--out experiments/studies/realism/results/realism.md]
 
 Inputs are what the network reads: ``[T, h, w]`` counts of the preset's
 bins, under-scanned by its stride. Measured: each scan of ``--data-dir``
@@ -34,6 +34,9 @@ import pathlib
 import sys
 
 import numpy as np
+
+#: This study's results folder: its reports, figures and JSON records.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
 #: Bins before and after the peak of the aligned histogram shape.
 SHAPE_BEFORE, SHAPE_AFTER = 3, 12
@@ -239,7 +242,7 @@ def main(argv=None) -> int:
   parser.add_argument("--designs", nargs="+", choices=DESIGNS, default=list(DESIGNS))
   parser.add_argument("--data-dir", default=None, help="folder of measured .mat scans")
   parser.add_argument("--sequences", type=int, default=16, help="simulated test sequences per design")
-  parser.add_argument("--out", default="benchmarks/results/realism.md")
+  parser.add_argument("--out", default=str(RESULTS / "realism.md"))
   argv = sys.argv[1:] if argv is None else list(argv)
   args, base, _ = parse_config(parser, argv)
   data = base["data"]
@@ -307,7 +310,3 @@ def main(argv=None) -> int:
       indent=1) + "\n")
   print(out.read_text())
   return 0
-
-
-if __name__ == "__main__":
-  sys.exit(main())

@@ -1,7 +1,7 @@
 """Which data should a preset train on? Candidate models compared on every candidate's validation split.
 
     python -m experiments.studies.preset_choice --model LABEL=SOURCE --model LABEL=SOURCE [...]
-        [--variants ours ours_s] [--methods lct rsd ...] [--out benchmarks/results/preset_choice.md]
+        [--variants ours ours_s] [--methods lct rsd ...] [--out FILE.md]   # default: results/preset_choice.md
 
 ``SOURCE`` is ``pretrained:NAME`` (the weights shipped as ``NAME-<variant>``)
 or a main-job workdir (``python -m experiments.train --workdir DIR``). Each
@@ -32,6 +32,9 @@ import numpy as np
 
 from nlosjax.stats import format_interval as cell
 from nlosjax.variants import OURS, OURS_S
+
+#: This study's results folder: its reports, figures and JSON records.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
 
 def load_candidate(source: str, variant: str):
@@ -72,7 +75,7 @@ def main(argv=None) -> int:
   parser.add_argument("--variants", nargs="+", default=[OURS, OURS_S])
   parser.add_argument("--methods", nargs="*", default=[],
                       help="classic methods scored beside the models on each validation split")
-  parser.add_argument("--out", default="benchmarks/results/preset_choice.md")
+  parser.add_argument("--out", default=str(RESULTS / "preset_choice.md"))
   args = parser.parse_args(argv)
   argv = sys.argv[1:] if argv is None else list(argv)
   sources = dict(item.partition("=")[::2] for item in args.model)
@@ -133,7 +136,3 @@ def main(argv=None) -> int:
   out.with_suffix(".json").write_text(json.dumps(record, indent=1, default=float) + "\n")
   print(out.read_text())
   return 0
-
-
-if __name__ == "__main__":
-  sys.exit(main())

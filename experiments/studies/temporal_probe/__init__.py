@@ -1,7 +1,7 @@
-"""Does a trained Ours read its neighbour frames? ``benchmarks/results/temporal_probe.md``.
+"""Does a trained Ours read its neighbour frames? ``experiments/studies/temporal_probe/results/temporal_probe.md``.
 
     python -m experiments.studies.temporal_probe [--checkpoint runs/table1] [--split val]
-                                        [--out benchmarks/results/temporal_probe.md]
+                                        [--out experiments/studies/temporal_probe/results/temporal_probe.md]
 
 Runs the 3-frame model of a training run on one split's triplets four ways
 and compares the outputs: the real neighbours; both neighbours replaced by
@@ -29,6 +29,9 @@ import sys
 import numpy as np
 
 from nlosjax.variants import OURS, OURS_S
+
+#: This study's results folder: its reports, figures and JSON records.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
 VARIANTS = ("real neighbours", "middle frame copied", "neighbours zero", "neighbours swapped")
 SINGLE_VARIANTS = ("middle frame", "mean of the three frames")
@@ -87,7 +90,7 @@ def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--checkpoint", default="runs/table1", help="training workdir (seed 0's Ours is probed)")
   parser.add_argument("--split", default="val")
-  parser.add_argument("--out", default="benchmarks/results/temporal_probe.md")
+  parser.add_argument("--out", default=str(RESULTS / "temporal_probe.md"))
   args = parser.parse_args(argv)
   import jax.numpy as jnp
 
@@ -176,7 +179,3 @@ def main(argv=None):
   out.parent.mkdir(parents=True, exist_ok=True)
   out.write_text("\n".join(lines) + "\n")
   print(out.read_text())
-
-
-if __name__ == "__main__":
-  main()
