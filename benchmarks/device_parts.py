@@ -504,13 +504,15 @@ def _train_step_measure(ctx, cfg: dict, variant: str) -> dict:
   p = step["plan"]
   memory, source = plan.device_memory()
   reduced_from = None
-  if plan.verdict(train.RunConfig.from_dict(cfg), p, memory, variant) is not None:
+  typed = train.RunConfig.from_dict(cfg)          # the config as the dry run reads it; rebuilt below
+  if plan.verdict(typed, p, memory, variant) is not None:
     fits = fitting_batch(p, memory)
     if fits is not None and ctx.fits(1.2 * step["compile_s"], f"a train step at batch {fits}"):
       reduced_from = step["batch"]
       ctx.log(f"train step: batch {reduced_from} plans {p.peak_bytes / GIB:.1f} GiB, over "
               f"{plan.MEMORY_FRACTION:.0%} of {memory / GIB:.1f} GiB: batch {fits} instead")
       cfg = {**cfg, "train": {**cfg["train"], "batch_size": fits}}
+      typed = train.RunConfig.from_dict(cfg)
       step = compiled_train_step(cfg, variant, None)
       p = step["plan"]
   row = {"batch": step["batch"], "batch_reduced_from": reduced_from, "compile_s": step["compile_s"],
@@ -518,7 +520,7 @@ def _train_step_measure(ctx, cfg: dict, variant: str) -> dict:
          "planned": {"argument": p.argument_bytes, "output": p.output_bytes, "temp": p.temp_bytes,
                      "alias": p.alias_bytes}, "flops": p.flops, "device_memory": memory,
          "device_memory_source": source,
-         "fits": plan.verdict(train.RunConfig.from_dict(cfg), p, memory, variant) is None}
+         "fits": plan.verdict(typed, p, memory, variant) is None}
   ctx.data["train"] = row
   ctx.save()
   state = train_state_for(step)

@@ -56,7 +56,7 @@ import time
 
 import numpy as np
 
-from nlosjax.variants import OURS, VARIANTS
+from nlosjax.variants import FAMILY_STMAMBA, OURS, VARIANTS
 
 #: The learned methods: ``model`` (the variant named by ``--variant``) and each variant by name.
 LEARNED = ("model", *VARIANTS)
@@ -352,7 +352,7 @@ def reconstruct_model(transient, setup, args, log):
   frames = np.asarray(underscan(adapted.prepare(transient), mcfg.stride))
   fitted = None
   if args.adapt:
-    if VARIANTS[info["variant"]].family != "stmamba":
+    if VARIANTS[info["variant"]].family != FAMILY_STMAMBA:
       raise ValueError(f"--adapt fits an ST-Mamba network, not {VARIANTS[info['variant']].label}")
     from nlosjax.adaptation import adapt
     fitted = adapt(adapted.model_config, params, frames, steps=args.adapt_steps,

@@ -31,14 +31,18 @@ class Variant:
 #: The variants' names, spelled here only: code that selects a variant names it by these.
 OURS, OURS_S, USM, LFE, IK = "ours", "ours_s", "usm", "lfe", "ik"
 
+#: The families (:attr:`Variant.family`), spelled here only: the module that builds a variant.
+#: A baseline's family shares its variant's name; both Ours variants are STMamba networks.
+FAMILY_STMAMBA, FAMILY_USM, FAMILY_LFE, FAMILY_IK = "stmamba", "usm", "lfe", "ik"
+
 #: Every variant, in order of preference: a run or weights folder read without naming a
 #: variant gives the first it holds. Tables print them in the reverse order (baselines first).
 VARIANTS = {v.name: v for v in (
-    Variant(OURS, "Ours", 3, "stmamba"),        # the paper's method
-    Variant(OURS_S, "Ours-S", 1, "stmamba"),   # the paper's single-frame ablation
-    Variant(USM, "USM", 1, "usm"),
-    Variant(LFE, "LFE", 1, "lfe"),
-    Variant(IK, "I-K", 1, "ik"),
+    Variant(OURS, "Ours", 3, FAMILY_STMAMBA),        # the paper's method
+    Variant(OURS_S, "Ours-S", 1, FAMILY_STMAMBA),   # the paper's single-frame ablation
+    Variant(USM, "USM", 1, FAMILY_USM),
+    Variant(LFE, "LFE", 1, FAMILY_LFE),
+    Variant(IK, "I-K", 1, FAMILY_IK),
 )}
 
 #: The paired differences every results table reports, ``(a, b)`` for ``a - b``, where both ran

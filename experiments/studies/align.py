@@ -43,10 +43,10 @@ from typing import Callable
 import numpy as np
 
 from experiments.studies.real_undersampling.protocol import default_files, fold_files, fold_folder, scene_name
-from nlosjax.variants import VARIANTS
+from nlosjax.variants import FAMILY_STMAMBA, VARIANTS
 
 #: The variants aligned by default: the ST-Mamba networks (the stage fits their features).
-STMAMBA = [name for name, v in VARIANTS.items() if v.family == "stmamba"]
+STMAMBA = [name for name, v in VARIANTS.items() if v.family == FAMILY_STMAMBA]
 
 
 def measured_inputs(files, model_config) -> dict:

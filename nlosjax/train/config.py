@@ -25,7 +25,7 @@ from typing import Any, Mapping
 from nlosjax import losses
 from nlosjax.train.optimizer import OptimConfig
 from nlosjax.train.stopping import StopRule
-from nlosjax.variants import LFE, OURS, OURS_S, USM, VARIANTS
+from nlosjax.variants import FAMILY_LFE, FAMILY_STMAMBA, FAMILY_USM, OURS, OURS_S, USM, VARIANTS
 from nlosjax.variants import variant as variant_info
 
 #: USM's training recipes (``usm.recipe``): "ours" trains it with the config's ``train.optim``
@@ -34,7 +34,7 @@ from nlosjax.variants import variant as variant_info
 USM_RECIPES = (OURS, "published")
 #: The variants with a section of their own (``usm``, ``lfe``, ``ik``: every variant not built by
 #: ST-Mamba, :data:`nlosjax.variants.VARIANTS`): a ``model`` and an ``optim``.
-BASELINES = tuple(name for name, v in VARIANTS.items() if v.family != "stmamba")
+BASELINES = tuple(name for name, v in VARIANTS.items() if v.family != FAMILY_STMAMBA)
 
 
 def _frozen(mapping: Mapping | None) -> Mapping:
@@ -157,13 +157,13 @@ class BaselineConfig:
 def model_class(variant: str) -> type:
   """The model config class of ``variant``, by its family (:class:`nlosjax.variants.Variant`)."""
   family = variant_info(variant).family
-  if family == "stmamba":
+  if family == FAMILY_STMAMBA:
     from nlosjax.models.network import ModelConfig
     return ModelConfig
-  if family == USM:
+  if family == FAMILY_USM:
     from nlosjax.models.usm import USMConfig
     return USMConfig
-  if family == LFE:
+  if family == FAMILY_LFE:
     from nlosjax.models.lfe import LFEConfig
     return LFEConfig
   from nlosjax.models.ik import IKConfig

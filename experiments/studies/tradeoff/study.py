@@ -21,6 +21,7 @@ from experiments.studies.tradeoff.configs import (
   LABELS,
   LEARNED,
   LEARNING_RATE,
+  METHODS_LEARNED,
   depth_ranges,
   gated_setup,
 )
@@ -30,7 +31,7 @@ from experiments.studies.tradeoff.runners import evaluate, interleaved_times
 from experiments.studies.tradeoff.stages import lct_stage_executables, network_volume_executable
 from experiments.studies.tradeoff.training import train_learned
 from nlosjax.evaluation import baselines
-from nlosjax.variants import OURS, OURS_S, USM
+from nlosjax.variants import OURS, OURS_S
 
 
 def run(args) -> dict:
@@ -110,7 +111,7 @@ def run(args) -> dict:
     add("method", method, labels[method], "classic" if method in CLASSIC else "learned", m,
         setting=labels[method])
 
-  for method in CLASSIC + (USM, OURS_S, OURS):
+  for method in CLASSIC + METHODS_LEARNED:
     jobs.append(("method", f"method {method}", lambda method=method: job_method(method)))
 
   def job_csa():
@@ -153,12 +154,12 @@ def run(args) -> dict:
         "classic" if method in CLASSIC else "learned", m, capture=f"x{e:g}", setting=f"x{e:g}")
 
   for e in EXPOSURES:
-    for method in CLASSIC + (USM, OURS_S, OURS):
+    for method in CLASSIC + METHODS_LEARNED:
       jobs.append(("exposure", f"exposure {method} x{e:g}",
                    lambda method=method, e=e: job_exposure(method, e)))
 
   for spec in LEARNED:
-    if spec.name not in (USM, OURS_S, OURS):
+    if spec.name not in METHODS_LEARNED:
       knob = "frames" if spec.model == () else "model"
       jobs.append((knob, f"{knob} {spec.name}", lambda spec=spec, knob=knob: add(
           knob, spec.name, spec.label, "learned", learned(spec.name), setting=spec.label)))
