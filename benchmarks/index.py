@@ -166,6 +166,11 @@ def entries(results: pathlib.Path | None = None) -> list[Entry]:
   return found
 
 
+def _owner(stem: str, tables) -> str | None:
+  """The results table a file named ``stem`` belongs to: the longest table name it is or starts with."""
+  return max((t for t in tables if stem == t or stem.startswith(t + "_")), key=len, default=None)
+
+
 def companions(results: pathlib.Path, stem: str, tables: set[str] | None = None) -> list[str]:
   """Other files of ``results`` whose names start with ``stem`` (figures, JSON), not other tables.
 
@@ -178,7 +183,7 @@ def companions(results: pathlib.Path, stem: str, tables: set[str] | None = None)
       continue
     rest = p.stem
     # the longest table name this file starts with owns it
-    owner = max((t for t in tables if rest == t or rest.startswith(t + "_")), key=len, default=None)
+    owner = _owner(rest, tables)
     if owner == stem:
       out.append(p.name)
   return out
@@ -228,7 +233,7 @@ def _outputs_moved(command: str, found: list[Entry]) -> str:
   where = {e.name: e.path.parent for e in found}
 
   def today(m: re.Match) -> str:
-    stem = max((n for n in where if m.group(1) == n or m.group(1).startswith(n + "_")), key=len, default=None)
+    stem = _owner(m.group(1), where)
     if stem is None or where[stem] == RESULTS:
       return m.group(0)
     return (where[stem] / m.group(1)).relative_to(provenance.ROOT).as_posix() + m.group(2)
