@@ -21,7 +21,8 @@ interfaces the compared commits share. Probes, each on fixed seeds:
   plateau and scored on every set);
 * ``studies/tradeoff``: the speed-accuracy study's networks (USM, Ours-S, Ours, Ours with
   5 frames) trained 2 steps through its own ``train_learned`` on 5-frame windows: every
-  parameter.
+  parameter, and the defaults of its command line (so ``tradeoff/__main__.py`` is in the
+  closure).
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ def probe_mechanisms(tmp: pathlib.Path, out: dict) -> None:
 def probe_tradeoff(tmp: pathlib.Path, out: dict) -> None:
   import jax
 
+  from experiments.studies.tradeoff import __main__ as cli
   from experiments.studies.tradeoff import training
   from experiments.studies.tradeoff.configs import LEARNED
   from experiments.tiny_run import tiny_config
@@ -77,6 +79,9 @@ def probe_tradeoff(tmp: pathlib.Path, out: dict) -> None:
     return train.make_loader(config, path, "train", batch_size=config.train.batch_size, shuffle=True,
                              seed=config.train.seed, window=window)
 
+  # The command line's module is in the closure: its defaults are what `python -m` runs.
+  out["studies/tradeoff/cli_defaults"] = np.asarray(
+    [cli.FULL_STEPS, cli.QUICK_STEPS, cli.FULL_REPEATS, cli.QUICK_REPEATS, cli.APERTURE], np.float64)
   for spec in LEARNED:
     if spec.name not in ("usm", "ours_s", "ours", "ours_f5"):
       continue
