@@ -123,7 +123,8 @@ def git_commit(repo=None) -> str:
   """The checked-out commit (short hash), with ``+changes`` when tracked code differs from it.
 
   Changes under ``benchmarks/results/`` and ``experiments/studies/*/results/`` (what benchmarks and
-  studies write) do not count.
+  studies write) and ``experiments/studies/*/state/`` (the resumable state a long run exports as it
+  trains) do not count.
 
   ``"unknown"`` outside a git checkout. A results file names this so a reader
   can check out the code that wrote it.
@@ -134,9 +135,10 @@ def git_commit(repo=None) -> str:
   try:
     head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=where, check=True,
                           capture_output=True, text=True).stdout.strip()
-    # Results files written by this or another benchmark are not code: they do not count.
+    # Results files and run states written by benchmarks, studies and runs are not code.
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
-                            ":(exclude)benchmarks/results", ":(exclude,glob)experiments/studies/*/results/**"],
+                            ":(exclude)benchmarks/results", ":(exclude,glob)experiments/studies/*/results/**",
+                            ":(exclude,glob)experiments/studies/*/state/**"],
                            cwd=where, check=True, capture_output=True, text=True).stdout.strip()
   except (OSError, subprocess.CalledProcessError):
     return "unknown"

@@ -13,11 +13,13 @@ def _git(repo, *args):
 
 
 @pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
-def test_git_commit_ignores_results_files_but_not_code(tmp_path):
+def test_git_commit_ignores_results_files_and_run_states_but_not_code(tmp_path):
   _git(tmp_path, "init", "-q")
   (tmp_path / "benchmarks" / "results").mkdir(parents=True)
   (tmp_path / "experiments" / "studies" / "s" / "results").mkdir(parents=True)
   (tmp_path / "experiments" / "studies" / "s" / "results" / "b.md").write_text("old\n")
+  (tmp_path / "experiments" / "studies" / "s" / "state").mkdir()
+  (tmp_path / "experiments" / "studies" / "s" / "state" / "run.jsonl").write_text("old\n")
   (tmp_path / "code.py").write_text("x = 1\n")
   (tmp_path / "benchmarks" / "results" / "a.md").write_text("old\n")
   _git(tmp_path, "add", ".")
@@ -28,6 +30,8 @@ def test_git_commit_ignores_results_files_but_not_code(tmp_path):
   (tmp_path / "benchmarks" / "results" / "a.md").write_text("new\n")   # a benchmark wrote this
   assert git_commit(tmp_path) == head
   (tmp_path / "experiments" / "studies" / "s" / "results" / "b.md").write_text("new\n")   # a study wrote this
+  assert git_commit(tmp_path) == head
+  (tmp_path / "experiments" / "studies" / "s" / "state" / "run.jsonl").write_text("new\n")   # a long run's pause
   assert git_commit(tmp_path) == head
   (tmp_path / "code.py").write_text("x = 2\n")                          # the code differs
   assert git_commit(tmp_path).startswith(head + " +changes")
