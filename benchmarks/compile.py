@@ -47,7 +47,7 @@ def _programs(config_name: str, variant: str, batch: int):
   from nlosjax.train.sharding import make_mesh
   from nlosjax.train.step import train_step
 
-  cfg = T.read_preset(configs.get_config(config_name))
+  cfg = T.RunConfig.from_dict(configs.get_config(config_name))
   setup = cfg.data.spec().setup
   mcfg = T.model_config_for(cfg, setup, variant)
   model = T.network(mcfg)

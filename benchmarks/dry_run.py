@@ -28,8 +28,8 @@ def main(argv=None) -> int:
   args = parser.parse_args(argv)
   from experiments import configs
   from nlosjax.plan import dry_run, format_plan
-  from nlosjax.train import read_preset
-  config = read_preset(configs.get_config(args.config))
+  from nlosjax.train import RunConfig
+  config = RunConfig.from_dict(configs.get_config(args.config))
   report = format_plan(dry_run(config))
   command = "python -m benchmarks.dry_run" + (f" --config {args.config}" if args.config != "paper" else "")
   lines = [f"# Dry run of the `{args.config}` preset: memory and time before any data exist", ""]

@@ -50,14 +50,13 @@ RENDERERS = {"lct": dict(renderer="lct", retroreflective=0.0, photons=(1e3, 1e4)
 
 def _config(path, renderer: str) -> dict:
   from experiments import configs
-  from nlosjax import train
   cfg = configs.get_config("cpu")
   cfg["data"].update(TINY_DATA, **RENDERERS[renderer], path=str(path))
   cfg["model"] = dict(TINY_MODEL)
   cfg["usm"] = {"recipe": "ours", "model": dict(TINY_USM)}
   cfg["train"] = {"steps": 3, "batch_size": 2, "log_every": 1, "checkpoint_every": 3, "eval_batch_size": 2}
   cfg.pop("independent", None)
-  return train.with_defaults(cfg)
+  return cfg
 
 
 def _arrays(path) -> dict[str, np.ndarray]:

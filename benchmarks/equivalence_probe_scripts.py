@@ -119,7 +119,9 @@ def plain(value):
 def typed(config: dict):
   """What this tree's library takes for a run config: the typed one where it refuses dicts."""
   from nlosjax import train
-  return train.read_preset(config) if hasattr(train, "require_run_config") else train.with_defaults(config)
+  if hasattr(train, "read_preset"):                # before the presets were ConfigDicts
+    return train.read_preset(config) if hasattr(train, "require_run_config") else train.with_defaults(config)
+  return train.RunConfig.from_dict(config)
 
 
 @contextlib.contextmanager
@@ -248,7 +250,7 @@ def main_job_run(tmp: pathlib.Path) -> pathlib.Path:
     cfg = tiny(tmp, "tiny", steps=2)
     cfg["train"]["variants"] = ["ours_s", "ours"]
     with quiet():
-      train_and_evaluate(cfg, workdir, log=lambda s: None)
+      train_and_evaluate(typed(cfg), workdir, log=lambda s: None)
   return workdir
 
 

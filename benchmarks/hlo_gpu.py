@@ -1015,9 +1015,8 @@ def main(argv=None) -> int:
   if args.batch < 1:
     parser.error("--batch must be at least 1")
   from experiments import configs
-  from nlosjax import train as T
   from nlosjax.ssm import resolve_method
-  config = T.with_defaults(configs.get_config(args.config))
+  config = configs.get_config(args.config)
   print("lowering as a GPU process traces it ...", flush=True)
   info_gpu = lower_step(config, args.variant, args.batch, scan_method=resolve_method("auto", backend="gpu"))
   gpu = census(info_gpu.pop("hlo"), info_gpu.pop("stablehlo"), info_gpu["model"])

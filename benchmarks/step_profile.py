@@ -238,8 +238,7 @@ def main(argv=None) -> int:
   if args.steps < 1:
     parser.error("--steps must be at least 1")
   from experiments import configs
-  from nlosjax import train as T
-  config = T.with_defaults(configs.get_config(args.config))
+  config = configs.get_config(args.config)
   results = []
   for variant in args.variants:
     print(f"profiling {variant} ...", flush=True)

@@ -74,9 +74,9 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
                        export: train.StateExport | None = None) -> dict:
   """Run the main job (module docstring); returns the test table ``method -> metric -> summary``.
 
-  ``config``: the run's :class:`~nlosjax.train.RunConfig` (a preset's dict is read with its
-  ``train`` defaults filled, :func:`nlosjax.train.read_preset`); recorded in
-  ``workdir/config.json`` (:meth:`~nlosjax.train.RunConfig.to_dict`).
+  ``config``: the run's :class:`~nlosjax.train.RunConfig` (built from the preset by
+  :meth:`~nlosjax.train.RunConfig.from_dict`); recorded in ``workdir/config.json``
+  (:meth:`~nlosjax.train.RunConfig.to_dict`).
 
   ``export``: each model's resumable state mirrored into ``export.directory /
   <model folder>`` and resumed from there when it is ahead of ``workdir``
@@ -88,8 +88,7 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
   dataset layout (test split; no choice is made on them), each scored like
   the test split into ``results/table1_<name>.{md,json}``.
   """
-  cfg = train.read_preset(config)
-  tr = cfg.train
+  cfg, tr = config, config.train
   primary = jax.process_index() == 0
   if tr.check_memory:
     from nlosjax.plan import check_fits

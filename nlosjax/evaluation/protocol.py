@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from nlosjax.evaluation import baselines, figures, report, scores
-from nlosjax.train.config import RunConfig, require_run_config
+from nlosjax.train.config import RunConfig
 from nlosjax.variants import COMPARISONS, VARIANTS
 
 __all__ = ["load_split", "model_images", "validation_psnr", "surface_cut", "choose_surface_threshold",
@@ -49,7 +49,7 @@ def load_split(config: RunConfig, data_path, split: str, *, batch_size: int) -> 
     the open ``loader`` (unshuffled) feeds :func:`model_images`; close it.
   """
   from nlosjax.train import make_loader
-  loader = make_loader(require_run_config(config, "load_split"), data_path, split, batch_size=batch_size,
+  loader = make_loader(config, data_path, split, batch_size=batch_size,
                        shuffle=False, seed=0)
   gi, gd, mid, seq, frame = [], [], [], [], []
   for step in range(len(loader)):
@@ -100,7 +100,6 @@ def model_images(mcfg, params, loader) -> dict:
 def validation_psnr(config: RunConfig, data_path, *, split: str = "val") -> Callable:
   """``(model_config, params) -> mean intensity PSNR (dB)`` on ``split``: the checkpoint criterion."""
   from nlosjax import metrics
-  config = require_run_config(config, "validation_psnr")
   batch_size = config.train.eval_batch
 
   def score(mcfg, params) -> float:
@@ -146,7 +145,6 @@ def tune_model_thresholds(config: RunConfig, data_path, trained: dict, *, split:
   Returns:
     ``variant -> {"threshold": float, "f1": float, "f1_by_threshold": {str(th): float}}``.
   """
-  config = require_run_config(config, "tune_model_thresholds")
   batch_size = config.train.eval_batch
   data = load_split(config, data_path, split, batch_size=batch_size)
   out = {}
@@ -208,7 +206,6 @@ def evaluate(config: RunConfig, data_path, trained: dict, *, split: str = "test"
     each sequence's first evaluated frame).
   """
   from tqdm import tqdm
-  config = require_run_config(config, "evaluate")
   batch_size = config.train.eval_batch
   classic_settings = classic_settings or {}
   model_thresholds = model_thresholds or {}

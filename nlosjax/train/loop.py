@@ -21,7 +21,7 @@ import numpy as np
 
 from nlosjax import losses
 from nlosjax.train.checkpoint import Checkpointer, run_signature
-from nlosjax.train.config import BASELINES, RunConfig, model_class, require_run_config
+from nlosjax.train.config import BASELINES, RunConfig, model_class
 from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
 from nlosjax.train.run_state import StateExport, TrainingPaused, copy_logs, export_state, import_state, read_meta
 from nlosjax.train.sharding import mesh_for, shard_batch, to_host
@@ -51,15 +51,14 @@ def model_config_for(config: RunConfig, setup, variant: str):
   """
   if variant not in VARIANT_FRAMES:
     raise ValueError(f"variant must be one of {tuple(VARIANT_FRAMES)}, got {variant!r}")
-  cfg = require_run_config(config, "model_config_for")
   cls = model_class(variant)
   if variant in BASELINES:
-    baseline = dict(cfg.baselines[variant].model)
+    baseline = dict(config.baselines[variant].model)
     for key in ("wavelet_cycles", "wavelet_sampling"):
-      if key in cfg.model:
-        baseline.setdefault(key, cfg.model[key])
-    return cls(setup=setup, stride=cfg.data.stride(), **baseline)
-  return cls(setup=setup, stride=cfg.data.stride(), **{**cfg.model, "frames": VARIANT_FRAMES[variant]})
+      if key in config.model:
+        baseline.setdefault(key, config.model[key])
+    return cls(setup=setup, stride=config.data.stride(), **baseline)
+  return cls(setup=setup, stride=config.data.stride(), **{**config.model, "frames": VARIANT_FRAMES[variant]})
 
 
 def select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
@@ -78,7 +77,7 @@ def make_loader(config: RunConfig, path, split: str, *, batch_size: int, shuffle
   variant reads, a wider one serves a network of more frames).
   """
   from nlosjax.data.dataset import TripletLoader
-  data = require_run_config(config, "make_loader").data
+  data = config.data
   opts = data.loader
   return TripletLoader(path, split=split, batch_size=batch_size, stride=data.stride(), offset=data.input_offset,
                        seed=seed, shuffle=shuffle, drop_remainder=shuffle,
@@ -100,9 +99,8 @@ def ensure_dataset(config: RunConfig, path: pathlib.Path, log: Callable[[str], N
   """
   from nlosjax.data.dataset import extend_dataset, write_dataset
   path = pathlib.Path(path)
-  cfg = require_run_config(config, "ensure_dataset")
-  spec = cfg.data.spec()
-  workers = cfg.train.data_workers
+  spec = config.data.spec()
+  workers = config.train.data_workers
   if path.exists():
     result = extend_dataset(path, spec, workers=workers)
     log(f"dataset: using {path}" + (f" (added {result.generated} sequences the config asks for)"
@@ -136,7 +134,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
   """Train one variant (a name of :data:`nlosjax.variants.VARIANTS`), resuming from ``workdir/<folder>``.
 
   Args:
-    config: the run config (a :class:`~nlosjax.train.config.RunConfig`; a dict raises ``TypeError``);
+    config: the run config (a :class:`~nlosjax.train.config.RunConfig`);
       the seed is ``train.seed``.
     data_path: the dataset file.
     workdir: the run folder.
@@ -175,7 +173,6 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
   from tqdm import tqdm
 
   from nlosjax.models.network import format_summary, model_summary
-  config = require_run_config(config, "train_model")
   tr = config.train
   steps, batch_size, seed = tr.steps, tr.batch_size, tr.seed
   stop = tr.stop
@@ -365,15 +362,14 @@ def training_recipe(config: RunConfig, variant: str) -> tuple[OptimConfig, losse
   and I-K always) with Ours' recipe, its own section's ``optim`` entries (e.g. its own
   learning rate, chosen on validation) replacing ``train.optim``'s.
   """
-  cfg = require_run_config(config, "training_recipe")
-  optim = cfg.train.optim
+  optim = config.train.optim
   if variant in BASELINES:
-    section = cfg.baselines[variant]
+    section = config.baselines[variant]
     if variant == USM and section.recipe == "published":
       from nlosjax.models.usm import PUBLISHED_LOSS, PUBLISHED_OPTIM
       return OptimConfig(**PUBLISHED_OPTIM), losses.LossWeights(**PUBLISHED_LOSS)
     optim = dataclasses.replace(optim, **section.optim)   # LFE's, I-K's "transient" is their input
-  return optim, cfg.train.loss
+  return optim, config.train.loss
 
 
 def read_selection(folder) -> dict | None:
