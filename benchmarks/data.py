@@ -55,7 +55,7 @@ def _machine() -> list[str]:
   import h5py
   return [f"- Machine: {_machine_facts.machine_text()}",
           f"- Versions: {_machine_facts.versions_text('numpy', 'h5py')} (HDF5 {h5py.version.hdf5_version})",
-          f"- Commit: {_machine_facts.git_commit()}", _machine_facts.code_line()]
+          f"- Commit: {_machine_facts.git_commit()}"]
 
 
 def _load_rate(path, stride, in_memory, repeats, ends="valid", target="clean"):

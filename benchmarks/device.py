@@ -27,7 +27,7 @@ optax, orbax-checkpoint, h5py, chex, scipy and matplotlib; tqdm is optional; doc
    The exit status is 1 when a correctness check failed or a part raised, else 0.
 3. Back on any machine with the repository, ``python -m benchmarks.device --collect DIR`` (DIR: the folder that
    came back) writes ``benchmarks/results/device.md`` whole: the provenance lines recorded on the
-   device (its device kind, date, code digest), the command, each part's table, and the goals
+   device (its device kind and date), the command, each part's table, and the goals
    shown as met / not met from the numbers; then ``python -m benchmarks.index``.
 
 Parts, in this order (``benchmarks/device_parts.py``):
@@ -356,14 +356,8 @@ def render(folder: pathlib.Path, collect_command: str) -> str:
                  + (f", allocator limit {mem / 2 ** 30:.1f} GiB" if mem else "")
                  + "); host " + line[len("- Machine: "):])
     elif line.startswith("- Commit: ") and line.split()[2] == "unknown":
-      code = provenance.CODE_LINE.search("\n".join(head))
-      try:
-        same = bool(code) and provenance.code_digest(code.group(2).split()) == code.group(1)
-      except (OSError, SyntaxError):                 # a module the device had and this checkout lacks
-        same = False
-      if same:
-        head[i] = (f"- Commit: {provenance.git_commit()} (where collected: the device copy had no git, and its code "
-                   "digest below is this checkout's)")
+      head[i] = (f"- Commit: unknown on the device (its copy had no git); collected at "
+                 f"{provenance.git_commit()}")
   lines += head + [""]
   drv = env.get("driver") or {}
   v = env.get("versions") or {}

@@ -1,39 +1,36 @@
-"""Write ``benchmarks/README.md``, the index of every results file, from the results files.
+"""Write ``benchmarks/README.md``, the index of every results file, from the results files' headers.
 
-    python -m benchmarks.index             # rewrite benchmarks/README.md, print each file's state
-    python -m benchmarks.index --check     # exit 1 if it differs from what the files say
+    python -m benchmarks.index                  # rewrite benchmarks/README.md
+    python -m benchmarks.index --check          # exit 1 if it differs from what the files say
+    python -m benchmarks.index --touched REV    # the results files a change since REV can move
 
 Results files live in ``benchmarks/results/`` (performance) and in each study's own
-``experiments/studies/<study>/results/`` (:func:`benchmarks.results_header.results_folders`).
-Each row is read from one results file's header: its title, the command that
-wrote it ("Produced by `...`"), its date, machine and commit, and its code
-digest (``- Code: `...```, written by ``experiments.provenance.code_line``: a
-SHA-256 over the project modules the command may run, with their list). The
-index recomputes that digest on today's tree and shows the file as **current**
-(same code) or **stale** (with the first commit after the file's own that
-changed one of those modules, and which ones). Nothing here is typed by hand
-but the goal each benchmark is judged against (``GOALS``), so the index cannot
-drift from the files it points to; ``tests/test_benchmarks_index.py`` checks
-that the committed index is this module's output. Numbers live in the results
-files themselves.
+``experiments/studies/<study>/results/`` (:func:`results_folders`). Each row is read from one
+file's header: its title, the command that wrote it ("Produced by `...`"), its date, machine
+and commit. Nothing here is typed by hand but the goal each file is judged against
+(:data:`GOALS`). A results file is regenerated, by its own command, when a change can move its
+numbers: :func:`touched` lists the files whose command imports a module whose code (not its
+comments or docstrings) changed since a commit; the golden tests (``tests/golden``) say
+whether numbers moved at all.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
+import dataclasses
 import os
 import pathlib
 import re
+import subprocess
 import sys
 
-from benchmarks.results_header import Entry, git_output, read_entry, results_folders
-from benchmarks.results_header import GitFiles as _GitFiles
-from benchmarks.results_header import same_code as _same_code
-from experiments import provenance
-
 HERE = pathlib.Path(__file__).resolve().parent
+ROOT = HERE.parent
 RESULTS = HERE / "results"
 INDEX = HERE / "README.md"
+#: The project's packages: the import closure of a command stays inside them.
+PACKAGES = ("nlosjax", "experiments", "benchmarks")
 
 # What each results file is judged against (the goal its benchmark was written for); a file not
 # named here shows "none stated".
@@ -86,13 +83,13 @@ NumPy/SciPy twins, the full model) side by side in one run and prints ratios, si
 times on a shared machine move between runs. Performance results live in `results/`; each study
 of `experiments/studies/` keeps its own in its `results/` folder, beside its code and committed
 run states. Each results file is written whole by the command named in its first lines
-("Produced by `...`"), with the date, machine and commit, and a digest of the project modules
-that command may run. The "state" column recomputes that digest on the tree this index was
-written from: **current** means the code is the same, **stale since <commit>** names the first
-later commit that changed one of those modules (and which ones). A stale file is regenerated with
-its command; until then the README and `docs/` mark the numbers they quote from it as stale. The
-command column gives the command as it is typed today, and the one that ran where a study or its
-results have moved since. The numbers are in the files. Files a later study supersedes are kept,
+("Produced by `...`"), with the date, the machine and the commit it ran at; the numbers are in
+the files, and the README and `docs/` quote them with that commit. A file is regenerated with
+its command when a change can move its numbers: `python -m benchmarks.index --touched REV` lists
+the files whose command runs code changed since `REV`, and the golden tests
+(`python -m tests.golden`) say whether any number moved. Documentation, comments and help strings
+move none. Where a study or its results have moved since a file was written, the command column
+gives the command as typed today and the one that ran. Files a later study supersedes are kept,
 unindexed, in `experiments/studies/archive/`, whose README names what replaces each.
 `pip install -e ".[bench]"` installs PyTorch and mambapy, needed only for
 `benchmarks/scan_torch.py`. Imports run downward only: `nlosjax` <- `experiments` (the application,
@@ -101,62 +98,56 @@ then its studies) <- `benchmarks` (provenance and the NumPy twins live in `exper
 This file is written by `python -m benchmarks.index` from the results files' headers; rerun it
 after any benchmark (a test fails while it is out of date).
 
-**On a GPU** (`device.md`): from the repository root run
-`PYTHONPATH=. python -m benchmarks.device --out DIR` under a time limit below 10 minutes (the
-command keeps itself within its own `--budget-s 480`); no install step and no network are needed.
-Six files come back in `DIR`: `environment.json`, `correctness.json`, `scan_kernels.json`,
-`paper_scale.json`, `classic.json` and `device.log`, each part's JSON written as the part runs, so
-a cut-off run still returns what it measured. Then `python -m benchmarks.device --collect DIR`
-writes `results/device.md` whole (the device named); rerun `python -m benchmarks.index`.
-`python -m benchmarks.device --tiny` rehearses the same code paths on CPU in the test suite, so
-the command cannot break unnoticed between GPU runs. The procedure: `docs/gpu.md`.
+**On a GPU** (`device.md`): see `docs/gpu.md`; `python -m benchmarks.device --tiny` rehearses
+the device command's code paths on CPU in the test suite, so it cannot break unnoticed between
+GPU runs.
 """
 
 
-def state(entry: Entry, files=None) -> str:
-  """``"current"``, ``"stale since <commit> (<modules>)"``, ``"stale: ..."``, or ``"no code digest"``.
+@dataclasses.dataclass(frozen=True)
+class Entry:
+  """One results file's provenance, as its header states it."""
+  name: str           # file stem, e.g. "table1"
+  title: str
+  command: str
+  date: str
+  machine: str
+  commit: str
+  path: pathlib.Path | None = dataclasses.field(default=None, compare=False)   # the file read
 
-  Current: the digest of ``entry.modules`` as they are on disk now equals the recorded one.
-  Stale: otherwise; where git can tell, the first commit after the file's own whose code
-  (not comments or docstrings) differs in one of those modules, and the modules whose code
-  differs today from the file's commit; "uncommitted edits" where no commit changed them.
+
+def results_folders(root: pathlib.Path | None = None) -> list[pathlib.Path]:
+  """Every folder of results files under ``root`` (default: this checkout): ``benchmarks/results``,
+  then ``experiments/studies/<study>/results`` by study name."""
+  root = ROOT if root is None else pathlib.Path(root)
+  return [root / "benchmarks" / "results", *sorted((root / "experiments" / "studies").glob("*/results"))]
+
+
+def _first(pattern: str, text: str, default: str = "?") -> str:
+  m = re.search(pattern, text, flags=re.MULTILINE)
+  return m.group(1).strip() if m else default
+
+
+def read_entry(path: pathlib.Path) -> Entry:
+  """Parse the header of one results Markdown file.
+
+  Raises:
+    ValueError: the file names no "Produced by `...`" command.
   """
-  if not entry.digest:
-    return "no code digest"
-  files = provenance.project_files() if files is None else files
-  missing = [m for m in entry.modules if m not in files]
-  if not missing and provenance.code_digest(entry.modules) == entry.digest:
-    return "current"
-  commit = entry.commit.split()[0]
-  log = git_output("log", "--reverse", "--format=@%h", "--name-only", f"{commit}..HEAD", "--", *entry.modules)
-  if log is None:
-    return "stale (git cannot say since when)"
-  touched: list[tuple[str, list[str]]] = []       # (commit, the modules it touched), oldest first
-  for line in log.split():
-    if line.startswith("@"):
-      touched.append((line[1:], []))
-    elif touched:
-      touched[-1][1].append(line)
-  show = _GitFiles()
-  try:
-    first = next((c for c, paths in touched
-                  if any(not _same_code(show(f"{c}^", m), show(c, m), m) for m in paths)), None)
-    changed = [m for m in entry.modules if m in missing
-               or not _same_code(show(commit, m), (provenance.ROOT / m).read_text(), m)]
-  finally:
-    show.close()
-  what = ", ".join(changed[:3]) + (f" and {len(changed) - 3} more" if len(changed) > 3 else "")
-  where = f"since {first}" if first else "since uncommitted edits"
-  return f"stale {where} ({what})" if what else f"stale {where}"
+  body = "\n".join(line for line in path.read_text().splitlines() if not line.startswith(">"))
+  command = _first(r"Produced by `([^`]+)`", body, "")
+  if not command:
+    raise ValueError(f"{path.name} does not say which command produced it ('Produced by `...`')")
+  date = _first(r"^- Date: (\S+)", body, "") or _first(r"Produced by `[^`]+` on (\S+?)[ .(]", body)
+  return Entry(path.stem, _first(r"^# (.+)$", body), command, date, _first(r"^- (?:Machine|CPU): ([^;\n]+)", body),
+               _first(r"^- Commit: (.+)$", body), path)
 
 
 def entries(results: pathlib.Path | None = None) -> list[Entry]:
-  """Every ``*.md`` results file of ``results`` (default: every folder of
-  :func:`~benchmarks.results_header.results_folders`), sorted by name.
+  """Every ``*.md`` results file of ``results`` (default: every folder of :func:`results_folders`), by name.
 
   Raises:
-    ValueError: two folders hold results files of the same name (the index and the
-      equivalence check know a file by its name).
+    ValueError: two folders hold results files of the same name (a name must say which file).
   """
   folders = results_folders() if results is None else [pathlib.Path(results)]
   found = sorted((read_entry(p) for f in folders for p in f.glob("*.md")), key=lambda e: e.name)
@@ -177,95 +168,168 @@ def companions(results: pathlib.Path, stem: str, tables: set[str] | None = None)
   ``tables``: the stems of every results table (read from ``results`` when not given).
   """
   tables = {p.stem for p in results.glob("*.md")} if tables is None else tables
-  out = []
-  for p in sorted(results.iterdir()):
-    if p.suffix == ".md" or not p.name.startswith(stem):
-      continue
-    rest = p.stem
-    # the longest table name this file starts with owns it
-    owner = _owner(rest, tables)
-    if owner == stem:
-      out.append(p.name)
-  return out
+  return [p.name for p in sorted(results.iterdir())
+          if p.suffix != ".md" and p.name.startswith(stem) and _owner(p.stem, tables) == stem]
 
 
-def states(results: pathlib.Path | None = None) -> dict[str, str]:
-  """Each results file's :func:`state`, by file stem; a stale one carried forward says so.
-
-  Carried forward: :func:`benchmarks.equivalence.carried_forward` (a committed check showed
-  that the code changes since the file was current move no probed number beyond rounding).
-  """
-  from benchmarks.equivalence import carried_forward
-  files = provenance.project_files()
-  out = {}
-  for e in entries(results):
-    st = state(e, files)
-    if st.startswith("stale"):
-      st = carried_forward(e, results=RESULTS if results is None else results, files=files) or st
-    out[e.name] = st
-  return out
-
-
-def render(results: pathlib.Path | None = None, computed: dict[str, str] | None = None) -> str:
-  """The index's Markdown text; ``computed``: :func:`states` where the caller has them already."""
-  lines = [HEADER, "| results file | what | command | date (UTC) | machine | commit | "
-           "state | goal | companions |", "|---|---|---|---|---|---|---|---|---|"]
-  from benchmarks.equivalence import as_moved
-  found = entries(results)
-  tables = {e.name for e in found}
-  computed = states(results) if computed is None else computed
-  for e in found:
-    today = _outputs_moved(as_moved(e.command), found)   # as typed today (a study or its results moved)
-    command = f"`{today}`" + ("" if today == e.command else f" (ran as `{e.command}`)")
-    link = pathlib.Path(os.path.relpath(e.path, HERE)).as_posix()
-    cells = [f"[{e.name}.md]({link})", e.title.replace("|", "\\|"),
-             command.replace("|", "\\|"), e.date, e.machine, e.commit,
-             f"**{st}**" if (st := computed[e.name]) == "current" else st,
-             GOALS.get(e.name, "none stated"),
-             ", ".join(companions(e.path.parent, e.name, tables))]
-    lines.append("| " + " | ".join(cells) + " |")
-  return "\n".join(lines) + "\n"
-
-
-def _outputs_moved(command: str, found: list[Entry]) -> str:
-  """``command`` with each ``benchmarks/results/<file>`` it names that lives in a study's results
-  folder today written with today's path."""
+def as_typed_today(command: str, found: list[Entry]) -> str:
+  """``command`` as typed today: a module that moved into ``experiments/studies/`` named where it
+  lives, and each ``benchmarks/results/<file>`` it writes that lives in a study's folder today
+  at today's path."""
+  def module(m: re.Match) -> str:
+    name = m.group(1)
+    if _module_path(name) is None and _module_path(f"experiments.studies.{name.rsplit('.', 1)[-1]}"):
+      return f"-m experiments.studies.{name.rsplit('.', 1)[-1]}"
+    return m.group(0)
   where = {e.name: e.path.parent for e in found}
 
-  def today(m: re.Match) -> str:
+  def output(m: re.Match) -> str:
     stem = _owner(m.group(1), where)
     if stem is None or where[stem] == RESULTS:
       return m.group(0)
-    return (where[stem] / m.group(1)).relative_to(provenance.ROOT).as_posix() + m.group(2)
-  return re.sub(r"benchmarks/results/([A-Za-z0-9_]+)(\.\w+)", today, command)
+    return (where[stem] / m.group(1)).relative_to(ROOT).as_posix() + m.group(2)
+  command = re.sub(r"-m ((?:benchmarks|experiments)(?:\.\w+)+)", module, command)
+  return re.sub(r"benchmarks/results/([A-Za-z0-9_]+)(\.\w+)", output, command)
+
+
+def render(results: pathlib.Path | None = None) -> str:
+  """The index's Markdown text."""
+  lines = [HEADER, "| results file | what | command | date (UTC) | machine | commit | goal | companions |",
+           "|---|---|---|---|---|---|---|---|"]
+  found = entries(results)
+  tables = {e.name for e in found}
+  for e in found:
+    today = as_typed_today(e.command, found)
+    command = f"`{today}`" + ("" if today == e.command else f" (ran as `{e.command}`)")
+    link = pathlib.Path(os.path.relpath(e.path, HERE)).as_posix()
+    cells = [f"[{e.name}.md]({link})", e.title, command, e.date, e.machine, e.commit,
+             GOALS.get(e.name, "none stated"), ", ".join(companions(e.path.parent, e.name, tables))]
+    lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+# --- Which results files a change can move: the static import closure of each file's command ----------
+
+def _module_path(name: str, root: pathlib.Path | None = None) -> str | None:
+  """Repository-relative path of project module ``name`` (``a/b.py`` or ``a/b/__init__.py``), or None."""
+  root = ROOT if root is None else root
+  if name.split(".")[0] not in PACKAGES:
+    return None
+  base = name.replace(".", "/")
+  for candidate in (base + ".py", base + "/__init__.py"):
+    if (root / candidate).is_file():
+      return candidate
+  return None
+
+
+def _imports(path: str, root: pathlib.Path) -> set[str]:
+  """Every module name ``path``'s code may import (function-level imports too; ``from a import b``
+  yields ``a`` and ``a.b``; a run-time ``import_module`` name: any module beside it)."""
+  package = path[:-len("/__init__.py")] if path.endswith("/__init__.py") else path.rsplit("/", 1)[0]
+  package = package.replace("/", ".")
+  names = set()
+  for node in ast.walk(ast.parse((root / path).read_text(), filename=path)):
+    if isinstance(node, ast.Import):
+      names.update(alias.name for alias in node.names)
+    elif isinstance(node, ast.ImportFrom):
+      base = package.split(".")[:len(package.split(".")) - node.level + 1] if node.level else []
+      mod = ".".join(base + ([node.module] if node.module else []))
+      names.add(mod)
+      names.update(f"{mod}.{alias.name}" for alias in node.names)
+    elif isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "import_module" and node.args:
+      folder = root / package.replace(".", "/")
+      names.update(f"{package}.{p.stem}" for p in folder.glob("*.py"))
+  return names
+
+
+def code_closure(roots, root: pathlib.Path | None = None) -> set[str]:
+  """The project files that modules ``roots`` may run: their imports, transitively, with each
+  module's enclosing packages' ``__init__.py`` (a superset of what one run loads)."""
+  root = ROOT if root is None else root
+  todo, seen = list(roots), set()
+  while todo:
+    parts = todo.pop().split(".")
+    for i in range(1, len(parts) + 1):              # importing a.b.c runs a and a.b first
+      path = _module_path(".".join(parts[:i]), root)
+      if path is not None and path not in seen:
+        seen.add(path)
+        todo.extend(_imports(path, root))
+  return seen
+
+
+def _code(source: str | None) -> str | None:
+  """``source``'s syntax tree without docstrings, as text (comments and layout never count)."""
+  if source is None:
+    return None
+  try:
+    tree = ast.parse(source)
+  except SyntaxError:
+    return source
+  for node in ast.walk(tree):
+    body = getattr(node, "body", None)
+    if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+        and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant)
+        and isinstance(body[0].value.value, str)):
+      node.body = body[1:] or [ast.Pass()]
+  return ast.dump(tree)
+
+
+def changed_code(since: str = "HEAD") -> set[str]:
+  """Project ``.py`` files whose code (not comments or docstrings) differs from commit ``since``."""
+  def git(*args):
+    return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
+  listed = git("diff", "--name-only", since, "--", *PACKAGES).stdout.split()
+  listed += git("ls-files", "--others", "--exclude-standard", "--", *PACKAGES).stdout.split()
+  out = set()
+  for path in (p for p in listed if p.endswith(".py")):
+    before = git("show", f"{since}:{path}")
+    now = (ROOT / path).read_text() if (ROOT / path).exists() else None
+    if _code(before.stdout if before.returncode == 0 else None) != _code(now):
+      out.add(path)
+  return out
+
+
+def command_modules(command: str) -> list[str]:
+  """The project modules a results file's command starts (``python -m pkg.mod ...``: both the
+  package and its ``__main__``); the main job's benchmark also starts the main job."""
+  m = re.search(r"-m ((?:benchmarks|experiments)(?:\.\w+)+)", command)
+  if not m:
+    return []
+  name = m.group(1)
+  mods = [name, f"{name}.__main__"]
+  if name == "benchmarks.main_job":
+    mods += ["experiments.train"]
+  return mods
+
+
+def touched(since: str = "HEAD") -> list[str]:
+  """Results files (by path) whose command may run code changed since ``since``."""
+  changed = changed_code(since)
+  if not changed:
+    return []
+  found = entries()
+  return [e.path.relative_to(ROOT).as_posix() for e in found
+          if changed & code_closure(command_modules(as_typed_today(e.command, found)))]
 
 
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--check", action="store_true", help="exit 1 if benchmarks/README.md is out of date")
+  p.add_argument("--touched", metavar="REV", help="list the results files a change since REV can move")
   args = p.parse_args(argv)
-  computed = states()
-  text = render(computed=computed)
+  if args.touched:
+    for path in touched(args.touched):
+      print(path)
+    return 0
+  text = render()
   if args.check:
-    if comparable(INDEX.read_text()) != comparable(text):
+    if INDEX.read_text() != text:
       print("benchmarks/README.md is out of date: run python -m benchmarks.index", file=sys.stderr)
       return 1
     return 0
   INDEX.write_text(text)
   print(f"wrote {INDEX}")
-  for name, st in computed.items():
-    print(f"  {name}: {st}")
   return 0
-
-
-def comparable(index_text: str) -> str:
-  """The index with each stale file's "since <commit> (...)" dropped.
-
-  A commit that changes code a results file depends on cannot name its own hash in the
-  index it commits: before it, the file reads "stale: uncommitted edits"; after, "stale
-  since <that commit>". Both are stale, and the committed index is compared on that.
-  """
-  return re.sub(r"\| stale[^|]*\|", "| stale |", index_text)
 
 
 if __name__ == "__main__":

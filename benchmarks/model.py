@@ -272,7 +272,6 @@ def to_markdown(rows, cmd, load_before, load_after) -> str:
       "",
       f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
       f"- Commit: {_machine_facts.git_commit()}",
-      _machine_facts.code_line(),
       f"- Machine: {_machine_facts.machine_text()}",
       f"- Versions: {_machine_facts.versions_text()}",
       f"- Load average (1, 5, 15 min) before: {load_before}; after: {load_after}. The machine was"

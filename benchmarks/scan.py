@@ -145,7 +145,6 @@ def render(results, cmd, repeats, chunk_size, load_start, load_end) -> str:
       f"Produced by `{cmd}`.", "",
       f"- Date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
       f"- Commit: {_machine_facts.git_commit()}",
-      _machine_facts.code_line(),
       f"- Machine: {_machine_facts.machine_text()}",
       f"- Versions: {_machine_facts.versions_text('jaxlib', 'flax', 'numpy')}",
       f"- Load average (1, 5, 15 min) at start: {load_start}; at end: {load_end}. The machine "

@@ -38,7 +38,7 @@ def test_tiny_run_writes_every_part_passes_every_check_and_collects(tmp_path):
   assert device.main(["--collect", str(out), "--results", str(results)]) == 0
   text = results.read_text()
   assert "Produced by `python -m benchmarks.device --tiny --out" in text and "- Machine: cpu" in text
-  assert "- Code: `" in text and "(tiny CPU rehearsal)" in text
+  assert "- Commit: " in text and "(tiny CPU rehearsal)" in text
   assert "every correctness check passes: met (15 of 15 passed)" in text
   assert "### Where the train step's time goes" in text and "| category | ms a step | share of busy |" in text
   for goal in ("- paper-scale inference >= 30 frames/s on one H100 (batch 1): ",

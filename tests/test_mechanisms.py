@@ -233,7 +233,7 @@ def test_tiny_study_end_to_end_resumes_and_probes(tmp_path, monkeypatch, capsys)
     assert n == len(r["test"]["frame"]) > 0
     assert set(scores.METRICS) <= set(r["test"]["scores"])               # every per-frame key kept
     assert all(len(v) == n for v in r["test"]["scores"].values())
-    assert r["machine"]["commit"] and len(r["machine"]["code_digest"]) == 12
+    assert r["machine"]["commit"]
   assert "probe" not in records["no_ssm"]
 
   # The probe: bypassing nothing is the model as validated (exactly), bypassing an SSM changes it.

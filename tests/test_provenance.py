@@ -77,24 +77,3 @@ def test_the_main_job_benchmark_records_clock_cache_and_hit_rate(tmp_path):
                  "compiling saved\ntrained\nXLA compilation cache .cache/xla: 3 of 12 compiles read from it\n")
   assert main_job.last_cache_line(log) == "XLA compilation cache .cache/xla: 3 of 12 compiles read from it"
   assert main_job.last_cache_line(tmp_path / "none.log") is None
-
-
-def test_a_package_command_counts_its_own_main_module(tmp_path):
-  """``python -m pkg`` runs ``pkg/__main__.py``: its code is a root of the command's digest, beside
-  the package (a change to a command line's flow stales the results it wrote)."""
-  import json
-  import sys
-
-  from experiments.provenance import ROOT, code_modules
-  pkg = tmp_path / "probe_pkg"
-  pkg.mkdir()
-  (pkg / "__init__.py").write_text("")
-  (pkg / "__main__.py").write_text(
-      "import json\nfrom experiments.provenance import command_roots\nprint(json.dumps(command_roots()))\n")
-  env = {"PYTHONPATH": f"{tmp_path}:{ROOT}", "PATH": "/usr/bin:/bin"}
-  out = subprocess.run([sys.executable, "-m", "probe_pkg"], env=env, cwd=tmp_path, capture_output=True,
-                       text=True, check=True).stdout
-  roots = json.loads(out)
-  assert "probe_pkg" in roots and "probe_pkg.__main__" in roots
-  assert "experiments/studies/real_undersampling/__main__.py" in code_modules(
-      ["experiments.studies.real_undersampling.__main__"])

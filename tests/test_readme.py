@@ -1,5 +1,5 @@
 """The README's quick start is what CI runs, its lock-file line matches the lock, and the README
-and ``docs/`` quote only current results."""
+and ``docs/`` quote results files with their commits."""
 
 import pathlib
 import re
@@ -95,32 +95,26 @@ NUMBER = re.compile(r"\d\.\d|\d+ ?(?:s|ms|min|dB|x|%)\b")
 RESULTS_FILE = re.compile(r"results/([A-Za-z0-9_]+)\.(?:md|json|png)")
 
 
-def test_the_readme_quotes_only_current_results_files_or_says_the_number_is_stale():
-  """A paragraph, list item or table row of the README or docs/ that quotes a number from a
-  stale results file says "stale", and one that names only current files does not. A file
-  carried forward by the equivalence check (benchmarks.equivalence) counts as current."""
+def test_the_readme_and_docs_quote_each_results_file_with_its_commit():
+  """A paragraph, list item or table row of the README or docs/ that quotes a number and names a
+  results file names the commit that file was written at (its header's, first 7 digits): a file
+  regenerated at another commit makes the quote say which numbers it now quotes."""
   from benchmarks import index
-  states = {name: "current" if st.startswith("carried forward") else st
-            for name, st in index.states().items()}
-  unmarked, outdated = [], []
+  commits = {e.name: e.commit.split()[0][:7] for e in index.entries()}
+  bad = []
   for page in PAGES:
     for unit in _quoting_units(_prose(page)):
-      named = {n for n in RESULTS_FILE.findall(unit) if n in states}
-      stale = sorted(n for n in named if states[n] != "current")
-      says_stale = "stale" in unit.lower()
-      if stale and NUMBER.search(unit) and not says_stale:
-        unmarked.append(f"{page.name}: {', '.join(stale)}: {unit.strip()[:100]}...")
-      if named and not stale and says_stale:
-        outdated.append(f"{page.name}: {', '.join(sorted(named))}: {unit.strip()[:100]}...")
-  assert not unmarked, "README or docs/ quote stale results without saying so:\n" + "\n".join(unmarked)
-  assert not outdated, ("README or docs/ call current results stale (they were regenerated: drop the"
-                        " word):\n" + "\n".join(outdated))
+      named = sorted(n for n in set(RESULTS_FILE.findall(unit)) if n in commits)
+      missing = [f"{n} ({commits[n]})" for n in named if commits[n] not in unit]
+      if missing and NUMBER.search(unit):
+        bad.append(f"{page.name}: {', '.join(missing)}: {unit.strip()[:100]}...")
+  assert not bad, "README or docs/ quote results files without their commit:\n" + "\n".join(bad)
 
 
 def test_every_finding_names_its_results_file():
   """Each section of docs/results.md and each finding of the README's results that quotes a
   number names a results file, one that exists."""
-  from benchmarks.results_header import results_folders
+  from benchmarks.index import results_folders
   results = {p.name for folder in results_folders() for p in folder.iterdir()}
   readme = (ROOT / "README.md").read_text().split("## Results at a glance", 1)[1].split("\n## ", 1)[0]
   findings = [f for f in re.split(r"\n(?=- )", readme) if f.startswith("- ")]

@@ -148,9 +148,8 @@ def test_no_import_cycle_among_nlosjax_modules():
 
 
 # ------------------------------------------------------------- variant names in one place
-#: Files that may spell a variant's name: the registry, and the equivalence probes, which run on
-#: an older commit's tree too (one whose registry may not have the names to import).
-SPELLED_AT = ("nlosjax/variants.py", "benchmarks/equivalence_probe*.py")
+#: Files that may spell a variant's name: the registry alone.
+SPELLED_AT = ("nlosjax/variants.py",)
 
 
 def _spelled_variant_names(path: pathlib.Path, names) -> list[int]:
@@ -169,7 +168,7 @@ def test_variant_names_are_spelled_only_in_the_registry(tmp_path):
   names = set(VARIANTS)
   assert names == {OURS, OURS_S, USM, LFE, IK}
   allowed = {p for pattern in SPELLED_AT for p in ROOT.glob(pattern)}
-  assert ROOT / "nlosjax/variants.py" in allowed and len(allowed) > 1
+  assert allowed == {ROOT / "nlosjax/variants.py"}
   bad = [f"{path.relative_to(ROOT)}:{line}" for package in ("nlosjax", "experiments", "benchmarks")
          for path in sorted((ROOT / package).rglob("*.py")) if path not in allowed
          for line in _spelled_variant_names(path, names)]

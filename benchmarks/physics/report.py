@@ -48,7 +48,6 @@ def machine_info(jax_status: str) -> list[str]:
   return [
       f"- Date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}",
       f"- Commit: {_machine_facts.git_commit()}",
-      _machine_facts.code_line(),
       f"- Machine: {_machine_facts.machine_text()}",
       f"- Versions: {', '.join(versions)}",
       f"- JAX side: {jax_status}",

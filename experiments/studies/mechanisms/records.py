@@ -17,7 +17,7 @@ _CODE_AT_START: dict = {}
 
 
 def code_at_start() -> dict:
-  """The commit and code digest of this process's code, read once, before its first run.
+  """The commit of this process's code, read once, before its first run.
 
   A study runs for hours: read at the end of a run, ``git`` and the files on disk may
   already show a later commit or someone's uncommitted edits that this process never
@@ -25,13 +25,13 @@ def code_at_start() -> dict:
   """
   if not _CODE_AT_START:
     from experiments import provenance as P
-    _CODE_AT_START.update(commit=P.git_commit(), code_digest=P.code_digest(P.code_modules(P.command_roots())))
+    _CODE_AT_START.update(commit=P.git_commit())
   return dict(_CODE_AT_START)
 
 
 def machine() -> dict:
   """Where and from which code a run's numbers came (:func:`experiments.provenance.machine_record`;
-  the commit and code digest as at the start of the process)."""
+  the commit as at the start of the process)."""
   from experiments import provenance as P
   return {**P.machine_record(), **code_at_start()}
 

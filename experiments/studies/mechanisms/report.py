@@ -209,7 +209,8 @@ def report(runs: dict, design: dict, command: str, untrained: dict | None = None
   machines = {}
   for r in runs.values():
     m = r["machine"]
-    key = f"{m['cpu']}, {m['cores']} cores, commit {m['commit']}, code `{m['code_digest']}`"
+    key = f"{m['cpu']}, {m['cores']} cores, commit {m['commit']}" + (
+        f", code `{m['code_digest']}`" if m.get("code_digest") else "")   # older records carry a digest
     machines[key] = machines.get(key, 0) + 1
   lines = ["# Mechanisms: SSMs and neighbour frames, each model trained to its validation plateau", ""]
   lines += provenance(command) + [""]

@@ -45,7 +45,7 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
   front_names = [p["name"] for p, f in zip(default, front) if f]
   rec = recommend(default)
   beats = learned_beats_classic(default)
-  from experiments.provenance import code_line, git_commit
+  from experiments.provenance import git_commit
   by_name = {r["name"]: r for r in rows}
   (h, w), stride = res["grid"], res["stride"]
   full, sparse = f"{h} x {w}", f"{-(-h // stride)} x {-(-w // stride)}"   # the scan and the network's input
@@ -55,7 +55,6 @@ def to_markdown(res: dict, cmd: str, machine: str, loads: tuple[str, str], *,
       f"Produced by `{cmd}` on {datetime.date.today().isoformat()} ({res['wall_s']:.0f} s).",
       "",
       f"- Commit: {git_commit()}",
-      code_line(),
       f"- Machine: {machine}. Load average (1, 5, 15 min) before: {loads[0]}; after: {loads[1]}."
       + _load_remark(loads[0]) +
       f" Every time in this file comes from one phase in which all"
