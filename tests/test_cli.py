@@ -13,6 +13,7 @@ from experiments import cli, configs, independent_set, main_job, make_dataset
 from experiments import train as train_cli
 from nlosjax import train as T
 from nlosjax.data import dataset as D
+from nlosjax.data.dataset import PhysicsMix
 from nlosjax.train import RunConfig
 
 
@@ -147,6 +148,15 @@ def test_keys_the_preset_leaves_unset_can_be_set_and_reach_the_typed_config():
   assert T.model_config_for(typed, typed.data.setup(), "lfe").extract_width == 2
   # Unset keys are absent from the dict a run records: the library's defaults apply.
   assert "lfe" not in cli.load_config("cpu") and "stop" not in cli.load_config("cpu")["train"]
+
+
+def test_a_section_set_empty_on_purpose_is_kept_with_its_defaults(record, tmp_path):
+  # docs/dataset.md: the forward model drawn per sequence, every PhysicsMix range at its default.
+  out = tmp_path / "mix.h5"
+  assert make_dataset.main(["--config.data.renderer=mix", "--config.data.retroreflective=0.0",
+                            "--config.data.physics={}", "--out", str(out), "--quiet"]) == 0
+  assert record["write"][1].physics == PhysicsMix()
+  assert "physics" not in cli.load_config("cpu")["data"]             # unset: no section at all
 
 
 def test_a_preset_without_an_independent_set_refuses_half_of_one(record, tmp_path):

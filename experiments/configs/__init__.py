@@ -87,12 +87,13 @@ def skeleton() -> ConfigDict:
 
 
 def to_dict(config) -> dict:
-  """``config`` (a ConfigDict or a dict) as a plain dict without its unset keys and empty sections."""
+  """``config`` (a ConfigDict or a dict) as a plain dict without its unset keys and the sections left
+  with none. A section set empty on purpose stays (``'--config.data.physics={}'``: every default)."""
   if isinstance(config, ConfigDict):
     config = config.to_dict()
   out = {}
   for key, value in config.items():
-    if isinstance(value, dict):
+    if isinstance(value, dict) and value:
       value = to_dict(value)
       if not value:
         continue
