@@ -73,10 +73,10 @@ def main(argv=None) -> int:
   import jax
   import numpy as np
 
-  from experiments import configs
   from experiments import provenance as _machine
+  from experiments.cli import load_config
   from nlosjax import train as T
-  config = configs.get_config(args.config)
+  config = load_config(args.config)
   data_path = pathlib.Path(config["data"]["path"])
   T.ensure_dataset(T.RunConfig.from_dict(config), data_path)
   read_s = read_time(config, data_path)
