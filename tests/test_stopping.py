@@ -199,8 +199,9 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
 @pytest.mark.full
 def test_the_default_rule_is_unchanged(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=MAX_STEPS, optim=OPTIM)
-  assert T.StopRule.from_config(cfg["train"]["stop"]) == T.StopRule() and T.StopRule().rule == "steps"
-  default_cfg = {**cfg, "train": {k: v for k, v in cfg["train"].items() if k != "stop"}}
+  assert "stop" not in cfg["train"] and T.StopRule().rule == "steps"
+  assert RunConfig.from_dict(cfg).train.stop == T.StopRule()             # a config silent on the rule
+  default_cfg = cfg
   explicit = tiny_config(data_path, steps=MAX_STEPS, optim=OPTIM, stop={"rule": "steps"})
   _, a = T.train_model(RunConfig.from_dict(default_cfg), data_path, tmp_path / "a", "ours_s", log=quiet)
   _, b = T.train_model(RunConfig.from_dict(explicit), data_path, tmp_path / "b", "ours_s", validate=lambda m,
