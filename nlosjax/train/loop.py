@@ -212,6 +212,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
       log(f"[{label}] resumed from step {start} ({ckpt.directory})")
     imported_best = None
     exported = read_meta(export.folder(label)) if export is not None else None
+    finished = bool(exported and exported.get("finished"))   # its chosen parameters alone: no more training
     if exported is not None and exported["step"] > start and primary:
       state, imported_best, meta = import_state(export.folder(label), state, signature=signature, model=mcfg,
                                                 data_digest=export.data_digest,
@@ -219,10 +220,12 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
                                                 allow_data_change=export.allow_data_change)
       start = int(state.step)
       copy_logs(export.folder(label), vdir)
+      if finished and int(imported_best.step) != start:   # where the run's selection names it
+        ckpt.save(imported_best, int(imported_best.step), force=True)
       ckpt.save(state, start, force=True)
       ckpt.wait()
       log(f"[{label}] resumed from step {start} of the exported state {export.folder(label)}"
-          f"{meta['data_check'].describe()}")
+          f"{meta['data_check'].describe()}" + (" (finished: its chosen parameters)" if finished else ""))
     elif exported is not None and exported["step"] > start:
       raise ValueError("resuming from an exported state needs a single process; resume once with one, "
                        "then continue with several")
@@ -237,6 +240,10 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
       tracker.resume(start)
       if tracker.pending(start):       # killed after the checkpoint of a validation step, before its curve
         tracker.record(mcfg, state, start, to_host)
+    if finished and (tracker.reason(start) is None if tracker is not None else start < steps):
+      raise ValueError(f"[{label}] {export.folder(label)} holds a finished run's chosen parameters only "
+                       f"(step {exported['step']}), and this config trains it further; train from its "
+                       "workdir, or from the export an earlier commit holds")
     # One process writes the log (several processes share the workdir); the others write
     # theirs to /dev/null.
     log_path = vdir / "metrics.jsonl" if primary else pathlib.Path(os.devnull)
@@ -247,9 +254,16 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     log_every = tr.log_every
     exported_best = {"step": (exported or {}).get("best_step")}
 
-    def export_now(current: TrainState) -> None:
-      """Mirror ``current``, just checkpointed, into the export folder (primary process)."""
+    def export_now(current: TrainState, chosen: TrainState | None = None) -> None:
+      """Mirror ``current``, just checkpointed, into the export folder (primary process); ``chosen``:
+      the run has finished with this state, and the export keeps its parameters alone."""
       if export is None or not primary:
+        return
+      if chosen is not None:
+        export_state(export.folder(label), vdir, to_host(current), signature=signature,
+                     best_step=tracker.best_step if tracker is not None else None,
+                     data_digest=export.data_digest, data_fingerprint=export.data_fingerprint,
+                     chosen=to_host(chosen))
         return
       best_step = tracker.best_step if tracker is not None else None
       best_state = None
@@ -310,8 +324,12 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     loader.close()
     if tracker is not None:
       chosen = _finish_plateau(tracker, state, ckpt, vdir, label, primary, log)
-      export_now(state)                   # with the final curve and selection.json
+      if not (finished and imported_best is not None):   # an export read back finished is left as it was
+        export_now(state, chosen)         # the chosen parameters, the final curve and selection.json
       return mcfg, chosen
+    if finished and imported_best is not None:   # selected when it trained; selection.json came with it
+      ckpt.close()
+      return mcfg, imported_best
     last = state
     selection = {"select": tr.select_checkpoint, "step": int(state.step), "val_psnr": {}}
     if selection["select"] == "val" and validate is not None:
@@ -328,7 +346,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     ckpt.close()
     if primary:
       (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-    export_now(last)                      # the last state, with selection.json
+    export_now(last, state)               # the selected parameters, with selection.json
     return mcfg, state
   finally:
     loader.close()
