@@ -305,7 +305,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
           ckpt.wait()                     # the curve may name only finished checkpoints
           score = tracker.record(mcfg, state, done, to_host)
           export_now(state)
-          bar.set_postfix(val_psnr=f"{score:.2f}")
+          bar.set_postfix(**{f"val_{stop.metric}": f"{score:.2f}"})
           bar.update(1)
           if tracker.reason(done):
             break
@@ -333,16 +333,19 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     last = state
     selection = {"select": tr.select_checkpoint, "step": int(state.step), "val_psnr": {}}
     if selection["select"] == "val" and validate is not None:
-      candidates = {}
+      candidates, deciding = {}, {}
       for step in ckpt.all_steps():
         candidate, _ = ckpt.restore(state, step)
-        selection["val_psnr"][step] = float(validate(mcfg, to_host(candidate.params)))
+        deciding[step], scores = stop.score(validate(mcfg, to_host(candidate.params)))
+        selection["val_psnr"][step] = scores.get("psnr", deciding[step])
         candidates[step] = candidate
-      best = max(selection["val_psnr"], key=lambda k: (selection["val_psnr"][k], k))
+      if stop.metric != "psnr":
+        selection.update(metric=stop.metric, val_score=deciding)
+      best = max(deciding, key=lambda k: (deciding[k], k))
       state = candidates[best]
       selection["step"] = int(best)
-      log(f"[{label}] checkpoint chosen on validation: step {best} "
-          f"({', '.join(f'{k}: {v:.2f} dB' for k, v in selection['val_psnr'].items())})")
+      log(f"[{label}] checkpoint chosen on validation {stop.metric}: step {best} "
+          f"({', '.join(f'{k}: {v:.2f} dB' for k, v in deciding.items())})")
     ckpt.close()
     if primary:
       (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
@@ -367,10 +370,13 @@ def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpoint
   selection = {"select": "plateau", "step": int(best.step), "steps_taken": int(done),
                "stop_reason": reason, "rule": tracker.rule.to_dict(),
                "val_psnr": {p["step"]: p["val_psnr"] for p in tracker.curve}}
+  if tracker.rule.metric != "psnr":
+    selection.update(metric=tracker.rule.metric,
+                     val_score={p["step"]: s for p, s in zip(tracker.curve, tracker.scores)})
   if primary:
     (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-  log(f"[{label}] stopped after {done} steps ({reason}); best on validation: step {int(best.step)}"
-      f" ({summary['best_val_psnr']:.2f} dB)")
+  log(f"[{label}] stopped after {done} steps ({reason}); best on validation {tracker.rule.metric}: step "
+      f"{int(best.step)} ({summary.get('best_score', summary['best_val_psnr']):.2f} dB)")
   return best
 
 
@@ -397,7 +403,9 @@ def training_recipe(config: RunConfig, variant: str) -> tuple[OptimConfig, losse
 def read_selection(folder) -> dict | None:
   """A model folder's ``selection.json`` (written by :func:`train_model`), or None.
 
-  ``{"select": "last" | "val" | "plateau", "step": chosen step, "val_psnr": {step: dB}}``;
+  ``{"select": "last" | "val" | "plateau", "step": chosen step, "val_psnr": {step: dB}}``, and
+  where the rule decides on another score (``train.stop.metric``) ``"metric"`` and
+  ``"val_score": {step: dB}``;
   a plateau run adds ``"steps_taken"``, ``"stop_reason"`` (``"plateau"`` or
   ``"max_steps"``) and ``"rule"`` (its curve with times: ``validation_curve.json``,
   :func:`nlosjax.train.stopping.read_curve`).
@@ -407,4 +415,6 @@ def read_selection(folder) -> dict | None:
     return None
   d = json.loads(path.read_text())
   d["val_psnr"] = {int(k): v for k, v in d.get("val_psnr", {}).items()}
+  if "val_score" in d:
+    d["val_score"] = {int(k): v for k, v in d["val_score"].items()}
   return d
