@@ -303,17 +303,24 @@ def tabulate(evaluation: dict, *, best_classic_method: str | None = None, n_boot
 
 def write_results(out_dir, table: dict, comparisons: list[dict], images: dict, *, caption: str,
                   validation: dict | None = None, logs: dict | None = None,
-                  stem: str = "table") -> None:
+                  stem: str = "table", evaluation: dict | None = None) -> None:
   """``table.json``, ``comparisons.json``, ``validation.json``, ``table.md``, figures in ``out_dir``.
 
   ``table.json`` is ``method -> metric -> {"mean", "ci95": [lo, hi], "std",
   "n_sequences", "n_frames", "n_seeds"}``. Another ``stem`` (a second test
   set) writes ``{stem}.json``, ``{stem}.md``, ``{stem}_comparisons.json`` and
-  ``{stem}_comparison.png`` instead.
+  ``{stem}_comparison.png`` instead. With ``evaluation`` (an :func:`evaluate` result), its
+  per-frame scores too, ``scores.npz`` (``{stem}_scores.npz``): ``<method>/<metric>``
+  ``[N]`` or ``[seeds, N]`` and ``sequence``, ``frame`` ``[N]``, so any later comparison
+  (each learned model against each classic method, on any score) pairs the same frames.
   """
   out = pathlib.Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
   prefix = "" if stem == "table" else f"{stem}_"
+  if evaluation is not None:
+    arrays = {f"{m}/{k}": np.asarray(v) for m, s in evaluation["scores"].items() for k, v in s.items()}
+    np.savez_compressed(out / f"{prefix}scores.npz", sequence=np.asarray(evaluation["sequence"]),
+                        frame=np.asarray(evaluation["frame"]), **arrays)
   (out / f"{stem}.json").write_text(json.dumps(table, indent=2) + "\n")
   (out / f"{prefix}comparisons.json").write_text(json.dumps(comparisons, indent=2) + "\n")
   text = report.format_tables(table, caption)
