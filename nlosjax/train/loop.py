@@ -333,14 +333,16 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     last = state
     selection = {"select": tr.select_checkpoint, "step": int(state.step), "val_psnr": {}}
     if selection["select"] == "val" and validate is not None:
-      candidates, deciding = {}, {}
+      candidates, deciding, every = {}, {}, {}
       for step in ckpt.all_steps():
         candidate, _ = ckpt.restore(state, step)
-        deciding[step], scores = stop.score(validate(mcfg, to_host(candidate.params)))
-        selection["val_psnr"][step] = scores.get("psnr", deciding[step])
+        deciding[step], every[step] = stop.score(validate(mcfg, to_host(candidate.params)))
+        selection["val_psnr"][step] = every[step].get("psnr", deciding[step])
         candidates[step] = candidate
       if stop.metric != "psnr":
         selection.update(metric=stop.metric, val_score=deciding)
+      if any(len(v) > 1 for v in every.values()):
+        selection["val"] = every               # every score of every kept step, for a later look
       best = max(deciding, key=lambda k: (deciding[k], k))
       state = candidates[best]
       selection["step"] = int(best)
