@@ -16,15 +16,15 @@ RUN is one of
   default ``experiments/studies/mechanisms/results``); the default command is ``python -m
   experiments.studies.mechanisms --budgets <budget> --rows <row> --seeds <k>``;
 * a run state committed by a study (``--state``, e.g.
-  ``experiments/studies/mechanisms/state/<budget>/<row>-seed<k>``: ``model/best.npz``,
+  ``experiments/studies/mechanisms/state/<budget>/<row>-seed<k>``: ``model/params.npz``,
   ``model/selection.json`` and ``model/run_state.json`` of
   :mod:`nlosjax.train.run_state`), with its record
   ``RESULTS/mechanisms/<budget>/<row>-seed<k>.json`` for the machine, the
   commit and the parts of the config the run's numbers depend on. The config is
   rebuilt as the study built it: the preset (``--preset``, default ``cpu``, the
   study's default base) with those parts over it, and the run trains the one
-  variant. The parameters are those of ``best.npz`` (the plateau rule's best
-  state, whose step must be the selected one); the model config rebuilt from the
+  variant. The parameters are those of ``params.npz`` (``best.npz`` in an export not yet
+  finished: the plateau rule's best state, whose step must be the selected one); the model config rebuilt from the
   config must be the one the state's signature recorded, and the dataset file
   must have the content digest the run trained on;
 * a main-job workdir (``python -m experiments.train``: ``config.json`` and
@@ -144,7 +144,7 @@ def state_run(folder, results, preset: str = "cpu") -> dict:
   """What a study's committed run state says about its model (module docstring); ValueError naming the file."""
   from experiments import configs
   from nlosjax.train import read_selection
-  from nlosjax.train.run_state import BEST_FILE, read_meta
+  from nlosjax.train.run_state import BEST_FILE, PARAMS_FILE, read_meta
   folder = pathlib.Path(folder)
   model = folder / "model"
   budget, name = folder.parent.name, folder.name
@@ -173,7 +173,8 @@ def state_run(folder, results, preset: str = "cpu") -> dict:
                      " no validation score")
   machine = dict(record.get("machine") or {})
   return {"kind": "committed run state", "source": folder, "config": config, "variant": variant,
-          "params_file": model / BEST_FILE, "signature": meta.get("signature", {}),
+          "params_file": model / (PARAMS_FILE if meta.get("finished") else BEST_FILE),
+          "signature": meta.get("signature", {}),
           "data_digest": meta.get("data_digest"), "step": step,
           "recorded_val_psnr": float(selection["val_psnr"][step]),
           "steps_taken": int(selection["steps_taken"]), "stop_reason": selection["stop_reason"],
@@ -185,7 +186,8 @@ def state_run(folder, results, preset: str = "cpu") -> dict:
 
 
 def state_params(run: dict, mcfg) -> tuple[dict, dict]:
-  """The parameters of a :func:`state_run`'s ``best.npz`` and a :func:`restore_params`-like record.
+  """The parameters of a :func:`state_run`'s ``params.npz`` (``best.npz`` before the run's export was
+  finished) and a :func:`restore_params`-like record.
 
   Raises ValueError when the file's step is not the selected one, the model config
   rebuilt from the record is not the one the state's signature recorded, or the file's

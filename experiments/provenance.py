@@ -16,6 +16,8 @@ import os
 import pathlib
 import platform
 
+#: The repository's root (results files and the studies' records name paths under it).
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def _proc_field(path: str, key: str) -> str | None:
   """The value after ``key:`` on the first matching line of ``path``, or None."""

@@ -28,7 +28,8 @@ import numpy as np
 
 __all__ = ["PSNR_CAP_DB", "SURFACE_MIN_DEPTH", "OBJECT_METRICS", "TEMPORAL_METRICS", "psnr", "ssim",
            "rmse", "mad", "surface", "surface_scores", "rmse_object", "mad_object", "recall", "precision",
-           "f1", "intensity_mae_object", "psnr_zero", "temporal_rmse", "temporal_psnr",
+           "f1", "intensity_mae_object", "psnr_zero", "psnr_balanced", "psnr_balanced_zero",
+           "temporal_rmse", "temporal_psnr",
            "temporal_rmse_object"]
 
 PSNR_CAP_DB = 100.0
@@ -525,6 +526,50 @@ def psnr_zero(target_intensity):
   (:func:`psnr` of zeros, so an all-dark target gives the cap :data:`PSNR_CAP_DB`).
   """
   return psnr(jnp.zeros_like(jnp.asarray(target_intensity)), target_intensity)
+
+
+@jax.jit
+def _psnr_balanced(pred, target, depth):
+  truth = _true_surface(depth)
+  sq = jnp.square(pred - target)
+  n_fg = jnp.sum(truth, axis=(-2, -1))
+  n_bg = jnp.sum(~truth, axis=(-2, -1))
+  mse_fg = jnp.sum(jnp.where(truth, sq, 0), axis=(-2, -1)) / jnp.maximum(n_fg, 1)
+  mse_bg = jnp.sum(jnp.where(truth, 0, sq), axis=(-2, -1)) / jnp.maximum(n_bg, 1)
+  mse = jnp.where((n_fg > 0) & (n_bg > 0), 0.5 * (mse_fg + mse_bg), jnp.where(n_fg > 0, mse_fg, mse_bg))
+  out = -10.0 * jnp.log10(jnp.maximum(mse, _PSNR_MSE_FLOOR))
+  has_nan = jnp.any(jnp.isnan(pred) | jnp.isnan(target), axis=(-2, -1))
+  return jnp.where(has_nan, jnp.array(jnp.nan, pred.dtype), out.astype(pred.dtype))
+
+
+def psnr_balanced(pred_intensity, target_intensity, target_depth):
+  """Intensity PSNR (dB, peak 1) with object and background pixels weighted equally, per image.
+
+  ``PSNR = -10 log10((MSE_object + MSE_background) / 2)``, each MSE the mean over its own
+  pixels (the object pixels are the ground truth's surface, ``target_depth > 0``; an image
+  with only one kind scores that kind's MSE). The whole-image PSNR weights each pixel alike,
+  so on scenes whose objects cover a tenth of the image a dark image scores well; here the
+  objects weigh half, and an image dark on them scores :func:`psnr_balanced_zero` (about
+  ``-10 log10(mean object intensity^2 / 2)``), however clean its background. Identical images
+  give :data:`PSNR_CAP_DB`.
+
+  Args:
+    pred_intensity, target_intensity: ``[..., H, W]`` in [0, 1].
+    target_depth: ``[..., H, W]`` true depth, metres, 0 at background.
+  Returns:
+    ``[...]`` float32, dB (NaN where an input image holds NaN).
+  Raises:
+    ValueError: shapes differ, rank < 2, NaN in a concrete input.
+  """
+  _check_images("psnr_balanced", pred_intensity, target_intensity, None)
+  _check_images("psnr_balanced", target_intensity, target_depth, None)
+  pred, target, _, dtype = _prepare(pred_intensity, target_intensity, None)
+  return _psnr_balanced(pred, target, jnp.asarray(target_depth, dtype))
+
+
+def psnr_balanced_zero(target_intensity, target_depth):
+  """The all-zero image's :func:`psnr_balanced` against each target: the floor of a dark reconstruction."""
+  return psnr_balanced(jnp.zeros_like(jnp.asarray(target_intensity)), target_intensity, target_depth)
 
 
 def mad_object(pred_depth, target_depth):

@@ -83,9 +83,11 @@ def test_report_calls_a_difference_only_when_its_interval_excludes_zero():
   assert "Ours - FBP, object depth RMSE: +0.200 m [+0.050, +0.400]; Ours is worse than FBP." in text
   table = report.format_tables({"fbp": {k: _summary(1.0, 0.5, 1.5) for k in scores.METRICS}})
   assert "| FBP | 1.00 [0.50, 1.50] |" in table and "8 / 48 / 3" in table
-  # The floor beside the PSNR, the object intensity error first among the object scores.
-  assert "| method | intensity PSNR (dB) ↑ | all-zero image's PSNR (dB) ↑ | intensity SSIM ↑ |" in table
-  assert "| method | object intensity error ↓ | object depth RMSE (m) ↓ |" in table
+  # The object table first, the object intensity error first in it, each PSNR beside its floor.
+  objects = ("| method | object intensity error ↓ | object-balanced PSNR (dB) ↑ | all-zero image's balanced "
+             "PSNR (dB) ↑ | object depth RMSE (m) ↓ |")
+  paper = "| method | intensity PSNR (dB) ↑ | all-zero image's PSNR (dB) ↑ | intensity SSIM ↑ |"
+  assert objects in table and paper in table and table.index(objects) < table.index(paper)
   # A table written before those metrics existed renders them as n/a.
   old = report.format_tables({"fbp": {k: _summary(1.0, 0.5, 1.5) for k in scores.METRICS
                                       if k not in ("psnr_zero", "intensity_mae_object")}})

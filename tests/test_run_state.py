@@ -11,6 +11,7 @@ import jax
 import numpy as np
 import pytest
 
+from nlosjax import inference
 from nlosjax import train as T
 from nlosjax.data.dataset import dataset_digest
 from nlosjax.train import RunConfig, run_state
@@ -42,6 +43,10 @@ def _assert_same_tree(a, b):
 
 class _Killed(Exception):
   pass
+
+
+def _fail(mcfg, params):
+  raise AssertionError("a finished run validates nothing")
 
 
 @pytest.mark.full
@@ -81,9 +86,25 @@ def test_a_killed_plateau_run_resumes_from_its_export_on_a_fresh_workdir_bit_for
   curve_c = json.loads((tmp_path / "c/ours_s/validation_curve.json").read_text())
   assert [(p["step"], p["val_psnr"]) for p in curve_a["curve"]] == \
          [(p["step"], p["val_psnr"]) for p in curve_c["curve"]]
-  # The export now holds the finished run: its last state is the uninterrupted run's last state.
+  # The export now holds the finished run: the chosen parameters alone, at the best step.
   final = run_state.read_meta(tmp_path / "clone/state/ours_s")
   assert final["step"] == 8 and (tmp_path / "clone/state/ours_s/selection.json").exists()
+  assert final["finished"] and final["chosen_step"] == final["best_step"] == int(straight.step)
+  assert sorted(p.name for p in (tmp_path / "clone/state/ours_s").glob("*.npz")) == ["params.npz"]
+  with np.load(tmp_path / "clone/state/ours_s/params.npz") as f:
+    assert not any("opt_state" in k for k in f.files)
+    _assert_same_tree(straight.params, run_state.arrays_tree(
+        {k: f[k] for k in f.files if k.startswith("['params']")}, {"params": straight.params})["params"])
+  # A fresh clone of the finished export: the chosen parameters, no step trained, the selection kept;
+  # the workdir it leaves reads back as the run would (load_trained: the selected step).
+  _, again = T.train_model(config, data_path, tmp_path / "d", "ours_s", validate=_fail, log=quiet, export=moved)
+  _assert_same_tree(straight.params, again.params)
+  assert (tmp_path / "d/ours_s/metrics.jsonl").read_text() == (tmp_path / "c/ours_s/metrics.jsonl").read_text()
+  (tmp_path / "d/config.json").write_text(json.dumps(config.to_dict()))      # as experiments.train writes it
+  _, loaded, info = inference.load_trained(tmp_path / "d", "ours_s")
+  assert info["step"] == int(straight.step) and info["selected_on_validation"]
+  _assert_same_tree(straight.params, loaded)
+  assert run_state.read_meta(tmp_path / "clone/state/ours_s") == final
   rows_a = [json.loads(l) for l in (tmp_path / "a/ours_s/metrics.jsonl").read_text().splitlines()]
   rows_c = [json.loads(l) for l in (tmp_path / "c/ours_s/metrics.jsonl").read_text().splitlines()]
   assert [r["step"] for r in rows_c] == [r["step"] for r in rows_a]
@@ -117,7 +138,7 @@ def test_an_export_of_another_run_or_other_data_is_refused_and_kept(data_path, t
   quiet = lambda s: None
   T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path / "a", "ours_s", log=quiet,
                 export=T.StateExport(tmp_path / "state", data_digest="0123456789abcdef"))
-  before = (tmp_path / "state/ours_s/state.npz").read_bytes()
+  before = (tmp_path / "state/ours_s/params.npz").read_bytes()      # finished: the chosen parameters
   other = {**cfg, "model": {**cfg["model"], "width": 6}}
   with pytest.raises(ValueError, match="another run signature"):
     T.train_model(RunConfig.from_dict(other), data_path, tmp_path / "b", "ours_s", log=quiet,
@@ -126,7 +147,11 @@ def test_an_export_of_another_run_or_other_data_is_refused_and_kept(data_path, t
   with pytest.raises(ValueError, match="content digest 0123456789abcdef.*--allow-data-change"):
     T.train_model(RunConfig.from_dict(longer), data_path, tmp_path / "c", "ours_s", log=quiet,
                   export=T.StateExport(tmp_path / "state", data_digest=dataset_digest(data_path)))
-  assert (tmp_path / "state/ours_s/state.npz").read_bytes() == before
+  # The same data and run, told to train further: the finished export has no optimiser state to go on.
+  with pytest.raises(ValueError, match="finished run's chosen parameters only"):
+    T.train_model(RunConfig.from_dict(longer), data_path, tmp_path / "d", "ours_s", log=quiet,
+                  export=T.StateExport(tmp_path / "state"))
+  assert (tmp_path / "state/ours_s/params.npz").read_bytes() == before
 
 
 def test_arrays_tree_names_the_leaf_that_does_not_fit():
@@ -162,3 +187,28 @@ def test_dataset_digest_sees_one_changed_count_and_not_the_file_layout(data_path
     first.flat[0] += 1
     ds[0] = first
   assert dataset_digest(copy) != dataset_digest(data_path)
+
+
+def test_finishing_an_older_export_keeps_the_best_parameters_and_drops_the_optimiser(tmp_path):
+  """An export written before runs finished their exports (``state.npz`` and ``best.npz``): against
+  hand-made arrays, :func:`finish_export` keeps the best state's parameters and step, byte for byte."""
+  folder = tmp_path / "model"
+  folder.mkdir()
+  rng = np.random.default_rng(0)
+  best = {"['params']['w']": rng.normal(size=(3, 2)).astype(np.float32), "['step']": np.int32(4),
+          "['opt_state'][0].mu['w']": rng.normal(size=(3, 2)).astype(np.float32)}
+  last = {**best, "['params']['w']": rng.normal(size=(3, 2)).astype(np.float32), "['step']": np.int32(8)}
+  np.savez(folder / "best.npz", **best)
+  np.savez(folder / "state.npz", **last)
+  (folder / "run_state.json").write_text(json.dumps({"step": 8, "best_step": 4, "signature": {}}))
+  with pytest.raises(ValueError, match="has not finished"):
+    run_state.finish_export(folder)
+  (folder / "selection.json").write_text(json.dumps({"select": "plateau", "step": 4, "stop_reason": "plateau"}))
+  meta = run_state.finish_export(folder)
+  assert meta["finished"] and meta["chosen_step"] == 4 and meta["step"] == 8
+  assert sorted(p.name for p in folder.iterdir()) == ["params.npz", "run_state.json", "selection.json"]
+  with np.load(folder / "params.npz") as f:
+    assert sorted(f.files) == ["['params']['w']", "['step']"]
+    np.testing.assert_array_equal(f["['params']['w']"], best["['params']['w']"])
+    assert int(f["['step']"]) == 4
+  assert run_state.finish_export(folder) == meta                    # finished already: left as it is

@@ -29,7 +29,11 @@ METRICS = ("psnr", "ssim", "rmse", "mad", "rmse_object", "mad_object", "recall",
 #: error with the target as the depth map too (its object pixels are target > 0), and the
 #: all-zero floor, a function of the target alone (so a NaN in pred does not reach it).
 OTHER = {"intensity_mae_object": lambda pred, target: metrics.intensity_mae_object(pred, target, target),
-         "psnr_zero": lambda pred, target: metrics.psnr_zero(target)}
+         "psnr_zero": lambda pred, target: metrics.psnr_zero(target),
+         "psnr_balanced": lambda pred, target: metrics.psnr_balanced(pred, target, target),
+         "psnr_balanced_zero": lambda pred, target: metrics.psnr_balanced_zero(target, target)}
+#: The floors: functions of the target alone.
+FLOORS = ("psnr_zero", "psnr_balanced_zero")
 
 
 def _all_metrics(pred, target) -> dict:
@@ -58,6 +62,10 @@ def _reference_metrics(pred: np.ndarray, target: np.ndarray) -> dict:
            "intensity_mae_object": (np.sum(np.where(truth, np.abs(pred - target), 0.0)) / np.sum(truth)
                                     if not np.isnan(pred).any() | np.isnan(target).any() else np.nan),
            "psnr_zero": 10 * np.log10(1.0 / max(np.mean(target ** 2), 1e-10))}
+    for name, p in (("psnr_balanced", pred), ("psnr_balanced_zero", np.zeros_like(pred))):
+      sq = (p - target) ** 2
+      balanced = 0.5 * (np.mean(sq[truth]) + np.mean(sq[~truth]))
+      ref[name] = np.nan if np.isnan(balanced) else 10 * np.log10(1.0 / max(balanced, 1e-10))
   ref.update({f"surface.{k}": ref[k] for k in metrics.OBJECT_METRICS})
   return ref
 
@@ -88,7 +96,7 @@ def test_every_metric_propagates_nan_and_scores_inf_and_negative_values_under_ch
     for name, value in got.items():
       v, what = float(value[i]), (name, kind, "-" if arg is None else ("pred", "target")[arg])
       assert v == float(plain[name][i]) or (np.isnan(v) and np.isnan(plain[name][i])), what
-      if kind == "NaN" and not (name == "psnr_zero" and arg == 0):
+      if kind == "NaN" and not (name in FLOORS and arg == 0):
         assert np.isnan(v), what                    # never a finite number made up for it
       else:
         np.testing.assert_allclose(v, ref[name], rtol=1e-5, atol=1e-6, err_msg=str(what))
@@ -98,7 +106,7 @@ def test_every_metric_propagates_nan_and_scores_inf_and_negative_values_under_ch
   calls = {**{name: getattr(metrics, name) for name in METRICS + ("surface_scores",)}, **OTHER}
   for name, call in calls.items():
     for i in (i for i, (kind, _, _) in enumerate(rows) if kind == "NaN"):
-      if name == "psnr_zero" and rows[i][1] == 0:
+      if name in FLOORS and rows[i][1] == 0:
         continue                                    # pred is not its argument
       with pytest.raises(ValueError, match=f"{('pred', 'target')[rows[i][1]]} contains NaN"):
         call(pairs[i, 0], pairs[i, 1])

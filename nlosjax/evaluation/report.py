@@ -28,6 +28,8 @@ METHOD_LABELS = {"fbp": "FBP", "lct": "LCT", "fk": "f-k", "phasor": "Phasor", "r
 TABLE_METHODS = ("fbp", "lct", "fk", "phasor", "rsd", *reversed(VARIANTS))
 METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2),
                  "psnr_zero": ("all-zero image's PSNR", "dB", 2),
+                 "psnr_balanced": ("object-balanced PSNR", "dB", 2),
+                 "psnr_balanced_zero": ("all-zero image's balanced PSNR", "dB", 2),
                  "intensity_mae_object": ("object intensity error", "", 3), "ssim": ("intensity SSIM", "", 3),
                  "rmse": ("depth RMSE", "m", 3), "mad": ("depth MAD", "m", 3),
                  "rmse_object": ("object depth RMSE", "m", 3),
@@ -38,9 +40,10 @@ METRIC_LABELS = {"psnr": ("intensity PSNR", "dB", 2),
                  "temporal_psnr": ("temporal intensity PSNR", "dB", 2),
                  "temporal_rmse_object": ("temporal depth error (objects)", "m", 3)}
 PAPER_METRICS = ("psnr", "psnr_zero", "ssim", "rmse", "mad")
-OBJECT_METRICS = ("intensity_mae_object", "rmse_object", "mad_object", "recall", "precision", "f1")
+OBJECT_METRICS = ("intensity_mae_object", "psnr_balanced", "psnr_balanced_zero", "rmse_object", "mad_object",
+                  "recall", "precision", "f1")
 #: Columns of the paired-differences table (and the temporal intensity error where compared).
-COMPARISON_METRICS = ("psnr", "ssim", "intensity_mae_object", "rmse_object", "recall", "f1")
+COMPARISON_METRICS = ("intensity_mae_object", "psnr_balanced", "recall", "f1", "rmse_object", "psnr", "ssim")
 
 
 def label(method: str) -> str:
@@ -76,7 +79,8 @@ def _grid(table: dict, metrics: tuple[str, ...], counts: str = "sequences / fram
 
 
 def format_tables(table: dict, caption: str = "") -> str:
-  """Markdown: the paper's Table 1 metrics, the object-aware scores, the temporal ones; ``mean [95 % CI]``.
+  """Markdown: the object-aware scores first, then the paper's Table 1 metrics, then the temporal ones;
+  ``mean [95 % CI]``, each PSNR beside the all-zero image's.
 
   The temporal table lists the methods whose row holds every metric of
   :data:`~nlosjax.evaluation.scores.TEMPORAL_METRICS`, and is left out when
@@ -85,15 +89,16 @@ def format_tables(table: dict, caption: str = "") -> str:
   lines = ([caption, ""] if caption else [])
   lines += ["Mean [95 % bootstrap interval over sequences, and over training seeds where there "
             "are several]; a frame's scores count once per seed.", "",
-            "**The paper's metrics** (whole-image depth counts every background pixel; the all-zero "
-            "image's PSNR is the floor an empty reconstruction reaches on the same frames):", ""]
-  lines += _grid(table, PAPER_METRICS)
-  lines += ["", "**On the objects** (object intensity error: mean absolute intensity error over the "
-            "true object pixels, which a dark background cannot lower; "
-            "depth error over the true surface pixels; recall: share of "
+            "**On the objects** (object intensity error: mean absolute intensity error over the "
+            "true object pixels, which a dark background cannot lower; object-balanced PSNR: "
+            "intensity PSNR with object and background pixels weighted equally, beside the all-zero "
+            "image's; depth error over the true surface pixels; recall: share of "
             "them reconstructed as surface; precision: share of the reconstructed surface that is "
             "true surface; surface = depth >= 0.1 m for every method):", ""]
   lines += _grid(table, OBJECT_METRICS)
+  lines += ["", "**The paper's metrics** (whole-image depth counts every background pixel; the all-zero "
+            "image's PSNR is the floor an empty reconstruction reaches on the same frames):", ""]
+  lines += _grid(table, PAPER_METRICS)
   temporal = {m: r for m, r in table.items() if all(k in r for k in TEMPORAL_METRICS)}
   if temporal:
     lines += ["", "**Over time** (per pair of consecutive evaluated frames of a test sequence, never "
@@ -128,7 +133,7 @@ def format_comparisons(comparisons: list[dict], metrics=None) -> str:
   """
   if not comparisons:
     return ""
-  called = ("psnr", "intensity_mae_object", "rmse_object", "recall")
+  called = ("intensity_mae_object", "psnr_balanced", "recall", "f1", "rmse_object", "psnr")
   if metrics is None:
     metrics = COMPARISON_METRICS
     if any("temporal_rmse" in c["diff"] for c in comparisons):
@@ -173,9 +178,10 @@ def format_choices(validation: dict) -> str:
                    + " | ".join(f"{c['f1_by_threshold'][t]:.3f}" for t in ths) + " |")
   checkpoints = validation.get("checkpoints", {})
   if checkpoints:
-    lines += ["", "| model | seed | checkpoint step | val. intensity PSNR (dB) at each kept step |",
-              "|---|---|---|---|"]
+    lines += ["", "| model | seed | checkpoint step | chosen on | validation score (dB) at each kept step |",
+              "|---|---|---|---|---|"]
     for c in checkpoints.values():
-      steps = ", ".join(f"{s}: {v:.2f}" for s, v in c["val_psnr"].items())
-      lines.append(f"| {label(c['variant'])} | {c['seed']} | {c['step']} | {steps} |")
+      metric = c.get("metric", "psnr")
+      steps = ", ".join(f"{s}: {v:.2f}" for s, v in c.get("val_score", c["val_psnr"]).items())
+      lines.append(f"| {label(c['variant'])} | {c['seed']} | {c['step']} | {METRIC_LABELS[metric][0]} | {steps} |")
   return "\n".join(lines) + "\n"

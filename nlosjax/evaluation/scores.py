@@ -2,8 +2,10 @@
 
 The metrics of every table (:data:`TABLE_METRICS`). Per frame
 (:data:`METRICS`): intensity ``psnr`` (dB) beside ``psnr_zero``, the all-zero
-image's PSNR on the same frame (a floor: a dark background alone reaches it), and
-``ssim`` against the ground-truth intensity (data range 1); ``intensity_mae_object``,
+image's PSNR on the same frame (a floor: a dark background alone reaches it);
+``psnr_balanced``, the PSNR with object and background pixels weighted equally, beside its
+own all-zero floor ``psnr_balanced_zero`` (:func:`nlosjax.metrics.psnr_balanced`: a dark
+image cannot score well on it); ``ssim`` against the ground-truth intensity (data range 1); ``intensity_mae_object``,
 the intensity's mean absolute error over the true object pixels (an image dark on
 the objects scores their mean intensity); whole-image depth
 ``rmse`` and ``mad`` (metres, every pixel: kept for comparison with the
@@ -44,13 +46,15 @@ __all__ = ["METRICS", "TEMPORAL_METRICS", "TABLE_METRICS", "HIGHER_IS_BETTER", "
 
 #: The metrics scored on each frame alone. ``psnr_zero`` is not a method's score but its test
 #: frames': the all-zero image's PSNR, the floor beside each PSNR.
-METRICS = ("psnr", "psnr_zero", "ssim", "rmse", "mad", "intensity_mae_object") + tuple(metrics.OBJECT_METRICS)
+METRICS = ("psnr", "psnr_zero", "psnr_balanced", "psnr_balanced_zero", "ssim", "rmse", "mad",
+           "intensity_mae_object") + tuple(metrics.OBJECT_METRICS)
 #: The metrics scored on each pair of consecutive evaluated frames (stored at the later frame).
 TEMPORAL_METRICS = tuple(metrics.TEMPORAL_METRICS)
 #: Every metric of an evaluation's table.
 TABLE_METRICS = METRICS + TEMPORAL_METRICS
 #: Whether a larger value of the metric is better.
-HIGHER_IS_BETTER = {"psnr": True, "psnr_zero": True, "intensity_mae_object": False, "ssim": True,
+HIGHER_IS_BETTER = {"psnr": True, "psnr_zero": True, "psnr_balanced": True, "psnr_balanced_zero": True,
+                    "intensity_mae_object": False, "ssim": True,
                     "rmse": False, "mad": False,
                     "rmse_object": False, "mad_object": False, "recall": True,
                     "precision": True, "f1": True, "temporal_rmse": False,
@@ -75,6 +79,8 @@ def frame_scores(intensity, depth, gt_intensity, gt_depth, *, sequence=None,
   """
   out = {"psnr": metrics.psnr(intensity, gt_intensity),
          "psnr_zero": metrics.psnr_zero(gt_intensity),
+         "psnr_balanced": metrics.psnr_balanced(intensity, gt_intensity, gt_depth),
+         "psnr_balanced_zero": metrics.psnr_balanced_zero(gt_intensity, gt_depth),
          "intensity_mae_object": metrics.intensity_mae_object(intensity, gt_intensity, gt_depth),
          "ssim": metrics.ssim(intensity, gt_intensity),
          "rmse": metrics.rmse(depth, gt_depth),

@@ -209,6 +209,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
       log(f"[{label}] resumed from step {start} ({ckpt.directory})")
     imported_best = None
     exported = read_meta(export.folder(label)) if export is not None else None
+    finished = bool(exported and exported.get("finished"))   # its chosen parameters alone: no more training
     if exported is not None and exported["step"] > start and primary:
       state, imported_best, meta = import_state(export.folder(label), state, signature=signature, model=mcfg,
                                                 data_digest=export.data_digest,
@@ -216,10 +217,12 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
                                                 allow_data_change=export.allow_data_change)
       start = int(state.step)
       copy_logs(export.folder(label), vdir)
+      if finished and int(imported_best.step) != start:   # where the run's selection names it
+        ckpt.save(imported_best, int(imported_best.step), force=True)
       ckpt.save(state, start, force=True)
       ckpt.wait()
       log(f"[{label}] resumed from step {start} of the exported state {export.folder(label)}"
-          f"{meta['data_check'].describe()}")
+          f"{meta['data_check'].describe()}" + (" (finished: its chosen parameters)" if finished else ""))
     elif exported is not None and exported["step"] > start:
       raise ValueError("resuming from an exported state needs a single process; resume once with one, "
                        "then continue with several")
@@ -234,6 +237,10 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
       tracker.resume(start)
       if tracker.pending(start):       # killed after the checkpoint of a validation step, before its curve
         tracker.record(mcfg, state, start, to_host)
+    if finished and (tracker.reason(start) is None if tracker is not None else start < steps):
+      raise ValueError(f"[{label}] {export.folder(label)} holds a finished run's chosen parameters only "
+                       f"(step {exported['step']}), and this config trains it further; train from its "
+                       "workdir, or from the export an earlier commit holds")
     # One process writes the log (several processes share the workdir); the others write
     # theirs to /dev/null.
     log_path = vdir / "metrics.jsonl" if primary else pathlib.Path(os.devnull)
@@ -244,9 +251,16 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     log_every = tr.log_every
     exported_best = {"step": (exported or {}).get("best_step")}
 
-    def export_now(current: TrainState) -> None:
-      """Mirror ``current``, just checkpointed, into the export folder (primary process)."""
+    def export_now(current: TrainState, chosen: TrainState | None = None) -> None:
+      """Mirror ``current``, just checkpointed, into the export folder (primary process); ``chosen``:
+      the run has finished with this state, and the export keeps its parameters alone."""
       if export is None or not primary:
+        return
+      if chosen is not None:
+        export_state(export.folder(label), vdir, to_host(current), signature=signature,
+                     best_step=tracker.best_step if tracker is not None else None,
+                     data_digest=export.data_digest, data_fingerprint=export.data_fingerprint,
+                     chosen=to_host(chosen))
         return
       best_step = tracker.best_step if tracker is not None else None
       best_state = None
@@ -288,7 +302,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
           ckpt.wait()                     # the curve may name only finished checkpoints
           score = tracker.record(mcfg, state, done, to_host)
           export_now(state)
-          bar.set_postfix(val_psnr=f"{score:.2f}")
+          bar.set_postfix(**{f"val_{stop.metric}": f"{score:.2f}"})
           bar.update(1)
           if tracker.reason(done):
             break
@@ -307,25 +321,34 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     loader.close()
     if tracker is not None:
       chosen = _finish_plateau(tracker, state, ckpt, vdir, label, primary, log)
-      export_now(state)                   # with the final curve and selection.json
+      if not (finished and imported_best is not None):   # an export read back finished is left as it was
+        export_now(state, chosen)         # the chosen parameters, the final curve and selection.json
       return mcfg, chosen
+    if finished and imported_best is not None:   # selected when it trained; selection.json came with it
+      ckpt.close()
+      return mcfg, imported_best
     last = state
     selection = {"select": tr.select_checkpoint, "step": int(state.step), "val_psnr": {}}
     if selection["select"] == "val" and validate is not None:
-      candidates = {}
+      candidates, deciding, every = {}, {}, {}
       for step in ckpt.all_steps():
         candidate, _ = ckpt.restore(state, step)
-        selection["val_psnr"][step] = float(validate(mcfg, to_host(candidate.params)))
+        deciding[step], every[step] = stop.score(validate(mcfg, to_host(candidate.params)))
+        selection["val_psnr"][step] = every[step].get("psnr", deciding[step])
         candidates[step] = candidate
-      best = max(selection["val_psnr"], key=lambda k: (selection["val_psnr"][k], k))
+      if stop.metric != "psnr":
+        selection.update(metric=stop.metric, val_score=deciding)
+      if any(len(v) > 1 for v in every.values()):
+        selection["val"] = every               # every score of every kept step, for a later look
+      best = max(deciding, key=lambda k: (deciding[k], k))
       state = candidates[best]
       selection["step"] = int(best)
-      log(f"[{label}] checkpoint chosen on validation: step {best} "
-          f"({', '.join(f'{k}: {v:.2f} dB' for k, v in selection['val_psnr'].items())})")
+      log(f"[{label}] checkpoint chosen on validation {stop.metric}: step {best} "
+          f"({', '.join(f'{k}: {v:.2f} dB' for k, v in deciding.items())})")
     ckpt.close()
     if primary:
       (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-    export_now(last)                      # the last state, with selection.json
+    export_now(last, state)               # the selected parameters, with selection.json
     return mcfg, state
   finally:
     loader.close()
@@ -346,10 +369,13 @@ def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpoint
   selection = {"select": "plateau", "step": int(best.step), "steps_taken": int(done),
                "stop_reason": reason, "rule": tracker.rule.to_dict(),
                "val_psnr": {p["step"]: p["val_psnr"] for p in tracker.curve}}
+  if tracker.rule.metric != "psnr":
+    selection.update(metric=tracker.rule.metric,
+                     val_score={p["step"]: s for p, s in zip(tracker.curve, tracker.scores)})
   if primary:
     (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-  log(f"[{label}] stopped after {done} steps ({reason}); best on validation: step {int(best.step)}"
-      f" ({summary['best_val_psnr']:.2f} dB)")
+  log(f"[{label}] stopped after {done} steps ({reason}); best on validation {tracker.rule.metric}: step "
+      f"{int(best.step)} ({summary.get('best_score', summary['best_val_psnr']):.2f} dB)")
   return best
 
 
@@ -375,7 +401,9 @@ def training_recipe(config: RunConfig, variant: str) -> tuple[OptimConfig, losse
 def read_selection(folder) -> dict | None:
   """A model folder's ``selection.json`` (written by :func:`train_model`), or None.
 
-  ``{"select": "last" | "val" | "plateau", "step": chosen step, "val_psnr": {step: dB}}``;
+  ``{"select": "last" | "val" | "plateau", "step": chosen step, "val_psnr": {step: dB}}``, and
+  where the rule decides on another score (``train.stop.metric``) ``"metric"`` and
+  ``"val_score": {step: dB}``;
   a plateau run adds ``"steps_taken"``, ``"stop_reason"`` (``"plateau"`` or
   ``"max_steps"``) and ``"rule"`` (its curve with times: ``validation_curve.json``,
   :func:`nlosjax.train.stopping.read_curve`).
@@ -385,4 +413,6 @@ def read_selection(folder) -> dict | None:
     return None
   d = json.loads(path.read_text())
   d["val_psnr"] = {int(k): v for k, v in d.get("val_psnr", {}).items()}
+  if "val_score" in d:
+    d["val_score"] = {int(k): v for k, v in d["val_score"].items()}
   return d

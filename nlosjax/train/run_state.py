@@ -7,6 +7,9 @@ what a resume needs into a folder of its own, rewritten at every checkpoint:
 * ``state.npz``: the latest train state, every leaf of ``{"params", "opt_state",
   "step"}`` under its tree path (``jax.tree_util.keystr``), exact float32 values;
 * ``best.npz``: under the plateau rule, the best state on validation so far;
+* once the run has finished, ``params.npz`` instead of both: the parameters it chose (the
+  best on validation, or the selected or last step) and their step, nothing to resume from
+  (:func:`finish_export`);
 * ``validation_curve.json``, ``metrics.jsonl``, ``selection.json``: copies of the
   model folder's files (the plateau rule's state is its curve);
 * ``run_state.json``: the step, the best step, the run signature
@@ -49,6 +52,8 @@ from nlosjax.train.checkpoint import signature_differences
 
 STATE_FILE = "state.npz"
 BEST_FILE = "best.npz"
+#: A finished run's export keeps the chosen parameters alone (``{"params", "step"}``).
+PARAMS_FILE = "params.npz"
 META_FILE = "run_state.json"
 FINGERPRINT_FILE = "data_fingerprint.json"
 #: The model folder's files mirrored into the export (those present).
@@ -143,6 +148,20 @@ def _load_npz(path: pathlib.Path, template):
   return template.replace(step=item["step"], params=item["params"], opt_state=item["opt_state"])
 
 
+def _save_params(path: pathlib.Path, arrays: dict) -> None:
+  """Write the ``['params']...`` and ``['step']`` leaves of ``arrays`` (keystr names) to ``path``, atomically."""
+  tmp = path.with_name(path.name + ".tmp.npz")
+  np.savez(tmp, **{k: v for k, v in arrays.items() if k.startswith("['params']") or k == "['step']"})
+  os.replace(tmp, path)
+
+
+def _load_params(path: pathlib.Path, template):
+  """``template`` with the parameters and step of a :data:`PARAMS_FILE` (its optimiser state kept)."""
+  with np.load(path, allow_pickle=False) as f:
+    item = arrays_tree(dict(f), {"params": template.params, "step": template.step})
+  return template.replace(step=item["step"], params=item["params"])
+
+
 def _write_json(path: pathlib.Path, obj) -> None:
   tmp = path.with_name(path.name + ".tmp")
   tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
@@ -156,7 +175,7 @@ def read_meta(folder) -> dict | None:
 
 
 def export_state(folder, model_dir, state, *, signature: str, best=None, best_step: int | None = None,
-                 data_digest: str | None = None, data_fingerprint: dict | None = None) -> dict:
+                 data_digest: str | None = None, data_fingerprint: dict | None = None, chosen=None) -> dict:
   """Write ``state`` (and ``best``) with the model folder's logs to ``folder``; returns the metadata.
 
   Args:
@@ -171,6 +190,9 @@ def export_state(folder, model_dir, state, *, signature: str, best=None, best_st
     data_digest: the training data's content digest.
     data_fingerprint: the training data's fingerprint (written as :data:`FINGERPRINT_FILE`
       when given and not already there with the same content).
+    chosen: the run has finished and returns this state (the best on validation, or the step
+      selected): the folder then keeps its parameters alone (:data:`PARAMS_FILE`), and
+      ``state.npz`` and ``best.npz`` go (:func:`finish_export`).
   The metadata file is written last, so a kill leaves the previous export readable
   (its ``state.npz`` may then be newer than its metadata: the metadata's step is read
   back from the arrays on import, and a mismatch is refused).
@@ -179,11 +201,14 @@ def export_state(folder, model_dir, state, *, signature: str, best=None, best_st
   model_dir = pathlib.Path(model_dir)
   folder.mkdir(parents=True, exist_ok=True)
   previous = read_meta(folder) or {}
-  _save_npz(folder / STATE_FILE, state)
-  if best_step is not None and (best is not None) and previous.get("best_step") != best_step:
-    _save_npz(folder / BEST_FILE, best)
-  elif best_step is not None and previous.get("best_step") != best_step:
-    raise ValueError(f"export_state: best step {best_step} is new but no best state was given")
+  if chosen is not None:
+    _save_params(folder / PARAMS_FILE, tree_arrays({"params": chosen.params, "step": chosen.step}))
+  else:
+    _save_npz(folder / STATE_FILE, state)
+    if best_step is not None and (best is not None) and previous.get("best_step") != best_step:
+      _save_npz(folder / BEST_FILE, best)
+    elif best_step is not None and previous.get("best_step") != best_step:
+      raise ValueError(f"export_state: best step {best_step} is new but no best state was given")
   for name in COPIED:
     src = model_dir / name
     if src.exists():
@@ -195,7 +220,50 @@ def export_state(folder, model_dir, state, *, signature: str, best=None, best_st
   meta = {"step": int(state.step), "best_step": None if best_step is None else int(best_step),
           "signature": json.loads(signature), "data_digest": data_digest,
           "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+  if chosen is not None:
+    meta.update(finished=True, chosen_step=int(chosen.step))
   _write_json(folder / META_FILE, meta)
+  if chosen is not None:
+    for name in (STATE_FILE, BEST_FILE):
+      (folder / name).unlink(missing_ok=True)
+  return meta
+
+
+def finish_export(folder) -> dict:
+  """Turn a finished run's export into what it still needs; returns the new metadata.
+
+  Keeps the chosen parameters and their step (:data:`PARAMS_FILE`: the best state's under the
+  plateau rule, else the last state's), the logs, the data fingerprint and the metadata
+  (``finished``, ``chosen_step``); deletes ``state.npz`` and ``best.npz``, whose optimiser
+  state only a resume would read. A folder already finished is left as it is.
+
+  Raises:
+    ValueError: the folder is no export, or its run has not finished (no ``selection.json``
+      with a stop reason or a selection of the last step).
+  """
+  folder = pathlib.Path(folder)
+  meta = read_meta(folder)
+  if meta is None:
+    raise ValueError(f"{folder} has no {META_FILE}: not an exported run state")
+  if meta.get("finished"):
+    return meta
+  selection = json.loads((folder / "selection.json").read_text()) if (folder / "selection.json").exists() else {}
+  if "stop_reason" in selection:
+    source, step = BEST_FILE, meta.get("best_step")
+  elif selection.get("select") == "last":
+    source, step = STATE_FILE, meta["step"]
+  else:
+    raise ValueError(f"{folder}: the run has not finished (selection.json names no stop reason or last step)")
+  with np.load(folder / source, allow_pickle=False) as f:
+    arrays = {k: f[k] for k in f.files}
+  held = int(arrays["['step']"])
+  if step is None or held != int(step):
+    raise ValueError(f"{folder}: {source} holds step {held}, {META_FILE} chose {step}")
+  _save_params(folder / PARAMS_FILE, arrays)
+  meta = {**meta, "finished": True, "chosen_step": int(step)}
+  _write_json(folder / META_FILE, meta)
+  for name in (STATE_FILE, BEST_FILE):
+    (folder / name).unlink(missing_ok=True)
   return meta
 
 
@@ -266,6 +334,9 @@ def import_state(folder, template, *, signature: str, model=None, data_digest: s
       (:func:`check_data`) or ``allow_data_change``.
     data_fingerprint: this run's data fingerprint.
   Returns the metadata with ``"data_check"`` added: how the data were accepted (a :class:`DataCheck`).
+  A finished export (:func:`finish_export`) returns its chosen parameters as both: ``state`` at
+  the run's last step and ``best`` at the chosen one, each with the template's optimiser state
+  (a finished run is not trained further).
   Raises ValueError naming what differs.
   """
   folder = pathlib.Path(folder)
@@ -277,6 +348,12 @@ def import_state(folder, template, *, signature: str, model=None, data_digest: s
     raise ValueError(f"exported state {folder} was trained under another run signature:\n  "
                      + "\n  ".join(differ) + "\nuse another export folder or the matching config")
   meta = {**meta, "data_check": check_data(folder, meta, data_digest, data_fingerprint, allow_data_change)}
+  if meta.get("finished"):            # the chosen parameters alone; the template's optimiser state
+    chosen = _load_params(folder / PARAMS_FILE, template)
+    if int(chosen.step) != int(meta["chosen_step"]):
+      raise ValueError(f"{folder}: {PARAMS_FILE} holds step {int(chosen.step)}, {META_FILE} says "
+                       f"{meta['chosen_step']}")
+    return chosen.replace(step=jax.numpy.asarray(meta["step"], chosen.step.dtype)), chosen, meta
   state = _load_npz(folder / STATE_FILE, template)
   if int(state.step) != int(meta["step"]):
     raise ValueError(f"{folder}: {STATE_FILE} holds step {int(state.step)} but {META_FILE} says "

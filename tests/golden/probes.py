@@ -434,7 +434,8 @@ def io_sink():
 
 def main_job_overrides(data_path) -> list[str]:
   """The ``cpu`` preset shrunk to seconds by command-line overrides (the syntax users type)."""
-  flat = {"data.path": str(data_path), "data.grid": 16, "data.num_bins": 64, "data.bin_width": 264e-12,
+  flat = {"data.path": str(data_path), "independent.path": str(pathlib.Path(data_path).with_name("independent.h5")),
+          "data.grid": 16, "data.num_bins": 64, "data.bin_width": 264e-12,
           "data.frames": 4, "data.num_sequences.train": 2, "data.num_sequences.val": 1,
           "data.num_sequences.test": 1, "data.render_batch": 4, "data.renderer": "lct",
           "data.retroreflective": 0.0, "data.photons": (1e3, 1e4),
