@@ -150,6 +150,21 @@ def test_keys_the_preset_leaves_unset_can_be_set_and_reach_the_typed_config():
   assert "lfe" not in cli.load_config("cpu") and "stop" not in cli.load_config("cpu")["train"]
 
 
+def test_none_is_a_value_where_the_library_reads_it_as_one():
+  # No clipping, the training batch for evaluation, no jitter, no compression: each field's None.
+  config = cli.load_config("cpu", ["--config.train.optim.clip_norm=None", "--config.train.eval_batch_size=None",
+                                   "--config.data.jitter=None", "--config.data.compression=None"])
+  typed = RunConfig.from_dict(config)
+  cpu = configs.get_config("cpu")
+  assert typed.train.optim == T.OptimConfig(**{**cpu["train"]["optim"], "clip_norm": None})
+  assert typed.train.eval_batch == cpu["train"]["batch_size"]
+  spec = typed.data.spec()
+  assert spec.jitter is None and spec.compression is None
+  # ... and where a preset leaves them alone they are the preset's (or the dataclass's) values.
+  assert cli.load_config("cpu")["train"]["optim"]["clip_norm"] == 1.0
+  assert "clip_norm" not in cli.load_config("cpu", ["--config.usm.optim.learning_rate=1e-3"])["usm"]["optim"]
+
+
 def test_a_section_set_empty_on_purpose_is_kept_with_its_defaults(record, tmp_path):
   # docs/dataset.md: the forward model drawn per sequence, every PhysicsMix range at its default.
   out = tmp_path / "mix.h5"

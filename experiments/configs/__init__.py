@@ -9,10 +9,11 @@ Variants import the default and change a few fields, as flax's example configs d
 Every preset starts from :func:`skeleton`: every key a run's config takes, in sections ``data``
 (``scene``, ``physics``, ``loader``, ``num_sequences``), ``model``, ``train`` (``optim``, ``loss``,
 ``stop``), ``usm``, ``lfe``, ``ik`` (each a ``model`` and an ``optim``) and ``independent``, each
-unset (``None``) until a preset sets it. The keys come from the library's typed dataclasses, so
-a locked preset knows exactly the keys the library reads (``--config.train.stpes=5`` exits naming
-the key), and an unset key keeps the dataclass's default. :func:`to_dict` drops the unset keys:
-the plain dict a run records (``config.json``) and :meth:`nlosjax.train.RunConfig.from_dict` reads.
+unset (``None``, or :data:`UNSET` where None is a value) until a preset sets it. The keys come
+from the library's typed dataclasses, so a locked preset knows exactly the keys the library reads
+(``--config.train.stpes=5`` exits naming the key), and an unset key keeps the dataclass's
+default. :func:`to_dict` drops the unset keys: the plain dict a run records (``config.json``) and
+:meth:`nlosjax.train.RunConfig.from_dict` reads.
 
 The ``data`` section is read by :meth:`nlosjax.data.dataset.DatasetSpec.from_config`
 (generation) and by the loaders (``input_stride``, ``input_offset``, ``loader``, ``path``); see
@@ -37,6 +38,13 @@ FOLDER = pathlib.Path(__file__).resolve().parent
 
 #: Keys whose values take more than one type (their dataclass field's annotation is a union).
 _ANY_TYPE = {"grid", "jitter", "compression", "dt_rank"}
+#: The value of an unset key of type ``object``: one where None is a setting of its own
+#: (``clip_norm=None``: no clipping; ``eval_batch_size=None``: the training batch; ``jitter=None``).
+UNSET = "<unset>"
+
+
+def _unset(kind) -> config_dict.FieldReference:
+  return config_dict.FieldReference(UNSET, field_type=object) if kind is object else config_dict.placeholder(kind)
 
 
 def _section(cls, drop=(), rename=None) -> ConfigDict:
@@ -46,9 +54,13 @@ def _section(cls, drop=(), rename=None) -> ConfigDict:
     if f.name in drop:
       continue
     default = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
-    kind = object if f.name in _ANY_TYPE or default in (None, dataclasses.MISSING) else type(default)
-    out[(rename or {}).get(f.name, f.name)] = config_dict.placeholder(
-        int if f.name in ("eval_batch_size", "devices", "scan_chunk", "physics_chunk") else kind)
+    if f.name in _ANY_TYPE or (default is not None and "None" in str(f.type)):
+      kind = object                    # None is a value here, set like any other
+    elif default in (None, dataclasses.MISSING):
+      kind = int if f.name in ("devices", "scan_chunk", "physics_chunk") else object
+    else:
+      kind = type(default)
+    out[(rename or {}).get(f.name, f.name)] = _unset(kind)
   return out
 
 
@@ -65,7 +77,7 @@ def skeleton() -> ConfigDict:
   data = _section(DatasetSpec, drop=("setup", "num_train", "num_test", "num_val", "scene", "physics"))
   for key, kind in (("wall_size", float), ("grid", object), ("bin_width", float), ("num_bins", int),
                     ("input_stride", int), ("input_offset", int), ("path", str)):
-    data[key] = config_dict.placeholder(kind)
+    data[key] = _unset(kind)
   data.num_sequences = ConfigDict({split: config_dict.placeholder(int) for split in ("train", "val", "test")})
   data.scene = _section(SceneParams, rename={"max_tilt": "max_tilt_deg"})
   data.physics = _section(PhysicsMix)
@@ -86,19 +98,26 @@ def skeleton() -> ConfigDict:
   return config
 
 
-def to_dict(config) -> dict:
-  """``config`` (a ConfigDict or a dict) as a plain dict without its unset keys and the sections left
-  with none. A section set empty on purpose stays (``'--config.data.physics={}'``: every default)."""
-  if isinstance(config, ConfigDict):
-    config = config.to_dict()
+def to_dict(config: ConfigDict) -> dict:
+  """``config`` as a plain dict without its unset keys and the sections left with none.
+
+  A section set empty on purpose stays (``'--config.data.physics={}'``: every default), and so
+  does a None set where None is a value (``--config.train.optim.clip_norm=None``).
+  """
   out = {}
-  for key, value in config.items():
-    if isinstance(value, dict) and value:
+  for key in config:
+    value = config[key]
+    if isinstance(value, ConfigDict) and len(value):
       value = to_dict(value)
       if not value:
         continue
-    if value is not None:
-      out[key] = value
+    elif isinstance(value, ConfigDict):
+      value = {}
+    elif isinstance(value, str) and value == UNSET:
+      continue
+    elif value is None and config.get_type(key) is not object:
+      continue
+    out[key] = value
   return out
 
 
