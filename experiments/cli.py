@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import pathlib
+import sys
 import warnings
 
 from experiments import configs
@@ -123,3 +125,40 @@ def parse_config(parser: argparse.ArgumentParser, argv=None) -> tuple[argparse.N
   """
   args, overrides = parser.parse_known_args(argv)
   return args, load_config(args.config, overrides), overrides
+
+
+#: Exit status of a command stopped by a bad input or a file it could not read or write.
+EXIT_ERROR = 2
+#: Set (to anything but ``0``) to get the traceback instead of the one line (``NLOSJAX_DEBUG=1``).
+DEBUG_ENV = "NLOSJAX_DEBUG"
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+  print(f"warning: {' '.join(str(message).split())}", file=sys.stderr if file is None else file, flush=True)
+
+
+@contextlib.contextmanager
+def one_line_errors():
+  """A command's bad input or file fault as one line on stderr and exit status :data:`EXIT_ERROR`.
+
+  Every entry point runs its work inside this: a ``ValueError`` (bad input; a damaged or
+  truncated file, named by the library's message) or an ``OSError`` (a full disk, a read-only
+  folder, a missing file: :func:`nlosjax.files.describe` names the file and what to do) prints
+  ``error: <one line>`` and exits, without a traceback; other exceptions (bugs) keep theirs.
+  Warnings print as ``warning: <one line>``. ``NLOSJAX_DEBUG=1`` lets the traceback through.
+  """
+  from nlosjax import files
+  debug = os.environ.get(DEBUG_ENV, "0") not in ("", "0")
+  shown = warnings.showwarning
+  if not debug:
+    warnings.showwarning = _show_warning
+  try:
+    yield
+  except (ValueError, OSError) as e:
+    if debug:
+      raise
+    text = files.describe(e) if isinstance(e, OSError) else str(e)
+    print(f"error: {files.one_line(text) or type(e).__name__}", file=sys.stderr, flush=True)
+    raise SystemExit(EXIT_ERROR) from None
+  finally:
+    warnings.showwarning = shown
