@@ -344,7 +344,12 @@ def write_independent_set(path, data: dict, sequences: int = 8, frames: int = 8,
   if progress:
     from tqdm import tqdm
     it = tqdm(it, desc="independent test sequences", unit="seq")
-  with h5py.File(tmp, "w") as f:
+  from nlosjax import files
+  from nlosjax.data.dataset.file import LIBVER, reserve_space, trim_reserved
+  with files.writing(tmp), h5py.File(tmp, "w", libver=LIBVER) as f:
+    # Each sequence's space is reserved before HDF5 writes it (HDF5 crashes the process when one of
+    # its writes fails: a full disk is then a clean error here); fletcher32 checksums every chunk.
+    reserve_space(f, tmp)
     a = f.attrs
     a.update({"format": "nlosjax-dynamic-nlos", "format_version": 1,
               "generator_version": GENERATOR_VERSION, "wall_size": setup.wall_size,
@@ -363,15 +368,20 @@ def write_independent_set(path, data: dict, sequences: int = 8, frames: int = 8,
       blurred = np.apply_along_axis(lambda h: np.convolve(h, taps)[centre:centre + T], 1, clean)
       rate = efficiency * (blurred + ambient) + float(data["dark_counts"]) / T
       counts = rng.poisson(np.maximum(rate, 0.0))
+      arrays = {"measurement": counts.astype(np.uint32), "clean": clean.astype(np.float32),
+                "intensity": np.asarray(scene["intensity"]), "depth": np.asarray(scene["depth"])}
+      reserve_space(f, tmp, sum(v.nbytes for v in arrays.values()))
       g = group.create_group(f"test-{i:05d}")
       g.attrs.update({"split": "test", "index": i, "efficiency": efficiency, "photons": photons,
                       "objects": json.dumps(scene["objects"])})
-      g["measurement"] = counts.astype(np.uint32)
-      g["clean"] = clean.astype(np.float32)
-      g["intensity"] = scene["intensity"]
-      g["depth"] = scene["depth"]
+      for key, value in arrays.items():
+        g.create_dataset(key, data=value, chunks=True, fletcher32=True)
+      f.flush()
+    reserve_space(f, tmp)
     a["complete"] = True
-  tmp.replace(path)
+  with files.writing(path):
+    trim_reserved(tmp)
+    tmp.replace(path)
   return path
 
 
@@ -387,11 +397,15 @@ def ensure_independent_set(path, data: dict, sequences: int = 8, frames: int = 8
   if path.exists():
     from nlosjax.data.dataset import DatasetSpec
     setup = DatasetSpec.from_config(data).setup
-    with h5py.File(path, "r") as f:
-      version = f.attrs.get("generator_version")
-      grid = tuple(int(g) for g in f.attrs.get("grid", ()))
-      complete = bool(f.attrs.get("complete", False))
-      detector = f.attrs.get("detector")
+    try:
+      with h5py.File(path, "r") as f:
+        version = f.attrs.get("generator_version")
+        grid = tuple(int(g) for g in f.attrs.get("grid", ()))
+        complete = bool(f.attrs.get("complete", False))
+        detector = f.attrs.get("detector")
+    except (OSError, KeyError, RuntimeError) as e:
+      raise ValueError(f"{path}: the independent test set cannot be read (truncated or damaged:"
+                       f" {' '.join(str(e).split())}); delete it: the main job writes it again") from None
     if version != GENERATOR_VERSION or grid != setup.grid or not complete:
       raise ValueError(f"{path} holds another independent set (generator {version!r}, grid {grid},"
                        f" complete {complete}); this run needs {GENERATOR_VERSION!r} on"

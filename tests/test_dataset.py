@@ -550,12 +550,18 @@ def test_bad_files_raise_naming_the_file(tiny, tmp_path):
     D.TripletLoader(holed, target="clean")
   with pytest.raises(ValueError, match="batch_size 100 exceeds"):
     D.TripletLoader(path, batch_size=100)
-  # An unfinished file and a newer format.
+  # An unfinished file and a newer format. The writer seals the attributes with a digest
+  # (D.file.ATTRS_DIGEST): an attribute changed without it reads as a damaged file.
   for attr, value, match in (("complete", False, "not finished"), ("format_version", 99, "format_version")):
     odd = tmp_path / f"odd_{attr}.h5"
     shutil.copy(path, odd)
     with h5py.File(odd, "a") as f:
       f.attrs[attr] = value
+    if attr == "complete":
+      with pytest.raises(ValueError, match="odd_complete.h5.*do not match the digest.*damaged"):
+        D.open_dataset(odd)
+    with h5py.File(odd, "a") as f:
+      f.attrs[D.file.ATTRS_DIGEST] = D.file.attrs_digest(f.attrs)
     with pytest.raises(ValueError, match=f"odd_{attr}.h5.*{match}"):
       D.open_dataset(odd)
 

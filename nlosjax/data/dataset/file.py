@@ -11,18 +11,22 @@ frames, under-scanned row by row.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import datetime
+import hashlib
 import json
 import math
 import multiprocessing
 import os
 import pathlib
+import shutil
 import warnings
 
 import h5py
 import numpy as np
 
+from nlosjax import files
 from nlosjax.data import scenes
 from nlosjax.data.dataset.simulate import simulate_sequence
 from nlosjax.data.dataset.spec import SPLITS, DatasetSpec, _check_split, sequence_name
@@ -36,6 +40,167 @@ FORMAT_VERSION = 1
 #: Per-sequence datasets: name -> whether every file has it.
 DATASETS = {"measurement": True, "clean": False, "albedo": False, "intensity": True,
             "depth": True, "trajectory": True}
+#: HDF5 format bounds of the files written: 1.10's object headers, chunk indexes and superblock carry
+#: checksums (the earliest format's do not, and a flipped bit there went unnoticed), and HDF5 1.10 or
+#: newer reads them.
+LIBVER = ("v110", "v110")
+#: Attribute holding a digest of its object's other attributes (the root's and each sequence's):
+#: string attributes live in HDF5's global heap, which no checksum covers. Checked on opening.
+ATTRS_DIGEST = "attrs_sha256"
+
+
+def _canonical(value) -> bytes:
+  """An attribute value's bytes as h5py reads it back (str, bytes, numpy scalar or array)."""
+  if isinstance(value, str):
+    return b"s" + value.encode()
+  if isinstance(value, bytes):
+    return b"b" + value
+  a = np.asarray(value)
+  if a.dtype.kind == "O":
+    return b"o" + repr(a.tolist()).encode()
+  return a.dtype.str.encode() + repr(a.shape).encode() + a.tobytes()
+
+
+def attrs_digest(attrs) -> str:
+  """SHA-256 (16 hex characters) of an HDF5 object's attributes other than :data:`ATTRS_DIGEST`."""
+  h = hashlib.sha256()
+  for key in sorted(k for k in attrs if k != ATTRS_DIGEST):
+    h.update(key.encode() + b"\0" + _canonical(attrs[key]) + b"\0")
+  return h.hexdigest()[:16]
+
+
+#: Bytes reserved on disk beyond a step's arrays, for HDF5's metadata (:func:`nlosjax.files.reserve`).
+RESERVE_MARGIN = 1 << 20
+
+
+def _hdf5_end(path: pathlib.Path) -> int | None:
+  """HDF5's end of file as its superblock records it (at the last flush), or None where unknown.
+
+  (h5py's ``get_filesize`` gives the larger of that and the file's size, so it cannot tell the
+  space :func:`reserve_space` set aside from the space HDF5 uses.)
+  """
+  with open(path, "rb") as fh:
+    head = fh.read(96)
+  if len(head) < 16 or head[:8] != _HDF5_SIGNATURE:
+    return None
+  version = head[8]
+  if version in (2, 3):
+    size, at = head[9], 12
+  elif version in (0, 1):
+    size, at = head[13], 24 if version == 0 else 28
+  else:
+    return None
+  if size not in (4, 8) or len(head) < at + 3 * size:
+    return None
+  base = int.from_bytes(head[at:at + size], "little")
+  end = int.from_bytes(head[at + 2 * size:at + 3 * size], "little")
+  return base + end
+
+
+def reserve_space(f: h5py.File, tmp: pathlib.Path, nbytes: int = 0) -> None:
+  """Reserve on disk what the next step writes (``nbytes`` of arrays and a margin) past HDF5's end of file.
+
+  A full disk then fails in :func:`nlosjax.files.reserve`, cleanly, and not inside HDF5, which
+  crashes the process when a write fails. Called after a flush (the superblock then holds HDF5's
+  end of file).
+  """
+  end = _hdf5_end(tmp)
+  files.reserve(tmp, tmp.stat().st_size if end is None else end, int(nbytes * 1.05) + RESERVE_MARGIN)
+
+
+def trim_reserved(tmp: pathlib.Path) -> None:
+  """Cut the space reserved but not used off a closed file (past HDF5's end of file)."""
+  end = _hdf5_end(tmp)
+  if end is not None and tmp.stat().st_size > end:
+    os.truncate(tmp, end)
+
+
+def _lookup3(data: bytes, initval: int = 0) -> int:
+  """Bob Jenkins' lookup3 ``hashlittle``: the checksum HDF5 puts on its metadata (``H5_checksum_lookup3``)."""
+  def rot(x, k):
+    return ((x << k) | (x >> (32 - k))) & 0xFFFFFFFF
+
+  m = 0xFFFFFFFF
+  n = len(data)
+  a = b = c = (0xDEADBEEF + n + initval) & m
+  i = 0
+  word = lambda j: int.from_bytes(data[j:j + 4], "little")          # noqa: E731
+  while n > 12:
+    a, b, c = (a + word(i)) & m, (b + word(i + 4)) & m, (c + word(i + 8)) & m
+    a = (a - c) & m; a ^= rot(c, 4); c = (c + b) & m                 # noqa: E702
+    b = (b - a) & m; b ^= rot(a, 6); a = (a + c) & m                 # noqa: E702
+    c = (c - b) & m; c ^= rot(b, 8); b = (b + a) & m                 # noqa: E702
+    a = (a - c) & m; a ^= rot(c, 16); c = (c + b) & m                # noqa: E702
+    b = (b - a) & m; b ^= rot(a, 19); a = (a + c) & m                # noqa: E702
+    c = (c - b) & m; c ^= rot(b, 4); b = (b + a) & m                 # noqa: E702
+    n -= 12
+    i += 12
+  if n == 0:
+    return c
+  tail = data[i:] + bytes(12 - n)
+  a = (a + int.from_bytes(tail[0:4], "little")) & m
+  b = (b + int.from_bytes(tail[4:8], "little")) & m
+  c = (c + int.from_bytes(tail[8:12], "little")) & m
+  c ^= b; c = (c - rot(b, 14)) & m                                   # noqa: E702
+  a ^= c; a = (a - rot(c, 11)) & m                                   # noqa: E702
+  b ^= a; b = (b - rot(a, 25)) & m                                   # noqa: E702
+  c ^= b; c = (c - rot(b, 16)) & m                                   # noqa: E702
+  a ^= c; a = (a - rot(c, 4)) & m                                    # noqa: E702
+  b ^= a; b = (b - rot(a, 14)) & m                                   # noqa: E702
+  c ^= b; c = (c - rot(b, 24)) & m                                   # noqa: E702
+  return c
+
+
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _clear_write_flag(tmp: pathlib.Path) -> bool:
+  """Clear the "open for writing" flag a killed writer leaves in the file's superblock; True if cleared.
+
+  HDF5 1.10's superblock (versions 2 and 3, :data:`LIBVER`) records that a writer has the file
+  open, and refuses to open a file whose writer died ("file is already open for write"; HDF5's
+  ``h5clear`` tool clears it). Called only where no process holds the file's lock. Touches
+  nothing unless the superblock's own checksum is intact before the change.
+  """
+  with open(tmp, "r+b") as f:
+    head = f.read(64)
+    if len(head) < 12 or head[:8] != _HDF5_SIGNATURE or head[8] not in (2, 3) or head[11] == 0:
+      return False
+    end = 12 + 4 * head[9]
+    if len(head) < end + 4 or int.from_bytes(head[end:end + 4], "little") != _lookup3(head[:end]):
+      return False
+    cleared = head[:11] + b"\0" + head[12:end]
+    f.seek(0)
+    f.write(cleared + _lookup3(cleared).to_bytes(4, "little"))
+  return True
+
+
+def _unlocked(tmp: pathlib.Path) -> bool:
+  """Whether no process holds the file lock HDF5 takes on ``tmp`` (probed with ``flock``, released at once)."""
+  import fcntl
+  fd = os.open(tmp, os.O_RDONLY)
+  try:
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+  except BlockingIOError:
+    return False
+  finally:
+    os.close(fd)                       # closing releases the probe's lock
+  return True
+
+
+def _seal(obj) -> None:
+  """Write the digest of ``obj``'s attributes, read back as a reader reads them."""
+  obj.attrs[ATTRS_DIGEST] = attrs_digest(obj.attrs)
+
+
+def _attrs_intact(obj) -> bool | None:
+  """Whether ``obj``'s attributes match their digest (None: written before digests existed)."""
+  if ATTRS_DIGEST not in list(obj.attrs):       # listing raises where HDF5's checksum fails
+    return None
+  recorded = obj.attrs[ATTRS_DIGEST]
+  if isinstance(recorded, bytes):
+    recorded = recorded.decode(errors="replace")
+  return recorded == attrs_digest(obj.attrs)
 
 
 # ------------------------------------------------------------------ write
@@ -61,10 +226,12 @@ def _write_sequence(f: h5py.File, spec: DatasetSpec, seq: dict) -> None:
       kw = dict(compression=spec.compression, shuffle=True)
       if spec.compression == "gzip":
         kw["compression_opts"] = spec.compression_level
-    g.create_dataset(key, data=arr, chunks=chunks, **kw)
+    # fletcher32: every chunk carries a checksum that HDF5 checks on each read.
+    g.create_dataset(key, data=arr, chunks=chunks if chunks is not None else True, fletcher32=True, **kw)
   for key, value in seq["attrs"].items():
     g.attrs[key] = value
   g.attrs["complete"] = True
+  _seal(g)
   f.flush()
 
 
@@ -93,40 +260,190 @@ def _init_file(f: h5py.File, spec: DatasetSpec) -> None:
   a["complete"] = False
   a["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
   f.require_group("sequences")
+  _seal(f)
 
 
 def _partial_path(path: pathlib.Path) -> pathlib.Path:
   return path.with_name(path.name + ".partial")
 
 
+#: What h5py raises for a damaged file (besides a failed lock or permission).
+_DAMAGE = (OSError, KeyError, ValueError, RuntimeError)
+
+
 def _open_partial(tmp: pathlib.Path, spec: DatasetSpec, overwrite: bool) -> h5py.File:
-  """Open (resume) or create the temp file; drop half-written sequences."""
-  if tmp.exists():
+  """Open (resume) or create the temp file; drop half-written and damaged sequences.
+
+  Tells the faults apart by the error's kind, never by its text: HDF5's file lock held by
+  another process (h5py raises ``BlockingIOError``) stops with a line saying so; a file that
+  may not be written (``PermissionError``) stops naming it; a file whose writer was killed
+  (HDF5's "open for writing" flag still set, no lock held) has its finished sequences copied
+  into a fresh file (:func:`_salvage`: the killed writer may have left metadata past the
+  file's recorded end, which writing on in place would overwrite); any other file HDF5
+  cannot open is the unreadable leftover of a crash, a full disk or a truncation, and is
+  replaced (with a warning). In a file that opens, each kept sequence is read back whole
+  (HDF5 checks every chunk's checksum) and one that does not read back is redone.
+  """
+  if not tmp.exists():
+    return _create_partial(tmp, spec)
+  try:
     try:
       f = h5py.File(tmp, "a")
-    except OSError as e:
-      if "lock" in str(e).lower():
-        raise ValueError(f"{tmp}: is locked; another process is writing this dataset") from e
-      warnings.warn(f"{tmp}: unreadable leftover of an interrupted run ({e}); starting over",
-                    stacklevel=2)
-      tmp.unlink()
-    else:
-      same = (f.attrs.get("format") == FORMAT_NAME
-              and f.attrs.get("generator_version") == scenes.GENERATOR_VERSION
-              and _generation_key(f.attrs.get("spec")) == spec.generation_key())
-      if same:
-        for name in list(f.get("sequences", {})):
-          if not f["sequences"][name].attrs.get("complete", False):
-            del f["sequences"][name]  # half-written: redo it
-        return f
+    except (BlockingIOError, PermissionError):
+      raise
+    except OSError:
+      if _unlocked(tmp) and _clear_write_flag(tmp):    # its writer was killed
+        return _salvage(tmp, spec, overwrite)
+      raise
+  except BlockingIOError:
+    raise ValueError(f"{tmp}: is locked: another process is writing this dataset (HDF5 file lock); "
+                     "wait for it to finish, or stop it, then rerun") from None
+  except PermissionError as e:
+    raise files.FileFault(tmp, f"{tmp}: cannot be opened for writing ({e.strerror or e}); "
+                               f"{files.what_to_do(e.errno)}", e.errno) from None
+  except OSError as e:
+    if isinstance(e, files.FileFault):
+      raise
+    return _start_over(tmp, spec, "unreadable leftover of an interrupted run", e)
+  try:
+    same = _resumable(f, spec)
+    if same:
+      try:
+        with files.writing(tmp):
+          reserve_space(f, tmp)             # a full disk: stop here, the file as it is
+      except files.FileFault:
+        f.close()
+        raise
+      _drop_unfinished(f, tmp)
+      return f
+  except files.FileFault:
+    raise
+  except _DAMAGE as e:                 # damaged inside: start over
+    with contextlib.suppress(Exception):
       f.close()
-      if not overwrite:
-        raise ValueError(f"{tmp}: a leftover partial dataset made with another configuration or"
-                         " generator version; pass overwrite=True (--overwrite) to replace it")
-      tmp.unlink()
-  f = h5py.File(tmp, "w")
-  _init_file(f, spec)
+    return _start_over(tmp, spec, "damaged leftover of an interrupted run", e)
+  f.close()
+  return _other_configuration(tmp, spec, overwrite)
+
+
+def _start_over(tmp: pathlib.Path, spec: DatasetSpec, what: str, error) -> h5py.File:
+  warnings.warn(f"{tmp}: {what} ({' '.join(str(error).split())}); starting over", stacklevel=3)
+  with files.writing(tmp):
+    tmp.unlink()
+  return _create_partial(tmp, spec)
+
+
+def _other_configuration(tmp: pathlib.Path, spec: DatasetSpec, overwrite: bool) -> h5py.File:
+  if not overwrite:
+    raise ValueError(f"{tmp}: a leftover partial dataset made with another configuration or"
+                     " generator version; pass overwrite=True (--overwrite) to replace it")
+  with files.writing(tmp):
+    tmp.unlink()
+  return _create_partial(tmp, spec)
+
+
+def _resumable(f: h5py.File, spec: DatasetSpec) -> bool:
+  """Whether a leftover partial file is this spec's (ValueError where it is damaged or unsealed)."""
+  if _attrs_intact(f) is False:
+    raise ValueError("its attributes do not match the digest written with them")
+  if f.attrs.get("format") != FORMAT_NAME or _generation_key(f.attrs.get("spec")) is None:
+    raise ValueError("it records no readable spec (killed before its first flush?)")
+  return (f.attrs.get("generator_version") == scenes.GENERATOR_VERSION
+          and _generation_key(f.attrs.get("spec")) == spec.generation_key())
+
+
+def _salvage(tmp: pathlib.Path, spec: DatasetSpec, overwrite: bool) -> h5py.File:
+  """Copy the finished sequences of a killed writer's file that read back whole into a fresh one.
+
+  The fresh file replaces ``tmp`` and is returned open for appending. A file too damaged to
+  read is started over; another configuration's is refused as :func:`_open_partial` refuses it.
+  """
+  fresh = tmp.with_name(tmp.name + ".salvage")
+  kept = 0
+  try:
+    with h5py.File(tmp, "r") as old:
+      if not _resumable(old, spec):
+        same = False
+      else:
+        same = True
+        sealed = ATTRS_DIGEST in list(old.attrs)
+        f = _create_partial(fresh, spec)
+        try:
+          for name in sorted(old["sequences"]):
+            group = old["sequences"][name]
+            why = _sequence_problem(group, sealed)
+            if why is not None:
+              if why != "half written":
+                warnings.warn(f"{tmp}: sequence {name} is redone: {why}", stacklevel=3)
+              continue
+            with files.writing(fresh):
+              reserve_space(f, fresh, sum(group[k].id.get_storage_size() for k in group))
+            old.copy(group, f["sequences"], name=name)
+            f.flush()
+            kept += 1
+        finally:
+          f.close()
+  except files.FileFault:
+    fresh.unlink(missing_ok=True)
+    raise
+  except _DAMAGE as e:
+    fresh.unlink(missing_ok=True)
+    return _start_over(tmp, spec, "damaged leftover of a killed run", e)
+  if not same:
+    return _other_configuration(tmp, spec, overwrite)
+  with files.writing(tmp):
+    os.replace(fresh, tmp)
+  f = h5py.File(tmp, "a")
+  try:
+    with files.writing(tmp):
+      reserve_space(f, tmp)
+  except files.FileFault:
+    f.close()
+    raise
   return f
+
+
+def _create_partial(tmp: pathlib.Path, spec: DatasetSpec) -> h5py.File:
+  with files.writing(tmp):
+    try:
+      f = h5py.File(tmp, "w", libver=LIBVER)
+    except RuntimeError as e:          # HDF5's first writes failed (a full disk): its message has the errno
+      if files.fault_errno(e) is None:
+        raise
+      raise files.FileFault(tmp, files.describe(e, tmp), files.fault_errno(e)) from e
+    try:
+      reserve_space(f, tmp)
+    except OSError:
+      f.close()
+      raise
+    _init_file(f, spec)
+  return f
+
+
+def _sequence_problem(group, sealed: bool) -> str | None:
+  """Why a sequence of a leftover partial file is redone, or None to keep it."""
+  if not group.attrs.get("complete", False):
+    return "half written"
+  if _attrs_intact(group) is False or (sealed and _attrs_intact(group) is None):
+    return "its attributes do not match their digest"
+  try:
+    for key in group:
+      group[key][()]                   # every chunk read: HDF5 checks its checksum
+  except _DAMAGE as e:
+    return f"it does not read back ({' '.join(str(e).split())})"
+  return None
+
+
+def _drop_unfinished(f: h5py.File, tmp: pathlib.Path) -> None:
+  """Delete the sequences of a resumed file that are half written or do not read back intact."""
+  sealed = ATTRS_DIGEST in list(f.attrs)     # written by a version that seals its sequences
+  group = f["sequences"]
+  for name in list(group):
+    why = _sequence_problem(group[name], sealed)
+    if why is not None:
+      if why != "half written":
+        warnings.warn(f"{tmp}: sequence {name} is redone: {why}", stacklevel=3)
+      del group[name]
 
 
 def _generation_key(spec_json):
@@ -213,8 +530,9 @@ def write_dataset(path, spec: DatasetSpec, *, overwrite: bool = False, workers: 
     raise FileExistsError(f"{path}: exists; pass overwrite=True (--overwrite) to replace it")
   if path.is_dir():
     raise ValueError(f"path {path} is a directory")
-  path.parent.mkdir(parents=True, exist_ok=True)
   tmp = _partial_path(path)
+  with files.writing(path.parent):
+    path.parent.mkdir(parents=True, exist_ok=True)
   f = _open_partial(tmp, spec, overwrite)
   try:
     done = set(f["sequences"])
@@ -226,7 +544,9 @@ def write_dataset(path, spec: DatasetSpec, *, overwrite: bool = False, workers: 
                disable=not progress)
     if workers == 1 or len(jobs) <= 1:
       for split, i in jobs:
-        _write_sequence(f, spec, simulate_sequence(spec, split, i))
+        seq = simulate_sequence(spec, split, i)
+        reserve_space(f, tmp, sum(a.nbytes for a in seq["arrays"].values()))
+        _write_sequence(f, spec, seq)
         bar.update()
     else:
       ctx = multiprocessing.get_context("spawn")
@@ -243,18 +563,28 @@ def write_dataset(path, spec: DatasetSpec, *, overwrite: bool = False, workers: 
           finished, pending = concurrent.futures.wait(
               pending, return_when=concurrent.futures.FIRST_COMPLETED)
           for fut in finished:
-            _write_sequence(f, spec, fut.result())
+            seq = fut.result()
+            reserve_space(f, tmp, sum(a.nbytes for a in seq["arrays"].values()))
+            _write_sequence(f, spec, seq)
             bar.update()
     bar.close()
+    reserve_space(f, tmp)
     f.attrs["num_train"] = spec.num_train
     f.attrs["num_test"] = spec.num_test
     f.attrs["num_val"] = spec.num_val
     f.attrs["spec"] = json.dumps(spec.to_dict())    # the counts of a resumed or extended file
     f.attrs["complete"] = True
-    f.flush()
-  finally:
-    f.close()
-  os.replace(tmp, path)
+    _seal(f)
+    f.close()                          # flushes: an error here leaves the partial file unrenamed
+  except BaseException as e:
+    with contextlib.suppress(Exception):
+      f.close()
+    if isinstance(e, OSError):         # a full disk, a folder made read-only: name the file
+      raise files.FileFault(tmp, files.describe(e, tmp), files.fault_errno(e)) from e
+    raise
+  with files.writing(path):
+    trim_reserved(tmp)
+    os.replace(tmp, path)
   return WriteResult(path=path, generated=len(jobs), resumed=len(done))
 
 
@@ -273,9 +603,10 @@ def extend_dataset(path, spec: DatasetSpec, *, workers: int = 1, progress: bool 
     ValueError: ``path`` was made with another generation configuration, or
       holds more sequences of a split than ``spec`` asks for.
   """
-  import shutil
   path = pathlib.Path(path)
-  with h5py.File(path, "r") as f:
+  with _open_read(path) as f:
+    if not bool(f.attrs.get("complete", False)) or _attrs_intact(f) is False:
+      open_dataset(path).close()       # raises, naming what is wrong
     stored, wanted = _generation_key(f.attrs.get("spec")), spec.generation_key()
     if stored != wanted or f.attrs.get("generator_version") != scenes.GENERATOR_VERSION:
       raise ValueError(f"{path}: made with another data configuration or generator version "
@@ -290,11 +621,39 @@ def extend_dataset(path, spec: DatasetSpec, *, workers: int = 1, progress: bool 
     return WriteResult(path=path, generated=0, resumed=sum(have.values()))
   tmp = _partial_path(path)
   if not tmp.exists():
-    shutil.copyfile(path, tmp)
+    with files.replaced(tmp) as copy:      # whole, or not at all (a full disk)
+      shutil.copyfile(path, copy)
   return write_dataset(path, spec, overwrite=True, workers=workers, progress=progress)
 
 
 # ------------------------------------------------------------------- read
+#: What to do about a dataset file that does not read (the messages of :func:`_open_read` and the reader).
+REGENERATE = "move it away (or delete it) and rerun: the dataset is made again from its spec"
+
+
+def _unreadable(path, error) -> ValueError:
+  return ValueError(f"{path}: cannot be read as HDF5 (truncated, corrupt or not an HDF5 file:"
+                    f" {' '.join(str(error).split())}); {REGENERATE}")
+
+
+@contextlib.contextmanager
+def _open_read(path):
+  """``h5py.File(path, "r")``; a file HDF5 cannot open or read raises ValueError naming it."""
+  try:
+    f = h5py.File(path, "r")
+  except FileNotFoundError:
+    raise FileNotFoundError(f"{path}: no such dataset file") from None
+  except OSError as e:
+    raise _unreadable(path, e) from None
+  try:
+    yield f
+  except (OSError, KeyError, RuntimeError) as e:    # a chunk whose checksum fails, a damaged object
+    raise ValueError(f"{path}: reading it failed (the file is damaged: {' '.join(str(e).split())});"
+                     f" {REGENERATE}") from None
+  finally:
+    f.close()
+
+
 class DynamicDataset:
   """Read access to a dataset file written by :func:`write_dataset`.
 
@@ -317,21 +676,38 @@ class DynamicDataset:
     try:
       self._file = h5py.File(self.path, "r")
     except OSError as e:
-      raise ValueError(f"{self.path}: cannot be read as HDF5 (truncated, corrupt or not an HDF5"
-                       f" file): {e}") from None
+      raise _unreadable(self.path, e) from None
     try:
-      self._check()
+      with self._damage("opening it"):
+        self._check()
       if setup is not None:
         self.check_setup(setup)
     except BaseException:
       self._file.close()
       raise
 
+  @contextlib.contextmanager
+  def _damage(self, what: str):
+    """HDF5's errors of a damaged file (a failed checksum, an object that does not open) as one ValueError."""
+    try:
+      yield
+    except (OSError, KeyError, RuntimeError) as e:
+      raise ValueError(f"{self.path}: {what} failed (the file is damaged: {' '.join(str(e).split())});"
+                       f" {REGENERATE}") from None
+
   def _check(self):
     a = self._file.attrs
+    intact = _attrs_intact(self._file)
     fmt = a.get("format")
     if isinstance(fmt, bytes):
       fmt = fmt.decode()
+    try:
+      newer = fmt == FORMAT_NAME and int(a.get("format_version", -1)) > FORMAT_VERSION
+    except (TypeError, ValueError):
+      newer = False
+    if intact is False and not newer:    # a newer version may seal otherwise: its version is the news
+      raise ValueError(f"{self.path}: its attributes do not match the digest written with them (the"
+                       f" file is damaged); {REGENERATE}")
     if fmt != FORMAT_NAME:
       raise ValueError(f"{self.path}: an HDF5 file but not an nlosjax dynamic NLOS dataset"
                        f" (attribute 'format' is {fmt!r}, expected {FORMAT_NAME!r})")
@@ -351,6 +727,10 @@ class DynamicDataset:
       raise ValueError(f"{self.path}: invalid Setup attributes: {e}") from None
     self.attrs = dict(a)
     self._names = sorted(self._file["sequences"])
+    damaged = [n for n in self._names if _attrs_intact(self._file["sequences"][n]) is False]
+    if damaged:
+      raise ValueError(f"{self.path}: the attributes of sequence(s) {', '.join(damaged[:3])} do not match"
+                       f" the digest written with them (the file is damaged); {REGENERATE}")
     self._handles = {}
 
   # -- context manager
@@ -386,20 +766,25 @@ class DynamicDataset:
     if split is None:
       return list(self._names)
     _check_split(split)
-    return [n for n in self._names if self._group(n).attrs.get("split") == split]
+    with self._damage("reading the sequences' splits"):
+      return [n for n in self._names if self._group(n).attrs.get("split") == split]
 
   def _group(self, name):
-    try:
+    if not isinstance(name, str) or name not in self._names:
+      raise ValueError(f"{self.path}: no sequence {name!r}")
+    with self._damage(f"opening sequence {name}"):
       return self._file["sequences"][name]
-    except (KeyError, TypeError):
-      raise ValueError(f"{self.path}: no sequence {name!r}") from None
 
   def sequence_attrs(self, name: str) -> dict:
     """Attributes of sequence ``name`` (numpy scalars/arrays, strings)."""
-    return dict(self._group(name).attrs)
+    group = self._group(name)
+    with self._damage(f"reading the attributes of {name}"):
+      return dict(group.attrs)
 
   def has(self, name: str, key: str) -> bool:
-    return key in self._group(name)
+    group = self._group(name)
+    with self._damage(f"reading sequence {name}"):
+      return key in group
 
   def num_frames(self, name: str) -> int:
     return int(self._dataset(name, "measurement").shape[0])
@@ -407,7 +792,8 @@ class DynamicDataset:
   def _dataset(self, name, key):
     ds = self._handles.get((name, key))
     if ds is None:
-      ds = self._handles[(name, key)] = self._open_dataset(name, key)
+      with self._damage(f"opening {name}/{key}"):
+        ds = self._handles[(name, key)] = self._open_dataset(name, key)
     return ds
 
   def _open_dataset(self, name, key):
@@ -458,8 +844,9 @@ class DynamicDataset:
         out = self._read_grid(ds, slice(lo, hi), stride, offset)[uniq - lo][inverse]
       else:
         out = self._read_grid(ds, index, stride, offset)
-    except OSError as e:
-      raise ValueError(f"{self.path}: reading {name}/{key} failed (corrupt file?): {e}") from None
+    except (OSError, KeyError, RuntimeError) as e:
+      raise ValueError(f"{self.path}: reading {name}/{key} failed (the file is damaged:"
+                       f" {' '.join(str(e).split())}); {REGENERATE}") from None
     return out if dtype is None else out.astype(dtype)
 
 
@@ -501,9 +888,8 @@ def dataset_digest(path, *, chunk_bytes: int = 1 << 24) -> str:
   one (:mod:`nlosjax.train.run_state`). Reads the whole file once, ``chunk_bytes``
   at a time along each array's first axis.
   """
-  import hashlib
   h = hashlib.sha256()
-  with h5py.File(pathlib.Path(path), "r") as f:
+  with _open_read(pathlib.Path(path)) as f:
     for name in _array_names(f):
       ds = f[name]
       h.update(f"{name}|{ds.dtype.str}|{ds.shape}\n".encode())
@@ -558,7 +944,7 @@ def dataset_fingerprint(path, *, parts: int = 2) -> dict[str, dict]:
     (about 20 numbers an array).
   """
   out = {}
-  with h5py.File(pathlib.Path(path), "r") as f:
+  with _open_read(pathlib.Path(path)) as f:
     for name in _array_names(f):
       ds = f[name]
       if ds.dtype.kind not in "biuf":
@@ -605,7 +991,6 @@ def dataset_identity(path, *, parts: int = 2, cache: bool = True) -> tuple[str, 
   ``<file>.digest.json`` keyed by the file's size and modification time, so a run that resumes on
   an unchanged file pays nothing; a cache that cannot be written (a read-only folder) is skipped.
   """
-  import hashlib
   path = pathlib.Path(path)
   stat = path.stat()
   key = {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "parts": parts}
@@ -620,7 +1005,7 @@ def dataset_identity(path, *, parts: int = 2, cache: bool = True) -> tuple[str, 
       return saved["digest"], saved["fingerprint"]
   h = hashlib.sha256()
   fingerprint = {}
-  with h5py.File(path, "r") as f:
+  with _open_read(path) as f:
     for name in _array_names(f):
       ds = f[name]
       x = np.asarray(ds[()])
