@@ -173,6 +173,7 @@ def restore_params(ckpt, model_config, *, step: int | None = None,
   import orbax.checkpoint as ocp
 
   from nlosjax import train
+  from nlosjax.train.checkpoint import quiet_orbax, short_error, tree_digest
   ckpt = pathlib.Path(ckpt).absolute()            # orbax wants absolute paths
   absl_logger = logging.getLogger("absl")
   level = absl_logger.level
@@ -190,13 +191,18 @@ def restore_params(ckpt, model_config, *, step: int | None = None,
       raise ValueError(f"{ckpt}: no checkpoint step {step} (steps: {sorted(manager.all_steps())})")
     where = ckpt / str(step)
     try:
-      meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
-      item = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))["state"]
+      with quiet_orbax():
+        meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
+        item = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))["state"]
     except Exception as e:  # orbax raises many types for a damaged folder
-      raise ValueError(f"checkpoint {where} is unreadable ({type(e).__name__}: {e})") from None
+      raise ValueError(f"checkpoint {where} is unreadable ({short_error(e)}); {DAMAGED_CHECKPOINT}") from None
   finally:
     manager.close()
     absl_logger.setLevel(level)
+  recorded_digest = meta.get("params_digest") if isinstance(meta, dict) else None
+  if recorded_digest is not None and tree_digest(item["params"]) != recorded_digest:
+    raise ValueError(f"checkpoint {where}: its parameters do not match the digest saved with them (the"
+                     f" files are damaged); {DAMAGED_CHECKPOINT}")
   signature = _signature(meta.get("model_config") if isinstance(meta, dict) else None)
   recorded = signature.get("model")
   added = []
@@ -217,6 +223,11 @@ def restore_params(ckpt, model_config, *, step: int | None = None,
                      " another version of the model code?)")
   return params, {"checkpoint": where, "step": int(step), "recorded_model": recorded,
                   "added_fields": added}
+
+
+#: What to do about a checkpoint that does not restore (:func:`restore_params`).
+DAMAGED_CHECKPOINT = ("restore the run folder from a copy, or train the model again (move its folder "
+                      "away and rerun the training command)")
 
 
 def _expected_tree(model_config):
@@ -267,7 +278,8 @@ def load_pretrained(name: str = "cpu", variant: str = OURS, *, setup: Setup | No
   if variant not in VARIANTS:
     raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
   folder = pretrained.weights_folder(name, variant, root)
-  if (name, variant) not in pretrained.shipped(root):
+  damaged = folder.is_dir() or folder.with_name(f".{folder.name}.old").is_dir()
+  if (name, variant) not in pretrained.shipped(root) and not damaged:   # read_weights names a damaged one
     have = ", ".join(f"{n} ({v})" for n, v in pretrained.shipped(root)) or "none"
     raise ValueError(f"no shipped weights {name!r} of variant {variant!r} ({folder}); shipped:"
                      f" {have}")

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import jax
 import numpy as np
 
-from nlosjax import losses
+from nlosjax import files, losses
 from nlosjax.train.checkpoint import Checkpointer, run_signature
 from nlosjax.train.config import BASELINES, RunConfig, model_class
 from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
@@ -181,7 +181,8 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
   steps = stop.horizon(steps)       # the plateau rule: its max_steps, also the schedule's horizon
   label = folder or variant              # the model's folder, and its name in logs and progress bars
   vdir = pathlib.Path(workdir) / label
-  vdir.mkdir(parents=True, exist_ok=True)
+  with files.writing(vdir):
+    vdir.mkdir(parents=True, exist_ok=True)
   primary = jax.process_index() == 0
   if not primary:
     log = lambda s: None                                 # noqa: E731 -- one process reports
@@ -203,12 +204,18 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     ckpt = Checkpointer(vdir / "checkpoints", signature, every=tr.checkpoint_every,
                         keep=tr.keep_checkpoints, model=mcfg)
     start = 0
-    restored = ckpt.restore_latest(state)
+    restored = ckpt.restore_latest(state, log=lambda line: log(f"[{label}] {line}"))
     if restored is not None:
       state, start = restored
       log(f"[{label}] resumed from step {start} ({ckpt.directory})")
     imported_best = None
-    exported = read_meta(export.folder(label)) if export is not None else None
+    try:
+      exported = read_meta(export.folder(label)) if export is not None else None
+    except ValueError as e:
+      if restored is None:              # nothing else to resume from: the user decides
+        raise
+      exported = None                   # the workdir's checkpoint is newer; the export is rewritten
+      log(f"[{label}] {e.args[0]}; resuming from the workdir instead, whose next checkpoint rewrites it")
     finished = bool(exported and exported.get("finished"))   # its chosen parameters alone: no more training
     if exported is not None and exported["step"] > start and primary:
       state, imported_best, meta = import_state(export.folder(label), state, signature=signature, model=mcfg,
@@ -246,7 +253,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     log_path = vdir / "metrics.jsonl" if primary else pathlib.Path(os.devnull)
     if primary:
       kept = [r for r in read_metrics(log_path) if r["step"] <= start]
-      log_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
+      files.write_text_atomic(log_path, "".join(json.dumps(r) + "\n" for r in kept))
     step_fn = make_train_step(mcfg, weights, mesh)
     log_every = tr.log_every
     exported_best = {"step": (exported or {}).get("best_step")}
@@ -293,8 +300,9 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
           if not all(math.isfinite(v) for v in m.values()):
             raise FloatingPointError(f"[{label}] non-finite metrics at step {done}: {m}")
           row = {"step": done, "time_s": round(time.perf_counter() - t_start, 3), **m}
-          f.write(json.dumps(row) + "\n")
-          f.flush()
+          with files.writing(log_path):
+            f.write(json.dumps(row) + "\n")
+            f.flush()
           bar.set_postfix(loss=f"{m['loss']:.4f}")
         pause = export is not None and export.past_deadline() and done < steps
         if validating:
@@ -347,7 +355,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
           f"({', '.join(f'{k}: {v:.2f} dB' for k, v in deciding.items())})")
     ckpt.close()
     if primary:
-      (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
+      files.write_text_atomic(vdir / "selection.json", json.dumps(selection, indent=2) + "\n")
     export_now(last, state)               # the selected parameters, with selection.json
     return mcfg, state
   finally:
@@ -373,7 +381,7 @@ def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpoint
     selection.update(metric=tracker.rule.metric,
                      val_score={p["step"]: s for p, s in zip(tracker.curve, tracker.scores)})
   if primary:
-    (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
+    files.write_text_atomic(vdir / "selection.json", json.dumps(selection, indent=2) + "\n")
   log(f"[{label}] stopped after {done} steps ({reason}); best on validation {tracker.rule.metric}: step "
       f"{int(best.step)} ({summary.get('best_score', summary['best_val_psnr']):.2f} dB)")
   return best
@@ -411,7 +419,13 @@ def read_selection(folder) -> dict | None:
   path = pathlib.Path(folder) / "selection.json"
   if not path.exists():
     return None
-  d = json.loads(path.read_text())
+  try:
+    d = json.loads(path.read_text())
+    if not isinstance(d, dict):
+      raise ValueError(f"a JSON {type(d).__name__}, not an object")
+  except (OSError, UnicodeDecodeError, ValueError) as e:
+    raise ValueError(f"{path}: not readable ({' '.join(str(e).split())}); rerun the training command on "
+                     "its workdir to write it again") from None
   d["val_psnr"] = {int(k): v for k, v in d.get("val_psnr", {}).items()}
   if "val_score" in d:
     d["val_score"] = {int(k): v for k, v in d["val_score"].items()}

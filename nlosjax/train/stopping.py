@@ -44,10 +44,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import pathlib
 import time
 from typing import Any, Callable, Sequence
+
+from nlosjax import files
 
 RULES = ("steps", "plateau")
 #: Validation scores a rule can stop and choose on (dB, higher is better): the whole-image intensity
@@ -199,9 +200,7 @@ def simulate(rule: StopRule, score_at: Callable[[int], float]) -> tuple[int, str
 
 def _write_json(path: pathlib.Path, obj) -> None:
   """Write ``obj`` as JSON to ``path`` atomically (a temporary file renamed over it)."""
-  tmp = path.with_name(path.name + ".tmp")
-  tmp.write_text(json.dumps(obj, indent=1) + "\n")
-  os.replace(tmp, path)
+  files.write_text_atomic(path, json.dumps(obj, indent=1) + "\n")
 
 
 def read_curve(folder) -> dict | None:
@@ -213,7 +212,17 @@ def read_curve(folder) -> dict | None:
   resumes; the work a kill lost is not counted), ``val_s`` what that validation took.
   """
   path = pathlib.Path(folder) / CURVE_FILE
-  return json.loads(path.read_text()) if path.exists() else None
+  if not path.exists():
+    return None
+  try:
+    curve = json.loads(path.read_text())
+    if not isinstance(curve, dict) or not isinstance(curve.get("curve", []), list):
+      raise ValueError("not a validation curve")
+  except (OSError, UnicodeDecodeError, ValueError) as e:
+    raise ValueError(f"{path}: not readable ({' '.join(str(e).split())}); copy it back from the run's "
+                     "exported state (--resume-from DIR), or move the model folder away to train it "
+                     "again") from None
+  return curve
 
 
 class PlateauTracker:
