@@ -67,6 +67,7 @@ import time
 
 import numpy as np
 
+from nlosjax.files import writing
 from nlosjax.variants import VARIANTS
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -257,9 +258,21 @@ def _invocations(workdir: pathlib.Path) -> dict:
   records = []
   if path.is_file():
     try:
-      records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    except json.JSONDecodeError as e:
-      raise ValueError(f"{path}: not JSON lines ({e})") from None
+      lines = path.read_text(errors="replace").splitlines()
+    except OSError as e:
+      raise ValueError(f"{path}: not readable ({e})") from None
+    for n, line in enumerate(lines):  # a later line cut by a kill or a full disk is left out
+      try:
+        record = json.loads(line)
+        if not isinstance(record, dict):
+          raise ValueError(f"a JSON {type(record).__name__}, not a record")
+      except ValueError as e:
+        if n == 0:                     # the run's first command and commit: not to be guessed
+          raise ValueError(f"{path}: its first record is not readable JSON ({e}): the file is damaged;"
+                           " repair or remove that line (it names the run's first command, commit and"
+                           " machine)") from None
+        continue
+      records.append(record)
   if not records:
     return {"machine": {}, "machine_source": None, "commit": "unknown",
             "command": f"python -m experiments.train --workdir {_shown(workdir)}"
@@ -446,17 +459,24 @@ def export(run_path, name: str, variant: str, *, command: str | None = None, com
     prov["checkpoint_model_config"] = {"recorded": restored["recorded_model"],
                                        "added_fields": restored["added_fields"]}
   # Written beside the destination and read back there first: a failed check leaves nothing in place.
-  folder.parent.mkdir(parents=True, exist_ok=True)
-  stage = pathlib.Path(tempfile.mkdtemp(prefix=".export-", dir=folder.parent))
+  with writing(folder):
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    stage = pathlib.Path(tempfile.mkdtemp(prefix=".export-", dir=folder.parent))
   try:
     written = pretrained.write_weights(stage / folder.name, params, prov)
     got_cfg, got, _ = inference.load_pretrained(name, variant, root=stage)
     same = jax.tree.map(lambda a, b: bool(np.array_equal(np.asarray(a), b)), got, params)
     if got_cfg != mcfg or not all(jax.tree.leaves(same)):
       raise RuntimeError(f"{stage / folder.name}: reading the weights back does not give the exported model")
-    if folder.exists():
-      shutil.rmtree(folder)                 # --overwrite (checked above)
-    os.replace(stage / folder.name, folder)
+    with writing(folder):
+      if folder.exists():                   # --overwrite (checked above): the old weights go last
+        old = folder.with_name(f".{folder.name}.old")   # a kill in between: the readers name it
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(folder, old)
+        os.replace(stage / folder.name, folder)
+        shutil.rmtree(old, ignore_errors=True)
+      else:
+        os.replace(stage / folder.name, folder)
   finally:
     shutil.rmtree(stage, ignore_errors=True)
   size = (folder / pretrained.PARAMS_FILE).stat().st_size
@@ -485,14 +505,12 @@ def main(argv=None) -> int:
                  help="a committed run state: the preset its study ran on (default cpu)")
   args = p.parse_args(argv)
   argv = sys.argv[1:] if argv is None else list(argv)
-  try:
+  from experiments.cli import one_line_errors
+  with one_line_errors():           # a bad or damaged input, a full disk: one line, exit status 2
     export(args.run, args.name, args.variant, command=args.command, commit=args.commit,
            results=args.results, data=args.data, root=args.root, overwrite=args.overwrite,
            tolerance_db=args.tolerance_db, preset=args.preset,
            export_command="python -m experiments.export_weights " + " ".join(argv))
-  except ValueError as e:
-    print(f"error: {e}", file=sys.stderr)
-    return 2
   return 0
 
 

@@ -46,6 +46,9 @@ VARIANTS = tuple(_VARIANTS)
 #: Keys every ``provenance.json`` must hold (:func:`write_weights` sets the first five).
 REQUIRED_KEYS = ("format", "format_version", "name", "variant", "params_sha256", "config",
                  "model_config", "param_fingerprint", "validation")
+#: What to do about a weights file that is missing or damaged (the readers' messages).
+RESTORE = ("restore the folder from version control (git checkout -- FOLDER) or export the weights "
+           "again (python -m experiments.export_weights)")
 _NAME = re.compile(r"^[A-Za-z0-9_.]+(?:-[A-Za-z0-9_.]+)*$")
 #: A fixed zip timestamp (the earliest zip allows): byte-identical files for identical parameters.
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
@@ -170,39 +173,54 @@ def write_weights(folder, params, provenance: dict, *, overwrite: bool = False) 
           **provenance, "params_sha256": hashlib.sha256(data).hexdigest(),
           "num_params": int(sum(a.size for a in flat.values()))}
   text = json.dumps(prov, indent=1, allow_nan=False) + "\n"
-  folder.parent.mkdir(parents=True, exist_ok=True)
-  tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}-", dir=folder.parent))
-  try:
-    (tmp / PARAMS_FILE).write_bytes(data)
-    (tmp / PROVENANCE_FILE).write_text(text)
-    os.chmod(tmp, 0o755)
-    if folder.exists():
-      old = folder.with_name(f".{folder.name}.old")
-      shutil.rmtree(old, ignore_errors=True)
-      os.replace(folder, old)
-      os.replace(tmp, folder)
-      shutil.rmtree(old, ignore_errors=True)
-    else:
-      os.replace(tmp, folder)
-  finally:
-    shutil.rmtree(tmp, ignore_errors=True)
+  from nlosjax import files
+  with files.writing(folder):
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    old = _previous(folder)
+    if not folder.exists() and old.is_dir():     # a replacement a kill interrupted: the previous weights back
+      os.replace(old, folder)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}-", dir=folder.parent))
+    try:
+      (tmp / PARAMS_FILE).write_bytes(data)
+      (tmp / PROVENANCE_FILE).write_text(text)
+      os.chmod(tmp, 0o755)
+      if folder.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(folder, old)      # a kill between these two renames: read_provenance names `old`
+        os.replace(tmp, folder)
+        shutil.rmtree(old, ignore_errors=True)
+      else:
+        os.replace(tmp, folder)
+    finally:
+      shutil.rmtree(tmp, ignore_errors=True)
   return prov
+
+
+def _previous(folder: pathlib.Path) -> pathlib.Path:
+  """Where :func:`write_weights` keeps a folder's previous weights while it replaces them."""
+  return folder.with_name(f".{folder.name}.old")
 
 
 def read_provenance(folder) -> dict:
   """``provenance.json`` of a weights folder, with its required keys checked (ValueError naming the file)."""
-  path = pathlib.Path(folder) / PROVENANCE_FILE
+  folder = pathlib.Path(folder)
+  if not folder.is_dir() and _previous(folder).is_dir():
+    raise ValueError(f"{folder}: missing: a replacement of these weights was interrupted and left the "
+                     f"previous ones in {_previous(folder)}; rename that folder back to {folder.name} (or "
+                     "export the weights again)")
+  path = folder / PROVENANCE_FILE
   try:
     prov = json.loads(path.read_text())
   except FileNotFoundError:
-    raise ValueError(f"{path}: missing") from None
+    raise ValueError(f"{path}: missing; {RESTORE}") from None
   except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-    raise ValueError(f"{path}: not readable JSON ({e})") from None
+    raise ValueError(f"{path}: not readable JSON (truncated or damaged: {' '.join(str(e).split())});"
+                     f" {RESTORE}") from None
   if not isinstance(prov, dict):
-    raise ValueError(f"{path}: expected a JSON object, got {type(prov).__name__}")
+    raise ValueError(f"{path}: expected a JSON object, got {type(prov).__name__} (damaged?); {RESTORE}")
   missing = [k for k in REQUIRED_KEYS if k not in prov]
   if missing:
-    raise ValueError(f"{path}: lacks {missing}")
+    raise ValueError(f"{path}: lacks {missing} (damaged or not a weights record); {RESTORE}")
   if prov["format"] != FORMAT or prov["format_version"] != FORMAT_VERSION:
     raise ValueError(f"{path}: format {prov['format']!r} version {prov['format_version']!r}; this"
                      f" nlosjax reads {FORMAT!r} version {FORMAT_VERSION}")
@@ -223,16 +241,16 @@ def read_weights(folder) -> tuple[dict, dict]:
   prov = read_provenance(folder)
   path = folder / PARAMS_FILE
   if not path.is_file():
-    raise ValueError(f"{path}: missing")
+    raise ValueError(f"{path}: missing; {RESTORE}")
   digest = sha256_file(path)
   if digest != prov["params_sha256"]:
     raise ValueError(f"{path}: sha256 {digest} differs from {prov['params_sha256']} recorded in"
-                     f" {folder / PROVENANCE_FILE} (the file was changed or damaged)")
+                     f" {folder / PROVENANCE_FILE} (the file was changed or damaged); {RESTORE}")
   try:
     with np.load(path, allow_pickle=False) as z:
       flat = {k: z[k] for k in z.files}
   except (OSError, ValueError, zipfile.BadZipFile) as e:
-    raise ValueError(f"{path}: not a readable .npz ({e})") from None
+    raise ValueError(f"{path}: not a readable .npz ({e}); {RESTORE}") from None
   bad = [f"{k}: {a.dtype}" for k, a in flat.items() if a.dtype != np.float32]
   if bad:
     raise ValueError(f"{path}: arrays must be float32, got {bad[:3]}")

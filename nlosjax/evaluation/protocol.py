@@ -25,6 +25,7 @@ from typing import Callable
 import jax.numpy as jnp
 import numpy as np
 
+from nlosjax import files
 from nlosjax.evaluation import baselines, figures, report, scores
 from nlosjax.train.config import RunConfig
 from nlosjax.variants import COMPARISONS, VARIANTS
@@ -312,21 +313,27 @@ def write_results(out_dir, table: dict, comparisons: list[dict], images: dict, *
   (each learned model against each classic method, on any score) pairs the same frames.
   """
   out = pathlib.Path(out_dir)
-  out.mkdir(parents=True, exist_ok=True)
+  with files.writing(out):
+    out.mkdir(parents=True, exist_ok=True)
   prefix = "" if stem == "table" else f"{stem}_"
+  # Each file replaced whole (a temporary file renamed over it): a kill or a full disk while the
+  # results of a rerun are written leaves the earlier results, never half a file.
   if evaluation is not None:
     arrays = {f"{m}/{k}": np.asarray(v) for m, s in evaluation["scores"].items() for k, v in s.items()}
-    np.savez_compressed(out / f"{prefix}scores.npz", sequence=np.asarray(evaluation["sequence"]),
-                        frame=np.asarray(evaluation["frame"]), **arrays)
-  (out / f"{stem}.json").write_text(json.dumps(table, indent=2) + "\n")
-  (out / f"{prefix}comparisons.json").write_text(json.dumps(comparisons, indent=2) + "\n")
+    with files.replaced(out / f"{prefix}scores.npz") as tmp, open(tmp, "wb") as f:
+      np.savez_compressed(f, sequence=np.asarray(evaluation["sequence"]),
+                          frame=np.asarray(evaluation["frame"]), **arrays)
+  files.write_text_atomic(out / f"{stem}.json", json.dumps(table, indent=2) + "\n")
+  files.write_text_atomic(out / f"{prefix}comparisons.json", json.dumps(comparisons, indent=2) + "\n")
   text = report.format_tables(table, caption)
   if comparisons:
     text += "\n" + report.format_comparisons(comparisons)
   if validation:
-    (out / "validation.json").write_text(json.dumps(validation, indent=2, default=str) + "\n")
+    files.write_text_atomic(out / "validation.json", json.dumps(validation, indent=2, default=str) + "\n")
     text += "\n" + report.format_choices(validation)
-  (out / f"{stem}.md").write_text(text)
-  figures.plot_comparison(images, out / f"{prefix}comparison.png")
+  files.write_text_atomic(out / f"{stem}.md", text)
+  with files.replaced(out / f"{prefix}comparison.png") as tmp:
+    figures.plot_comparison(images, tmp)
   if logs:
-    figures.plot_training_curves(logs, out / "training_curves.png")
+    with files.replaced(out / "training_curves.png") as tmp:
+      figures.plot_training_curves(logs, tmp)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import hashlib
 import json
 import os
 import pathlib
@@ -47,6 +48,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from nlosjax import files
 from nlosjax.data.dataset import fingerprint_differences, fingerprint_distance
 from nlosjax.train.checkpoint import signature_differences
 
@@ -58,6 +60,9 @@ META_FILE = "run_state.json"
 FINGERPRINT_FILE = "data_fingerprint.json"
 #: The model folder's files mirrored into the export (those present).
 COPIED = ("validation_curve.json", "metrics.jsonl", "selection.json")
+#: What to do about an export file that is damaged (the messages of every reader here).
+RESTORE = ("restore the folder from version control (git checkout -- FOLDER) or a copy, or resume "
+           "from the run's workdir")
 
 
 class TrainingPaused(Exception):
@@ -136,42 +141,114 @@ def _state_tree(state) -> dict:
   return {"params": state.params, "opt_state": state.opt_state, "step": state.step}
 
 
+def _save_arrays(path: pathlib.Path, arrays: dict) -> None:
+  """``np.savez`` to a temporary file renamed over ``path``: whole or not at all (a kill, a full disk)."""
+  with files.replaced(path) as tmp:
+    with open(tmp, "wb") as f:
+      np.savez(f, **arrays)
+
+
+def _read_arrays(path: pathlib.Path) -> dict:
+  """Every array of an ``.npz`` of the export; a missing, truncated or corrupted file raises ValueError naming it.
+
+  (Each member of an ``.npz`` carries a CRC-32 that reading it checks, so a flipped bit does not
+  read back silently.)
+  """
+  try:
+    with np.load(path, allow_pickle=False) as f:
+      return {k: f[k] for k in f.files}
+  except FileNotFoundError:
+    raise ValueError(f"{path}: missing from the exported state; {RESTORE}") from None
+  except Exception as e:  # noqa: BLE001 - zipfile, numpy and the OS raise many types for a damaged file
+    raise ValueError(f"{path}: not a readable .npz (truncated or corrupted: {type(e).__name__}: "
+                     f"{' '.join(str(e).split())}); {RESTORE}") from None
+
+
 def _save_npz(path: pathlib.Path, state) -> None:
-  tmp = path.with_name(path.name + ".tmp.npz")
-  np.savez(tmp, **tree_arrays(_state_tree(state)))
-  os.replace(tmp, path)
+  _save_arrays(path, tree_arrays(_state_tree(state)))
 
 
 def _load_npz(path: pathlib.Path, template):
-  with np.load(path, allow_pickle=False) as f:
-    item = arrays_tree(dict(f), _state_tree(template))
+  arrays = _read_arrays(path)
+  try:
+    item = arrays_tree(arrays, _state_tree(template))
+  except ValueError as e:
+    raise ValueError(f"{path}: {e}") from None
   return template.replace(step=item["step"], params=item["params"], opt_state=item["opt_state"])
 
 
 def _save_params(path: pathlib.Path, arrays: dict) -> None:
   """Write the ``['params']...`` and ``['step']`` leaves of ``arrays`` (keystr names) to ``path``, atomically."""
-  tmp = path.with_name(path.name + ".tmp.npz")
-  np.savez(tmp, **{k: v for k, v in arrays.items() if k.startswith("['params']") or k == "['step']"})
-  os.replace(tmp, path)
+  _save_arrays(path, {k: v for k, v in arrays.items() if k.startswith("['params']") or k == "['step']"})
 
 
 def _load_params(path: pathlib.Path, template):
   """``template`` with the parameters and step of a :data:`PARAMS_FILE` (its optimiser state kept)."""
-  with np.load(path, allow_pickle=False) as f:
-    item = arrays_tree(dict(f), {"params": template.params, "step": template.step})
+  arrays = _read_arrays(path)
+  try:
+    item = arrays_tree(arrays, {"params": template.params, "step": template.step})
+  except ValueError as e:
+    raise ValueError(f"{path}: {e}") from None
   return template.replace(step=item["step"], params=item["params"])
 
 
 def _write_json(path: pathlib.Path, obj) -> None:
-  tmp = path.with_name(path.name + ".tmp")
-  tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
-  os.replace(tmp, path)
+  files.write_text_atomic(path, json.dumps(obj, indent=1, sort_keys=True) + "\n")
+
+
+def _sha256(path: pathlib.Path) -> str:
+  """SHA-256 of a file's bytes, 16 hex characters."""
+  h = hashlib.sha256()
+  with open(path, "rb") as f:
+    for block in iter(lambda: f.read(1 << 20), b""):
+      h.update(block)
+  return h.hexdigest()[:16]
+
+
+def _checksum(meta: dict) -> str:
+  """The checksum a ``run_state.json`` carries of the rest of its content (16 hex characters)."""
+  body = json.dumps({k: v for k, v in meta.items() if k != "checksum"}, sort_keys=True)
+  return hashlib.sha256(body.encode()).hexdigest()[:16]
+
+
+def _read_json(path: pathlib.Path):
+  try:
+    return json.loads(path.read_text())
+  except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    raise ValueError(f"{path}: not readable JSON (truncated or corrupted: {' '.join(str(e).split())}); "
+                     f"{RESTORE}") from None
 
 
 def read_meta(folder) -> dict | None:
-  """An exported model folder's ``run_state.json``, or None when it has none."""
-  path = pathlib.Path(folder) / META_FILE
-  return json.loads(path.read_text()) if path.exists() else None
+  """An exported model folder's ``run_state.json``, or None when it has none.
+
+  Raises ValueError naming the file where it is not readable JSON or does not match the
+  checksum written with it (states exported before checksums existed carry none).
+  """
+  path = _current(folder) / META_FILE
+  if not path.exists():
+    return None
+  meta = _read_json(path)
+  if not isinstance(meta, dict) or "step" not in meta or "signature" not in meta:
+    raise ValueError(f"{path}: not an exported run state's metadata; {RESTORE}")
+  if "checksum" in meta and meta["checksum"] != _checksum(meta):
+    raise ValueError(f"{path}: damaged: its content does not match the checksum written with it; {RESTORE}")
+  return meta
+
+
+def check_files(folder, meta: dict) -> None:
+  """Raise ValueError naming an export file that is missing or not the one ``run_state.json`` recorded.
+
+  ``meta["files"]`` (written since checksums existed): file name -> its SHA-256 when exported.
+  """
+  folder = _current(folder)
+  for name, recorded in sorted((meta.get("files") or {}).items()):
+    path = folder / name
+    if not path.is_file():
+      raise ValueError(f"{path}: missing from the exported state ({META_FILE} records it); {RESTORE}")
+    if _sha256(path) != recorded:
+      raise ValueError(f"{path}: not the file {META_FILE} recorded (changed or damaged since the export, "
+                       f"or a kill during one); {RESTORE}")
 
 
 def export_state(folder, model_dir, state, *, signature: str, best=None, best_step: int | None = None,
@@ -193,40 +270,130 @@ def export_state(folder, model_dir, state, *, signature: str, best=None, best_st
     chosen: the run has finished and returns this state (the best on validation, or the step
       selected): the folder then keeps its parameters alone (:data:`PARAMS_FILE`), and
       ``state.npz`` and ``best.npz`` go (:func:`finish_export`).
-  The metadata file is written last, so a kill leaves the previous export readable
-  (its ``state.npz`` may then be newer than its metadata: the metadata's step is read
-  back from the arrays on import, and a mismatch is refused).
+  The new export is put together beside ``folder`` (``.<name>.new``: the files that do not change
+  hard-linked, the others written) and swapped in by two renames, the previous folder kept as
+  ``.<name>.old`` until the new one is in place. A kill or a full disk at any moment leaves a
+  whole export, the previous or the new one (where a kill falls between the renames, the
+  readers here take ``.<name>.old`` and the next export puts it back). ``run_state.json``
+  records each file's SHA-256 and its own checksum (:func:`check_files`, :func:`read_meta`).
   """
   folder = pathlib.Path(folder)
   model_dir = pathlib.Path(model_dir)
-  folder.mkdir(parents=True, exist_ok=True)
-  previous = read_meta(folder) or {}
+  _recover(folder)
+  try:
+    previous = read_meta(folder) or {}
+  except ValueError:                   # a damaged record: this export replaces it
+    previous = {}
+  stage = folder.with_name(f".{folder.name}.new")
+  with files.writing(stage):
+    if stage.exists():                 # left by an export a kill or a full disk stopped
+      shutil.rmtree(stage)
+    stage.mkdir(parents=True)
+  try:
+    _fill_stage(stage, folder, model_dir, state, signature=signature, best=best, best_step=best_step,
+                data_digest=data_digest, data_fingerprint=data_fingerprint, chosen=chosen,
+                previous=previous)
+  except BaseException:
+    shutil.rmtree(stage, ignore_errors=True)       # the previous export stays as it was
+    raise
+  meta = json.loads((stage / META_FILE).read_text())
+  _swap(stage, folder)
+  return meta
+
+
+def _fill_stage(stage: pathlib.Path, folder: pathlib.Path, model_dir: pathlib.Path, state, *, signature,
+                best, best_step, data_digest, data_fingerprint, chosen, previous) -> None:
+  """Put the new export together in ``stage`` (:func:`export_state`)."""
+  with files.writing(stage):
+    if folder.is_dir():
+      for p in folder.iterdir():
+        if p.is_file():
+          _link_or_copy(p, stage / p.name)
   if chosen is not None:
-    _save_params(folder / PARAMS_FILE, tree_arrays({"params": chosen.params, "step": chosen.step}))
+    _save_params(stage / PARAMS_FILE, tree_arrays({"params": chosen.params, "step": chosen.step}))
   else:
-    _save_npz(folder / STATE_FILE, state)
+    _save_npz(stage / STATE_FILE, state)
     if best_step is not None and (best is not None) and previous.get("best_step") != best_step:
-      _save_npz(folder / BEST_FILE, best)
-    elif best_step is not None and previous.get("best_step") != best_step:
+      _save_npz(stage / BEST_FILE, best)
+    elif best_step is not None and previous.get("best_step") != best_step and not (stage / BEST_FILE).exists():
       raise ValueError(f"export_state: best step {best_step} is new but no best state was given")
   for name in COPIED:
     src = model_dir / name
     if src.exists():
-      tmp = folder / (name + ".tmp")
-      shutil.copyfile(src, tmp)
-      os.replace(tmp, folder / name)
-  if data_fingerprint is not None and read_fingerprint(folder) != data_fingerprint:
-    _write_json(folder / FINGERPRINT_FILE, data_fingerprint)
+      with files.replaced(stage / name) as tmp:
+        shutil.copyfile(src, tmp)
+  if data_fingerprint is not None and _fingerprint_or_none(stage) != data_fingerprint:
+    _write_json(stage / FINGERPRINT_FILE, data_fingerprint)
   meta = {"step": int(state.step), "best_step": None if best_step is None else int(best_step),
           "signature": json.loads(signature), "data_digest": data_digest,
           "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
   if chosen is not None:
     meta.update(finished=True, chosen_step=int(chosen.step))
-  _write_json(folder / META_FILE, meta)
-  if chosen is not None:
-    for name in (STATE_FILE, BEST_FILE):
-      (folder / name).unlink(missing_ok=True)
-  return meta
+    with files.writing(stage):
+      for name in (STATE_FILE, BEST_FILE):
+        (stage / name).unlink(missing_ok=True)
+  _seal_meta(stage, meta, kept=(PARAMS_FILE,) if chosen is not None else (STATE_FILE, BEST_FILE))
+  _write_json(stage / META_FILE, meta)
+
+
+def _previous_export(folder: pathlib.Path) -> pathlib.Path:
+  """Where :func:`export_state` keeps the previous export while it swaps the new one in."""
+  return folder.with_name(f".{folder.name}.old")
+
+
+def _current(folder) -> pathlib.Path:
+  """``folder``, or the previous export where a kill fell between the two renames of a swap."""
+  folder = pathlib.Path(folder)
+  old = _previous_export(folder)
+  if not folder.exists() and (old / META_FILE).is_file():
+    return old
+  return folder
+
+
+def _recover(folder: pathlib.Path) -> None:
+  """Put back the previous export that a kill between the renames of a swap left aside."""
+  old = _previous_export(folder)
+  if not folder.exists() and (old / META_FILE).is_file():
+    with files.writing(folder):
+      os.replace(old, folder)
+
+
+def _swap(stage: pathlib.Path, folder: pathlib.Path) -> None:
+  """Replace ``folder`` by ``stage`` (two renames; the previous folder removed last)."""
+  old = _previous_export(folder)
+  with files.writing(folder):
+    if folder.exists():
+      shutil.rmtree(old, ignore_errors=True)
+      os.replace(folder, old)
+      os.replace(stage, folder)
+      shutil.rmtree(old, ignore_errors=True)
+    else:
+      folder.parent.mkdir(parents=True, exist_ok=True)
+      os.replace(stage, folder)
+
+
+def _link_or_copy(src: pathlib.Path, dst: pathlib.Path) -> None:
+  """A hard link (the same bytes, nothing copied), or a copy where the file system has none."""
+  try:
+    os.link(src, dst)
+  except OSError:
+    shutil.copyfile(src, dst)
+
+
+def _seal_meta(folder: pathlib.Path, meta: dict, kept) -> None:
+  """Add to ``meta`` the SHA-256 of each file the export keeps (``files``) and its own ``checksum``."""
+  names = [n for n in (*kept, *COPIED, FINGERPRINT_FILE) if (folder / n).is_file()]
+  with files.writing(folder):
+    meta["files"] = {n: _sha256(folder / n) for n in names}
+  meta["checksum"] = _checksum(meta)
+
+
+def _fingerprint_or_none(folder: pathlib.Path) -> dict | None:
+  """The recorded fingerprint, or None where it is absent or unreadable (it is then written again)."""
+  try:
+    return read_fingerprint(folder)
+  except ValueError:
+    return None
 
 
 def finish_export(folder) -> dict:
@@ -242,35 +409,39 @@ def finish_export(folder) -> dict:
       with a stop reason or a selection of the last step).
   """
   folder = pathlib.Path(folder)
+  _recover(folder)
   meta = read_meta(folder)
   if meta is None:
     raise ValueError(f"{folder} has no {META_FILE}: not an exported run state")
   if meta.get("finished"):
     return meta
-  selection = json.loads((folder / "selection.json").read_text()) if (folder / "selection.json").exists() else {}
+  selection = _read_json(folder / "selection.json") if (folder / "selection.json").exists() else {}
   if "stop_reason" in selection:
     source, step = BEST_FILE, meta.get("best_step")
   elif selection.get("select") == "last":
     source, step = STATE_FILE, meta["step"]
   else:
     raise ValueError(f"{folder}: the run has not finished (selection.json names no stop reason or last step)")
-  with np.load(folder / source, allow_pickle=False) as f:
-    arrays = {k: f[k] for k in f.files}
+  arrays = _read_arrays(folder / source)
   held = int(arrays["['step']"])
   if step is None or held != int(step):
     raise ValueError(f"{folder}: {source} holds step {held}, {META_FILE} chose {step}")
   _save_params(folder / PARAMS_FILE, arrays)
+  meta = {k: v for k, v in meta.items() if k not in ("files", "checksum")}
   meta = {**meta, "finished": True, "chosen_step": int(step)}
+  if "written" in meta:               # sealed as export_state seals (older folders stay as they were)
+    _seal_meta(folder, meta, kept=(PARAMS_FILE,))
   _write_json(folder / META_FILE, meta)
-  for name in (STATE_FILE, BEST_FILE):
-    (folder / name).unlink(missing_ok=True)
+  with files.writing(folder):
+    for name in (STATE_FILE, BEST_FILE):
+      (folder / name).unlink(missing_ok=True)
   return meta
 
 
 def read_fingerprint(folder) -> dict | None:
   """An exported model folder's recorded data fingerprint, or None when it has none."""
-  path = pathlib.Path(folder) / FINGERPRINT_FILE
-  return json.loads(path.read_text()) if path.exists() else None
+  path = _current(folder) / FINGERPRINT_FILE
+  return _read_json(path) if path.exists() else None
 
 
 class DataCheck(NamedTuple):
@@ -339,7 +510,7 @@ def import_state(folder, template, *, signature: str, model=None, data_digest: s
   (a finished run is not trained further).
   Raises ValueError naming what differs.
   """
-  folder = pathlib.Path(folder)
+  folder = _current(folder)
   meta = read_meta(folder)
   if meta is None:
     raise ValueError(f"{folder} has no {META_FILE}: not an exported run state")
@@ -347,6 +518,7 @@ def import_state(folder, template, *, signature: str, model=None, data_digest: s
   if differ:
     raise ValueError(f"exported state {folder} was trained under another run signature:\n  "
                      + "\n  ".join(differ) + "\nuse another export folder or the matching config")
+  check_files(folder, meta)          # before any file's content is believed
   meta = {**meta, "data_check": check_data(folder, meta, data_digest, data_fingerprint, allow_data_change)}
   if meta.get("finished"):            # the chosen parameters alone; the template's optimiser state
     chosen = _load_params(folder / PARAMS_FILE, template)
@@ -369,9 +541,11 @@ def import_state(folder, template, *, signature: str, model=None, data_digest: s
 
 def copy_logs(folder, model_dir) -> None:
   """Copy an export's :data:`COPIED` files into ``model_dir`` (replacing the workdir's older ones)."""
-  folder, model_dir = pathlib.Path(folder), pathlib.Path(model_dir)
-  model_dir.mkdir(parents=True, exist_ok=True)
+  folder, model_dir = _current(folder), pathlib.Path(model_dir)
+  with files.writing(model_dir):
+    model_dir.mkdir(parents=True, exist_ok=True)
   for name in COPIED:
     src = folder / name
     if src.exists():
-      shutil.copyfile(src, model_dir / name)
+      with files.replaced(model_dir / name) as tmp:
+        shutil.copyfile(src, tmp)

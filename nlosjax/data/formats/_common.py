@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 import scipy.io
 
-from nlosjax.data.formats.registry import _container
+from nlosjax.data.formats.registry import DAMAGED_INPUT, _container
 from nlosjax.physics.setup import Setup
 
 # -------------------------------------------------------------- arguments
@@ -59,9 +59,9 @@ class _MatVariable:
       return np.asarray(self._array[index])
     try:
       block = self._dataset[tuple(reversed(index))]
-    except OSError as exc:
+    except (OSError, RuntimeError) as exc:
       raise ValueError(f"{self.path}: reading variable {self.name!r} failed (corrupt or"
-                       f" truncated file?): {exc}") from None
+                       f" truncated file?): {' '.join(str(exc).split())}; {DAMAGED_INPUT}") from None
     return np.asarray(block).T
 
 
@@ -83,13 +83,13 @@ class _MatFile:
         raise
       except Exception as exc:
         raise ValueError(f"{path}: cannot be read as a MATLAB v5 file (corrupt, truncated or"
-                         f" another format): {type(exc).__name__}: {exc}") from None
+                         f" another format): {type(exc).__name__}: {exc}; {DAMAGED_INPUT}") from None
     elif self.container == "hdf5":
       try:
         self._h5 = h5py.File(path, "r")
       except OSError as exc:
         raise ValueError(f"{path}: cannot be read as an HDF5 / MATLAB v7.3 file (corrupt or"
-                         f" truncated): {exc}") from None
+                         f" truncated): {exc}; {DAMAGED_INPUT}") from None
     else:
       raise ValueError(f"{path}: neither a MATLAB v5 nor a MATLAB v7.3 / HDF5 file")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import io
 import json
 import os
 from collections.abc import Mapping
@@ -18,8 +19,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from nlosjax import files
 from nlosjax.data.formats._common import _bin_time, _check_counts, _frame_selection, _make_setup, _time_plan
-from nlosjax.data.formats.registry import _attr_value, _root_format, register_format
+from nlosjax.data.formats.registry import DAMAGED_INPUT, _attr_value, _root_format, register_format
 from nlosjax.physics.setup import Setup
 
 # ---------------------------------------------------------- nlosjax formats
@@ -79,32 +81,40 @@ def save_capture(path, transient, setup: Setup, *, overwrite: bool = False,
     if not np.all(np.isfinite(arr)):
       raise ValueError(f"{path}: dataset {key!r} holds NaN or infinite values")
     arrays[key] = arr
+  # Built in memory, then written with Python: HDF5 (2.0) crashes the process when one of its own
+  # writes fails, so it never writes to the disk here, and a full disk is a clean OSError.
+  buf = io.BytesIO()
+  with h5py.File(buf, "w", libver=("v110", "v110")) as f:
+    # HDF5 1.10's format: its object headers and chunk indexes carry checksums; fletcher32: so does
+    # every chunk. A flipped bit in a capture fails its read instead of changing a count.
+    a = f.attrs
+    a["format"] = CAPTURE_FORMAT
+    a["format_version"] = CAPTURE_FORMAT_VERSION
+    a["wall_size"] = setup.wall_size
+    a["grid"] = np.asarray(setup.grid, np.int64)
+    a["bin_width"] = setup.bin_width
+    a["num_bins"] = setup.num_bins
+    if setup.depth_range is not None:
+      a["depth_range"] = np.asarray(setup.depth_range, np.float64)
+    for key, value in (attrs or {}).items():
+      if isinstance(value, (str, int, float, bool, np.number)):
+        a[key] = value
+      else:
+        a[key] = json.dumps(value, default=str)
+    if transient is not None:
+      chunks = (1,) * (transient.ndim - 2) + transient.shape[-2:]
+      f.create_dataset("transient", data=transient, chunks=chunks, compression="gzip",
+                       compression_opts=4, shuffle=True, fletcher32=True)
+    for key, arr in arrays.items():
+      f.create_dataset(key, data=arr, compression="gzip" if arr.size > 4096 else None, fletcher32=True)
   tmp = path.with_name(path.name + ".partial")
   try:
-    with h5py.File(tmp, "w") as f:
-      a = f.attrs
-      a["format"] = CAPTURE_FORMAT
-      a["format_version"] = CAPTURE_FORMAT_VERSION
-      a["wall_size"] = setup.wall_size
-      a["grid"] = np.asarray(setup.grid, np.int64)
-      a["bin_width"] = setup.bin_width
-      a["num_bins"] = setup.num_bins
-      if setup.depth_range is not None:
-        a["depth_range"] = np.asarray(setup.depth_range, np.float64)
-      for key, value in (attrs or {}).items():
-        if isinstance(value, (str, int, float, bool, np.number)):
-          a[key] = value
-        else:
-          a[key] = json.dumps(value, default=str)
-      if transient is not None:
-        chunks = (1,) * (transient.ndim - 2) + transient.shape[-2:]
-        f.create_dataset("transient", data=transient, chunks=chunks, compression="gzip",
-                         compression_opts=4, shuffle=True)
-      for key, arr in arrays.items():
-        f.create_dataset(key, data=arr, compression="gzip" if arr.size > 4096 else None)
+    tmp.write_bytes(buf.getbuffer())
     os.replace(tmp, path)
-  except BaseException:
+  except BaseException as e:
     tmp.unlink(missing_ok=True)
+    if isinstance(e, OSError):         # a full disk, a read-only folder
+      raise files.FileFault(path, files.describe(e, path), files.fault_errno(e)) from e
     raise
   return path
 
@@ -114,7 +124,8 @@ def _read_capture(path: Path, *, zero_bins=None, bin_factor=None, num_bins=None,
   try:
     f = h5py.File(path, "r")
   except OSError as exc:
-    raise ValueError(f"{path}: cannot be read as an HDF5 file (corrupt or truncated): {exc}") from None
+    raise ValueError(f"{path}: cannot be read as an HDF5 file (corrupt or truncated):"
+                     f" {' '.join(str(exc).split())}; {DAMAGED_INPUT}") from None
   with f:
     a = f.attrs
     version = int(_attr_value(a.get("format_version", -1)))
@@ -141,8 +152,9 @@ def _read_capture(path: Path, *, zero_bins=None, bin_factor=None, num_bins=None,
     frames, single = _frame_selection(path, frame, ds.shape[0] if ds.ndim == 4 else 1)
     try:
       raw = ds[frames] if ds.ndim == 4 else ds[...][None]
-    except OSError as exc:
-      raise ValueError(f"{path}: reading 'transient' failed (corrupt file?): {exc}") from None
+    except (OSError, RuntimeError) as exc:
+      raise ValueError(f"{path}: reading 'transient' failed (the file is damaged: "
+                       f"{' '.join(str(exc).split())}); {DAMAGED_INPUT}") from None
     depth_range = tuple(float(v) for v in np.ravel(a["depth_range"])) if "depth_range" in a else None
     wall, native = float(_attr_value(a["wall_size"])), float(_attr_value(a["bin_width"]))
   _check_counts(path, "transient", raw)

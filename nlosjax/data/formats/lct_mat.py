@@ -28,7 +28,7 @@ import numpy as np
 import scipy.io
 
 from nlosjax.data.formats._common import _int_arg
-from nlosjax.data.formats.registry import _container, _variables, register_format
+from nlosjax.data.formats.registry import DAMAGED_INPUT, _container, _variables, register_format
 from nlosjax.physics.setup import Setup
 
 # ------------------------------------------------------------------ lct_mat
@@ -71,7 +71,7 @@ def _read_lct_mat(path: Path, *, zero_bins=None, bin_factor=None, num_bins=None)
             if _container(path) == "hdf5" else "")
     raise ValueError(
         f"{path}: cannot be read as a MATLAB v5 file (corrupt, truncated or another"
-        f" format): {type(exc).__name__}: {exc}.{hint}") from exc
+        f" format): {type(exc).__name__}: {' '.join(str(exc).split())}.{hint} ({DAMAGED_INPUT})") from exc
 
   missing = [key for key in ("rect_data", "width") if key not in contents]
   if missing:

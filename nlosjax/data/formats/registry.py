@@ -154,6 +154,10 @@ def _stat_key(path: Path) -> tuple:
   return (str(path.resolve()), st.st_mtime_ns, st.st_size)
 
 
+#: What to do about an input file that cannot be read (a measured capture, a dataset given by path).
+DAMAGED_INPUT = "the file is damaged or cut short: copy it again from where it came from"
+
+
 class _Unreadable(Exception):
   """A container that cannot be listed; the message completes ``"{path}: "``."""
 
@@ -196,7 +200,7 @@ def _listing(path: Path, container: str) -> dict:
   try:
     out = dict(_listing_cached(_stat_key(path), container))
   except _Unreadable as exc:
-    raise ValueError(f"{path}: {exc}") from None
+    raise ValueError(f"{path}: {exc}; {DAMAGED_INPUT}") from None
   if container == "mat5":
     out.pop("#attrs", None)
   return out
