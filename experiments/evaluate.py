@@ -41,7 +41,12 @@ def main(argv=None) -> dict:
   parser.add_argument("--retune", action="store_true",
                       help="choose the classic settings on this file's val split")
   args = parser.parse_args(argv)
+  from experiments.cli import one_line_errors
+  with one_line_errors():           # a bad or damaged input, a full disk: one line, exit status 2
+    return _run(args)
 
+
+def _run(args) -> dict:
   import json
 
   from nlosjax import inference, train
@@ -76,7 +81,11 @@ def main(argv=None) -> dict:
                     protocol.tune_model_thresholds(config, data, trained).items()}
       source = f"chosen on the val split of `{data}`"
     elif chosen.exists():
-      run_choices = json.loads(chosen.read_text())
+      try:
+        run_choices = json.loads(chosen.read_text())
+      except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{chosen}: not readable JSON ({e}); rerun the main job on {workdir} to "
+                         "write it again, or pass --retune") from None
       settings, best = run_choices.get("classic", {}), run_choices.get("best_classic")
       thresholds = {v: c["threshold"] for v, c in run_choices.get("learned", {}).items()}
       source = f"chosen on the run's validation split (`{chosen}`)"
@@ -87,7 +96,8 @@ def main(argv=None) -> dict:
     table, comparisons = protocol.tabulate(
         evaluation, best_classic_method=best if best in classic else None)
   except ValueError as e:
-    raise SystemExit(f"error: {e}") from None
+    from nlosjax.files import one_line
+    raise SystemExit(f"error: {one_line(str(e))}") from None   # bad arguments: exit status 1
   out = pathlib.Path(args.out) if args.out else workdir / f"eval_{data.stem}"
   caption = (f"`{args.split}` split of `{data}` ({evaluation['n_frames']} frames); "
              f"models from `{args.checkpoint}`; classic settings {source}; "

@@ -41,7 +41,7 @@ import time
 
 import jax
 
-from nlosjax import train
+from nlosjax import files, train
 from nlosjax.evaluation import baselines, protocol
 
 __all__ = ["model_folder", "train_and_evaluate"]
@@ -95,9 +95,10 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
     from nlosjax.plan import check_fits
     check_fits(cfg, log=log)            # before any data or parameters exist
   workdir = pathlib.Path(workdir)
-  workdir.mkdir(parents=True, exist_ok=True)
+  with files.writing(workdir):
+    workdir.mkdir(parents=True, exist_ok=True)
   if primary:
-    (workdir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2, default=str) + "\n")
+    files.write_text_atomic(workdir / "config.json", json.dumps(cfg.to_dict(), indent=2, default=str) + "\n")
   t0 = time.perf_counter()
   if cfg.data.path is None:
     raise ValueError("config data.path: the main job needs the dataset file's path")

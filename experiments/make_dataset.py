@@ -142,8 +142,9 @@ def main(argv=None) -> int:
         f" wall {s.wall_size} m; clean {'on' if spec.store_clean else 'off'} -> {out}")
   t0 = time.perf_counter()
   workers = int(config.get("train", {}).get("data_workers") or 1)
-  result = dataset.write_dataset(out, spec, overwrite=args.overwrite, workers=workers,
-                                 progress=not args.quiet)
+  with cli.one_line_errors():        # a locked or unwritable file, a full disk: one line, exit status 2
+    result = dataset.write_dataset(out, spec, overwrite=args.overwrite, workers=workers,
+                                   progress=not args.quiet)
   dt = time.perf_counter() - t0
   resumed = f", {result.resumed} kept from an interrupted run" if result.resumed else ""
   print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB) in {dt:.1f} s: {result.generated}"

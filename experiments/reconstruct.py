@@ -453,38 +453,40 @@ def main(argv=None) -> dict:
                                                      args.scan_stride, edge_bins=args.edge_bins)
       vsetup = setup
     t2 = time.perf_counter()
-  except (ValueError, FileNotFoundError) as e:
-    print(f"error: {e}", file=sys.stderr)
+  except (ValueError, OSError) as e:
+    from nlosjax.files import describe, one_line
+    print(f"error: {one_line(describe(e) if isinstance(e, OSError) else str(e))}", file=sys.stderr)
     raise SystemExit(2) from None
-
-  out.mkdir(parents=True, exist_ok=True)
-  timings = {"load_s": t1 - t0, "reconstruct_s": t2 - t1}
-  attrs = {"method": args.method, "source": str(pathlib.Path(args.file).absolute()),
-           "edge_bins": 0 if args.method in LEARNED else args.edge_bins,
-           "source_format": fmt, "options": options, "scan_stride": args.scan_stride or 1,
-           "model": info, "command": " ".join(sys.argv if argv is None else ["reconstruct", *argv])}
-  io.save_capture(out / "volume.h5", None, vsetup, overwrite=True,
-                  attrs={**attrs, "timings": timings},
-                  volume=volume[0] if single else volume,
-                  intensity=intensity[0] if single else intensity,
-                  depth=depth[0] if single else depth)
-  title = f"{pathlib.Path(args.file).name}: {args.method}" + (
-      f", stride {args.scan_stride}" if args.scan_stride and args.scan_stride > 1 else "")
-  views = np.sqrt(np.maximum(volume, 0)) if args.method == "fk" else volume   # f-k: albedo^2
-  if args.method not in LEARNED:
-    views = edge_masked(views, vsetup, args.edge_bins)
-  write_figures(out, views, intensity, depth, vsetup, title)
-  t3 = time.perf_counter()
-  timings.update(write_s=t3 - t2, total_s=t3 - t_start)
-  (out / "timings.json").write_text(json.dumps(timings, indent=2) + "\n")
-  fitted = info.get("adapted")
-  adapted = (f" (of which adapting {fitted['seconds']:.2f} s: {fitted['steps']} steps, best {fitted['best_step']},"
-             f" held-out NLL {fitted['holdout_nll'][0]:.4f} -> {fitted['holdout_nll'][1]:.4f})") if fitted else ""
-  print(f"{args.method}: load {timings['load_s']:.2f} s, reconstruct {timings['reconstruct_s']:.2f} s"
-        f" (operators, compilation and run){adapted}, write {timings['write_s']:.2f} s; total"
-        f" {timings['total_s']:.2f} s -> {out}")
-  return {"volume": volume, "intensity": intensity, "depth": depth, "setup": vsetup,
-          "timings": timings}
+  from experiments.cli import one_line_errors
+  with one_line_errors():           # a full disk, a read-only --out: one line, exit status 2
+    out.mkdir(parents=True, exist_ok=True)
+    timings = {"load_s": t1 - t0, "reconstruct_s": t2 - t1}
+    attrs = {"method": args.method, "source": str(pathlib.Path(args.file).absolute()),
+             "edge_bins": 0 if args.method in LEARNED else args.edge_bins,
+             "source_format": fmt, "options": options, "scan_stride": args.scan_stride or 1,
+             "model": info, "command": " ".join(sys.argv if argv is None else ["reconstruct", *argv])}
+    io.save_capture(out / "volume.h5", None, vsetup, overwrite=True,
+                    attrs={**attrs, "timings": timings},
+                    volume=volume[0] if single else volume,
+                    intensity=intensity[0] if single else intensity,
+                    depth=depth[0] if single else depth)
+    title = f"{pathlib.Path(args.file).name}: {args.method}" + (
+        f", stride {args.scan_stride}" if args.scan_stride and args.scan_stride > 1 else "")
+    views = np.sqrt(np.maximum(volume, 0)) if args.method == "fk" else volume   # f-k: albedo^2
+    if args.method not in LEARNED:
+      views = edge_masked(views, vsetup, args.edge_bins)
+    write_figures(out, views, intensity, depth, vsetup, title)
+    t3 = time.perf_counter()
+    timings.update(write_s=t3 - t2, total_s=t3 - t_start)
+    (out / "timings.json").write_text(json.dumps(timings, indent=2) + "\n")
+    fitted = info.get("adapted")
+    adapted = (f" (of which adapting {fitted['seconds']:.2f} s: {fitted['steps']} steps, best {fitted['best_step']},"
+               f" held-out NLL {fitted['holdout_nll'][0]:.4f} -> {fitted['holdout_nll'][1]:.4f})") if fitted else ""
+    print(f"{args.method}: load {timings['load_s']:.2f} s, reconstruct {timings['reconstruct_s']:.2f} s"
+          f" (operators, compilation and run){adapted}, write {timings['write_s']:.2f} s; total"
+          f" {timings['total_s']:.2f} s -> {out}")
+    return {"volume": volume, "intensity": intensity, "depth": depth, "setup": vsetup,
+            "timings": timings}
 
 
 if __name__ == "__main__":

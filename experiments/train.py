@@ -46,7 +46,7 @@ switches it off; :mod:`experiments.xla_cache`), so a rerun reads what an earlier
 run compiled; the last line printed is the cache's hit rate.
 """
 
-from experiments.cli import config_parser, parse_config
+from experiments.cli import config_parser, one_line_errors, parse_config
 
 #: Exit status of a run paused at its ``--hours`` deadline (``EX_TEMPFAIL``: run the same command again).
 EXIT_PAUSED = 75
@@ -69,10 +69,14 @@ def record_invocation(workdir, argv=None) -> dict:
   from experiments.provenance import run_record
   argv = sys.argv[1:] if argv is None else list(argv)
   record = run_record(" ".join(["python -m experiments.train", *map(shlex.quote, argv)]))
+  from nlosjax.files import writing
   workdir = pathlib.Path(workdir)
-  workdir.mkdir(parents=True, exist_ok=True)
-  with open(workdir / INVOCATIONS, "a") as f:
-    f.write(json.dumps(record) + "\n")
+  path = workdir / INVOCATIONS
+  with writing(path):
+    workdir.mkdir(parents=True, exist_ok=True)
+    cut = path.is_file() and path.stat().st_size and not path.read_bytes().endswith(b"\n")
+    with open(path, "a") as f:
+      f.write(("\n" if cut else "") + json.dumps(record) + "\n")   # after a line a kill cut short
   return record
 
 
@@ -105,7 +109,8 @@ def main(argv=None):
   xla_cache.enable(tidy=True)        # before anything compiles
   from nlosjax.train import TrainingPaused
   try:
-    run(args, config, parser, argv)
+    with one_line_errors():          # a bad or damaged input, a full disk: one line, exit status 2
+      run(args, config, parser, argv)
   except TrainingPaused as e:
     print(f"{e}; rerun the same command to continue", flush=True)
     print(xla_cache.summary(), flush=True)
@@ -166,13 +171,17 @@ def _state_export(args):
   import pathlib
   import time
 
+  from nlosjax.files import writing
   from nlosjax.train import StateExport
   folder = pathlib.Path(args.resume_from)
   if args.process_id == 0:
-    folder.mkdir(parents=True, exist_ok=True)
     line = (pathlib.Path(args.workdir) / INVOCATIONS).read_text().splitlines()[-1]
-    with open(folder / INVOCATIONS, "a") as f:
-      f.write(json.dumps({**json.loads(line), "workdir": str(args.workdir)}) + "\n")
+    path = folder / INVOCATIONS
+    with writing(path):
+      folder.mkdir(parents=True, exist_ok=True)
+      cut = path.is_file() and path.stat().st_size and not path.read_bytes().endswith(b"\n")
+      with open(path, "a") as f:
+        f.write(("\n" if cut else "") + json.dumps({**json.loads(line), "workdir": str(args.workdir)}) + "\n")
   return StateExport(folder, deadline=None if args.hours is None else time.time() + 3600 * args.hours,
                      allow_data_change=args.allow_data_change)
 
