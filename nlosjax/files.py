@@ -46,8 +46,8 @@ def fault_errno(error: BaseException) -> int | None:
   number = getattr(error, "errno", None)
   if isinstance(number, int):
     return number
-  found = re.search(r"errno\s*=\s*(\d+)", str(error))
-  return int(found.group(1)) if found else None
+  found = re.search(r"errno\s*=\s*(\d+)|os_error_code='?(\d+)", str(error))   # h5py's, TensorStore's
+  return int(found.group(1) or found.group(2)) if found else None
 
 
 def what_to_do(number: int | None) -> str:
@@ -140,6 +140,67 @@ def reserve(path, offset: int, nbytes: int) -> None:
     os.posix_fallocate(fd, int(offset), max(int(nbytes), 1))
   finally:
     os.close(fd)
+
+
+def probe_space(folder, nbytes: int) -> None:
+  """Raise an ``OSError`` now where ``folder`` cannot take a file of ``nbytes`` (full, read-only, size limit).
+
+  For writers whose own failures are hard to read (orbax's TensorStore errors, its background
+  threads): a file of that size is allocated in ``folder`` and removed at once.
+  """
+  probe = pathlib.Path(folder) / f".space-probe-{os.getpid()}"
+  fd = os.open(probe, os.O_CREAT | os.O_WRONLY | os.O_TRUNC, 0o600)
+  try:
+    os.posix_fallocate(fd, 0, max(int(nbytes), 1))
+  finally:
+    os.close(fd)
+    with contextlib.suppress(OSError):
+      probe.unlink()
+
+
+#: The HDF5 attribute that holds a digest of its object's other attributes (:func:`attrs_digest`):
+#: HDF5 keeps string attributes in its global heap, which no checksum covers.
+ATTRS_DIGEST = "attrs_sha256"
+
+
+def _canonical(value) -> bytes:
+  """An HDF5 attribute value's bytes as h5py reads it back (str, bytes, numpy scalar or array)."""
+  import numpy as np
+  if isinstance(value, str):
+    return b"s" + value.encode()
+  if isinstance(value, bytes):
+    return b"b" + value
+  a = np.asarray(value)
+  if a.dtype.kind == "O":
+    return b"o" + repr(a.tolist()).encode()
+  return a.dtype.str.encode() + repr(a.shape).encode() + a.tobytes()
+
+
+def attrs_digest(attrs) -> str:
+  """SHA-256 (16 hex characters) of an HDF5 object's attributes other than :data:`ATTRS_DIGEST`."""
+  import hashlib
+  h = hashlib.sha256()
+  for key in sorted(k for k in attrs if k != ATTRS_DIGEST):
+    h.update(key.encode() + b"\0" + _canonical(attrs[key]) + b"\0")
+  return h.hexdigest()[:16]
+
+
+def seal_attrs(obj) -> None:
+  """Write the digest of an h5py object's attributes (:data:`ATTRS_DIGEST`), read back as a reader reads them."""
+  obj.attrs[ATTRS_DIGEST] = attrs_digest(obj.attrs)
+
+
+def attrs_intact(obj) -> bool | None:
+  """Whether an h5py object's attributes match their digest (None: written without one).
+
+  Listing the attributes raises where HDF5's own checksum of them fails.
+  """
+  if ATTRS_DIGEST not in list(obj.attrs):
+    return None
+  recorded = obj.attrs[ATTRS_DIGEST]
+  if isinstance(recorded, bytes):
+    recorded = recorded.decode(errors="replace")
+  return recorded == attrs_digest(obj.attrs)
 
 
 def one_line(message: str) -> str:

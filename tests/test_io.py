@@ -16,6 +16,7 @@ import nlosjax.data
 from nlosjax.data import io as dio
 from nlosjax.data import load_measurement, shipped_scan_path
 from nlosjax.data.formats import registry
+from nlosjax.files import seal_attrs
 from nlosjax.physics.setup import Setup
 
 REPO = Path(__file__).resolve().parents[1]
@@ -681,14 +682,21 @@ def test_capture_roundtrip_and_frames(tmp_path):
 def test_capture_inconsistent_attributes(tmp_path):
   path = dio.save_capture(tmp_path / "cap.h5", np.ones((8, 4, 4)),
                           Setup(wall_size=1.0, grid=(4, 4), bin_width=1e-11, num_bins=8))
+  # save_capture seals the attributes with a digest (nlosjax.files.ATTRS_DIGEST): an attribute
+  # changed without resealing reads as a damaged file; resealed, the specific check speaks.
   with h5py.File(path, "r+") as f:
     f.attrs["grid"] = [4, 5]
+  with pytest.raises(ValueError, match=names_file(path) + ".*do not match the digest.*damaged"):
+    load_measurement(path)
+  with h5py.File(path, "r+") as f:
+    seal_attrs(f)
   with pytest.raises(ValueError, match=names_file(path)) as info:
     load_measurement(path)
   assert "grid" in str(info.value)
   with h5py.File(path, "r+") as f:
     f.attrs["grid"] = [4, 4]
     f.attrs["format_version"] = 99
+    seal_attrs(f)
   with pytest.raises(ValueError, match="format_version"):
     load_measurement(path)
 

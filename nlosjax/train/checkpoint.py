@@ -165,10 +165,31 @@ class Checkpointer:
     item = {"params": state.params, "opt_state": state.opt_state, "step": state.step}
     meta = {"data_position": int(data_position), "model_config": self.model_config,
             "digest": tree_digest(item), "params_digest": tree_digest(item["params"])}
-    with files.writing(self.directory / str(step)):
+    nbytes = sum(int(np.size(x)) * np.asarray(x).dtype.itemsize if not hasattr(x, "dtype")
+                 else int(np.size(x)) * jnp.dtype(x.dtype).itemsize for x in jax.tree.leaves(item))
+    with self._writing(self.directory / str(step)):
+      self.manager.wait_until_finished()        # the previous save's errors surface here, named
+      # orbax reports a full disk or a read-only folder from its threads, in TensorStore's words,
+      # after printing tracebacks: find out first, in one clean OSError.
+      files.probe_space(self.directory, int(nbytes * 1.1) + (1 << 20))
       self.manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(item),
                                                        meta=ocp.args.JsonSave(meta)), force=force)
     return True
+
+  @contextlib.contextmanager
+  def _writing(self, where):
+    """:func:`nlosjax.files.writing`, also for orbax's errors that carry an OS error code."""
+    try:
+      with files.writing(where):
+        yield
+    except files.FileFault:
+      raise
+    except Exception as e:  # noqa: BLE001 - TensorStore raises ValueError with the OS error code in it
+      number = files.fault_errno(e)
+      if number is None:
+        raise
+      raise files.FileFault(where, f"{where}: {os.strerror(number)} (writing a checkpoint); "
+                                   f"{files.what_to_do(number)}", number) from e
 
   def all_steps(self) -> list[int]:
     """Steps of the kept checkpoints, ascending."""
@@ -205,7 +226,7 @@ class Checkpointer:
               f"{aside.name}; resuming from step {step}")
       return restored
     reasons = "; ".join(f"step {e.step}: {e.reason}" for e in skipped)
-    raise ValueError(f"{self.directory}: none of the checkpoints restores ({reasons}); they are left "
+    raise ValueError(f"no checkpoint under {self.directory} restores ({reasons}); they are left "
                      "untouched: move the folder away to train from step 0")
 
   def _set_aside(self, where: pathlib.Path) -> pathlib.Path:
@@ -263,11 +284,11 @@ class Checkpointer:
 
   def wait(self):
     """Block until every save started so far is finalised on disk."""
-    with files.writing(self.directory):
+    with self._writing(self.directory):
       self.manager.wait_until_finished()
 
   def close(self):
-    with files.writing(self.directory):
+    with self._writing(self.directory):
       self.manager.wait_until_finished()
       self.manager.close()
 

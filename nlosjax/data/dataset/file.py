@@ -46,27 +46,10 @@ DATASETS = {"measurement": True, "clean": False, "albedo": False, "intensity": T
 LIBVER = ("v110", "v110")
 #: Attribute holding a digest of its object's other attributes (the root's and each sequence's):
 #: string attributes live in HDF5's global heap, which no checksum covers. Checked on opening.
-ATTRS_DIGEST = "attrs_sha256"
-
-
-def _canonical(value) -> bytes:
-  """An attribute value's bytes as h5py reads it back (str, bytes, numpy scalar or array)."""
-  if isinstance(value, str):
-    return b"s" + value.encode()
-  if isinstance(value, bytes):
-    return b"b" + value
-  a = np.asarray(value)
-  if a.dtype.kind == "O":
-    return b"o" + repr(a.tolist()).encode()
-  return a.dtype.str.encode() + repr(a.shape).encode() + a.tobytes()
-
-
-def attrs_digest(attrs) -> str:
-  """SHA-256 (16 hex characters) of an HDF5 object's attributes other than :data:`ATTRS_DIGEST`."""
-  h = hashlib.sha256()
-  for key in sorted(k for k in attrs if k != ATTRS_DIGEST):
-    h.update(key.encode() + b"\0" + _canonical(attrs[key]) + b"\0")
-  return h.hexdigest()[:16]
+ATTRS_DIGEST = files.ATTRS_DIGEST
+attrs_digest = files.attrs_digest
+_seal = files.seal_attrs
+_attrs_intact = files.attrs_intact
 
 
 #: Bytes reserved on disk beyond a step's arrays, for HDF5's metadata (:func:`nlosjax.files.reserve`).

@@ -107,6 +107,7 @@ def save_capture(path, transient, setup: Setup, *, overwrite: bool = False,
                        compression_opts=4, shuffle=True, fletcher32=True)
     for key, arr in arrays.items():
       f.create_dataset(key, data=arr, compression="gzip" if arr.size > 4096 else None, fletcher32=True)
+    files.seal_attrs(f)                # string attributes carry no HDF5 checksum: a digest of them all
   tmp = path.with_name(path.name + ".partial")
   try:
     tmp.write_bytes(buf.getbuffer())
@@ -126,37 +127,45 @@ def _read_capture(path: Path, *, zero_bins=None, bin_factor=None, num_bins=None,
   except OSError as exc:
     raise ValueError(f"{path}: cannot be read as an HDF5 file (corrupt or truncated):"
                      f" {' '.join(str(exc).split())}; {DAMAGED_INPUT}") from None
-  with f:
-    a = f.attrs
-    version = int(_attr_value(a.get("format_version", -1)))
-    if version > CAPTURE_FORMAT_VERSION or version < 1:
-      raise ValueError(f"{path}: format_version {version} of {CAPTURE_FORMAT!r} is not supported"
-                       f" (this nlosjax reads 1..{CAPTURE_FORMAT_VERSION}); update nlosjax")
-    missing = [k for k in ("wall_size", "bin_width") if k not in a]
-    if missing:
-      raise ValueError(f"{path}: missing Setup attribute(s) {missing} of format 'nlosjax_capture'")
-    if "transient" not in f or not isinstance(f["transient"], h5py.Dataset):
-      raise ValueError(f"{path}: no dataset 'transient' (the file holds {sorted(f)}); files holding"
-                       " only reconstructions cannot be loaded as measurements")
-    ds = f["transient"]
-    if ds.ndim not in (3, 4) or ds.dtype.kind not in "uif":
-      raise ValueError(f"{path}: transient must be a real [T, H, W] or [F, T, H, W] array, got"
-                       f" shape {ds.shape} dtype {ds.dtype}")
-    raw_bins, height, width_px = ds.shape[-3:]
-    if "grid" in a and tuple(int(v) for v in np.ravel(a["grid"])) != (height, width_px):
-      raise ValueError(f"{path}: attribute grid {tuple(np.ravel(a['grid']))} does not match the"
-                       f" transient's scan grid {(height, width_px)}")
-    if "num_bins" in a and int(_attr_value(a["num_bins"])) != raw_bins:
-      raise ValueError(f"{path}: attribute num_bins {a['num_bins']} does not match the"
-                       f" transient's {raw_bins} time bins")
-    frames, single = _frame_selection(path, frame, ds.shape[0] if ds.ndim == 4 else 1)
-    try:
-      raw = ds[frames] if ds.ndim == 4 else ds[...][None]
-    except (OSError, RuntimeError) as exc:
-      raise ValueError(f"{path}: reading 'transient' failed (the file is damaged: "
-                       f"{' '.join(str(exc).split())}); {DAMAGED_INPUT}") from None
-    depth_range = tuple(float(v) for v in np.ravel(a["depth_range"])) if "depth_range" in a else None
-    wall, native = float(_attr_value(a["wall_size"])), float(_attr_value(a["bin_width"]))
+  try:
+    with f:
+      list(f)                          # HDF5 checks its checksums here: a damaged file raises
+      if files.attrs_intact(f) is False:
+        raise ValueError(f"{path}: its attributes do not match the digest written with them (the file"
+                         f" is damaged); {DAMAGED_INPUT}")
+      a = f.attrs
+      version = int(_attr_value(a.get("format_version", -1)))
+      if version > CAPTURE_FORMAT_VERSION or version < 1:
+        raise ValueError(f"{path}: format_version {version} of {CAPTURE_FORMAT!r} is not supported"
+                         f" (this nlosjax reads 1..{CAPTURE_FORMAT_VERSION}); update nlosjax")
+      missing = [k for k in ("wall_size", "bin_width") if k not in a]
+      if missing:
+        raise ValueError(f"{path}: missing Setup attribute(s) {missing} of format 'nlosjax_capture'")
+      if "transient" not in f or not isinstance(f["transient"], h5py.Dataset):
+        raise ValueError(f"{path}: no dataset 'transient' (the file holds {sorted(f)}); files holding"
+                         " only reconstructions cannot be loaded as measurements")
+      ds = f["transient"]
+      if ds.ndim not in (3, 4) or ds.dtype.kind not in "uif":
+        raise ValueError(f"{path}: transient must be a real [T, H, W] or [F, T, H, W] array, got"
+                         f" shape {ds.shape} dtype {ds.dtype}")
+      raw_bins, height, width_px = ds.shape[-3:]
+      if "grid" in a and tuple(int(v) for v in np.ravel(a["grid"])) != (height, width_px):
+        raise ValueError(f"{path}: attribute grid {tuple(np.ravel(a['grid']))} does not match the"
+                         f" transient's scan grid {(height, width_px)}")
+      if "num_bins" in a and int(_attr_value(a["num_bins"])) != raw_bins:
+        raise ValueError(f"{path}: attribute num_bins {a['num_bins']} does not match the"
+                         f" transient's {raw_bins} time bins")
+      frames, single = _frame_selection(path, frame, ds.shape[0] if ds.ndim == 4 else 1)
+      try:
+        raw = ds[frames] if ds.ndim == 4 else ds[...][None]
+      except (OSError, RuntimeError) as exc:
+        raise ValueError(f"{path}: reading 'transient' failed (the file is damaged: "
+                         f"{' '.join(str(exc).split())}); {DAMAGED_INPUT}") from None
+      depth_range = tuple(float(v) for v in np.ravel(a["depth_range"])) if "depth_range" in a else None
+      wall, native = float(_attr_value(a["wall_size"])), float(_attr_value(a["bin_width"]))
+  except (OSError, KeyError, RuntimeError) as exc:     # a failed checksum, an object that does not open
+    raise ValueError(f"{path}: reading it failed (the file is damaged: {' '.join(str(exc).split())});"
+                     f" {DAMAGED_INPUT}") from None
   _check_counts(path, "transient", raw)
   zero_bins, bin_factor, num_bins = _time_plan(path, raw_bins, zero_bins, bin_factor, num_bins)
   counts = _bin_time(np.moveaxis(raw, 1, -1), zero_bins, bin_factor, num_bins)

@@ -27,6 +27,7 @@ import h5py
 import numpy as np
 import scipy.io
 
+from nlosjax import files
 from nlosjax.physics.setup import Setup
 
 # ----------------------------------------------------------------- registry
@@ -179,12 +180,15 @@ def _listing_cached(key: tuple, container: str) -> dict:
              for name, obj in f.items()}
       out["#attrs"] = {k: _attr_value(v) for k, v in f.attrs.items()
                        if k in ("format", "format_version", "MATLAB_class")}
-      return out
+      intact = files.attrs_intact(f)     # nlosjax's files seal their attributes with a digest
   except MemoryError:
     raise
   except Exception as exc:
     raise _Unreadable(f"cannot be read as an HDF5 file (corrupt or truncated):"
                       f" {type(exc).__name__}: {exc}") from None
+  if intact is False:
+    raise _Unreadable("its attributes do not match the digest written with them (the file is damaged)")
+  return out
 
 
 def _listing(path: Path, container: str) -> dict:
