@@ -299,6 +299,10 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config: pytest.Config)
     terminalreporter.write_line(line)
   for line in most_compiles(config):
     terminalreporter.write_line(line)
+  from tests.faults import summary  # the fault campaign's tally (tests/test_faults.py), when it ran
+  reports = [r for group in terminalreporter.stats.values() for r in group if hasattr(r, "user_properties")]
+  for line in summary(reports):
+    terminalreporter.write_line(line)
 
 
 #: XLA flags the suite adds (name -> value), each only where the environment does not set it.
