@@ -24,7 +24,7 @@ def parse_models(items, defaults) -> dict:
       raise SystemExit(f"--model takes LABEL=RUN, got {item!r}")
     if name in seen:
       raise SystemExit(f"--model: label {name!r} given twice")
-    if name in (study.ZERO, *study.BOUNDS, *study.CLASSIC):
+    if name in (study.ZERO, *study.TRUTH, *study.CLASSIC) or name.startswith("reference") or "@" in name:
       raise SystemExit(f"--model: label {name!r} names one of the study's own rows")
     seen.add(name)
     models[name] = spec
@@ -62,6 +62,7 @@ def main(argv=None) -> int:
     run.score_set("val", val_path, "val", choices, learned=False)
     val = study.load_records(results)["sets"]["val"]["methods"]
     run.reference(val)
+    run.oracle_choices(val_path)
     choices = json.loads((results / "headroom" / "choices.json").read_text())
     for name, (path, split) in files.items():
       if name != "val":

@@ -12,12 +12,12 @@ import math
 import numpy as np
 
 from experiments.studies.headroom import breakdown
-from experiments.studies.headroom.study import BOUNDS, CLASSIC, OBJECT_SCORES, ZERO
+from experiments.studies.headroom.study import CLASSIC, INPUTS, OBJECT_SCORES, REFERENCE_SCORES, TRUTH, ZERO, oracle
 from nlosjax import stats
 from nlosjax.evaluation import report as ereport
 from nlosjax.evaluation.scores import HIGHER_IS_BETTER, by_sequence, compare_scores
 
-__all__ = ["GROUPS", "COLUMNS", "GAP_BOUND", "groups", "method_order", "label", "summarise", "to_markdown",
+__all__ = ["GROUPS", "COLUMNS", "REFERENCE", "groups", "method_order", "label", "summarise", "to_markdown",
            "plot"]
 
 #: Report order of the sets (``heldout``: every ``heldout-<condition>`` set pooled).
@@ -25,19 +25,34 @@ GROUPS = ("test", "independent", "heldout")
 GROUP_TITLES = {"test": "the `cpu` preset's test split", "independent": "the independent set",
                 "heldout": "the held-out renderer (conditions pooled)"}
 #: The objects table's columns (the whole-image PSNR last, as the guard).
-COLUMNS = OBJECT_SCORES + ("psnr",)
-#: The bound the gaps are measured to.
-GAP_BOUND = "bound_bilinear"
-#: Scores of the gaps table: the learned model against the reference classic method, and the bound against it.
+COLUMNS = REFERENCE_SCORES
+#: The composite rows: per score, the reference classic method's score (that score's validation best) on
+#: the input the networks read, and on each better input (:data:`~experiments.studies.headroom.study.INPUTS`).
+REFERENCE = ("reference", *(f"reference@{src}" for src in INPUTS))
+#: Scores of the whole-set differences.
 GAP_SCORES = ("intensity_mae_object", "psnr_balanced", "recall", "f1")
+#: Scores of the per-tercile differences.
+BIN_GAP_SCORES = ("intensity_mae_object", "f1")
+#: A tercile's difference is called only where its interval excludes 0 *and* it rests on at least this
+#: many sequences (a bootstrap over one or two sequences gives an interval of no width).
+MIN_CALL_SEQUENCES = 3
 #: Offset between the sequence numbers of two pooled held-out conditions.
 _CONDITION_STRIDE = 1000
+_INPUT_WORDS = {"clean": "noise-free input", "full": "the full scan", "clean_full": "noise-free full scan"}
 
 
 def label(method: str) -> str:
   """Display name of a method of the study."""
-  return {ZERO: "all-zero image", "bound_bilinear": "truth at the scan points, bilinear",
-          "bound_nearest": "truth at the scan points, nearest"}.get(method, ereport.label(method))
+  fixed = {ZERO: "all-zero image", "truth_bilinear": "truth at the scan points, bilinear",
+           "truth_nearest": "truth at the scan points, nearest", "reference": "reference classic method"}
+  if method in fixed:
+    return fixed[method]
+  if method.startswith("reference@"):
+    return f"reference classic, {_INPUT_WORDS[method.split('@', 1)[1]]}"
+  if "@" in method:
+    m, src = method.split("@", 1)
+    return f"{ereport.label(m)}, {_INPUT_WORDS[src]}"
+  return ereport.label(method)
 
 
 def _pool(entries: list[tuple[str, dict]]) -> dict:
@@ -52,51 +67,68 @@ def _pool(entries: list[tuple[str, dict]]) -> dict:
   return out
 
 
+def _with_reference(entry: dict, ref: dict) -> dict:
+  """``entry`` with the composite :data:`REFERENCE` rows where every score's reference method was scored."""
+  methods = dict(entry["methods"])
+  for row in REFERENCE:
+    src = row.split("@", 1)[1] if "@" in row else None
+    names = {k: (m if src is None else oracle(m, src)) for k, m in ref.items() if k in COLUMNS}
+    if len(names) == len(COLUMNS) and all(n in methods for n in names.values()):
+      methods[row] = {"scores": {k: methods[n]["scores"][k] for k, n in names.items()}}
+  return {**entry, "methods": methods}
+
+
 def groups(records: dict) -> dict:
-  """``group -> {"sequence", "attributes", "methods": method -> {"scores"}, "sets"}`` in :data:`GROUPS` order."""
+  """``group -> {"sequence", "attributes", "methods": method -> {"scores"}, "sets"}`` in :data:`GROUPS` order,
+  with the composite reference rows."""
   sets = records["sets"]
+  ref = records["choices"].get("reference", {})
   out = {}
   for g in GROUPS:
     if g == "heldout":
       entries = [(n, e) for n, e in sets.items() if n.startswith("heldout-")]
       if entries:
-        out[g] = _pool(entries)
+        out[g] = _with_reference(_pool(entries), ref)
     elif g in sets:
-      out[g] = {**sets[g], "sets": [g]}
+      out[g] = _with_reference({**sets[g], "sets": [g]}, ref)
   return out
 
 
 def method_order(methods) -> list[str]:
-  """The floor, the classic methods, the learned ones (the shipped first), the bounds."""
-  known = [ZERO, *CLASSIC, "ours_s", "ours"]
-  learned = [m for m in methods if m not in known and m not in BOUNDS]
-  return [m for m in known if m in methods] + sorted(learned) + [b for b in BOUNDS if b in methods]
+  """The floor, the classic methods, the reference rows, the learned ones (the shipped first), the truth."""
+  known = [ZERO, *CLASSIC, *REFERENCE, "ours_s", "ours"]
+  learned = [m for m in methods if m not in known and m not in TRUTH and "@" not in m]
+  return [m for m in known if m in methods] + sorted(learned) + [b for b in TRUTH if b in methods]
 
 
 def learned_methods(methods) -> list[str]:
-  return [m for m in method_order(methods) if m not in (ZERO, *CLASSIC, *BOUNDS)]
+  return [m for m in method_order(methods) if m not in (ZERO, *CLASSIC, *REFERENCE, *TRUTH)]
+
+
+def _differences(methods) -> list[tuple[str, str]]:
+  """``(a, b)`` pairs of the differences: each network − the reference; each better input's reference −
+  the reference (what the input costs it); the reference on the full scan − each network (how far the
+  network is from what the full capture gives the reference); the bilinear truth − each network."""
+  pairs = [(m, "reference") for m in learned_methods(methods) if "reference" in methods]
+  pairs += [(r, "reference") for r in REFERENCE[1:] if r in methods and "reference" in methods]
+  pairs += [("reference@full", m) for m in learned_methods(methods) if "reference@full" in methods]
+  pairs += [(TRUTH[0], m) for m in learned_methods(methods) if TRUTH[0] in methods]
+  return pairs
 
 
 def summarise(records: dict, n_boot: int | None = None) -> dict:
-  """Every number of the report (JSON-ready): per group the table, the breakdown and the gaps."""
+  """Every number of the report (JSON-ready): per group the table, the breakdown and the differences."""
   kw = {} if n_boot is None else {"n_boot": n_boot}
   ref = records["choices"].get("reference", {})
   out = {"reference": ref, "groups": {}}
   for g, e in groups(records).items():
     seq = e["sequence"]
     methods = method_order(e["methods"])
-    pick = {m: {k: e["methods"][m]["scores"][k] for k in COLUMNS + ("psnr_zero", "psnr_balanced_zero")}
-            for m in methods}
+    pick = {m: {k: e["methods"][m]["scores"][k] for k in COLUMNS} for m in methods}
     table = {m: {k: stats.summarize(by_sequence(v, seq), **kw) for k, v in s.items()} for m, s in pick.items()}
-    gaps = {}
-    for m in learned_methods(methods):
-      if all(ref.get(k) in pick for k in GAP_SCORES):
-        gaps[f"{m} - reference"] = {k: stats.paired_difference(by_sequence(pick[m][k], seq),
-                                                                by_sequence(pick[ref[k]][k], seq), **kw)
-                                    for k in GAP_SCORES}
-      if GAP_BOUND in pick:
-        gaps[f"{GAP_BOUND} - {m}"] = compare_scores({k: pick[GAP_BOUND][k] for k in GAP_SCORES},
-                                                    {k: pick[m][k] for k in GAP_SCORES}, seq, **kw)
+    pairs = _differences(methods)
+    gaps = {f"{a} - {b}": compare_scores({k: pick[a][k] for k in GAP_SCORES}, {k: pick[b][k] for k in GAP_SCORES},
+                                         seq, **kw) for a, b in pairs}
     split = {}
     for attr in breakdown.BREAKDOWN:
       values = e["attributes"][attr]
@@ -110,19 +142,14 @@ def summarise(records: dict, n_boot: int | None = None) -> dict:
                                                  "n_sequences": int(np.unique(seq[which == b]).size)})
       per_method = {m: breakdown.bin_summaries({k: pick[m][k] for k in OBJECT_SCORES}, seq, which, **kw)
                     for m in methods}
-      bin_gaps = {}
-      for m in learned_methods(methods):
-        if all(ref.get(k) in pick for k in GAP_SCORES):
-          bin_gaps[f"{m} - reference"] = breakdown.bin_differences(
-              {k: pick[m][k] for k in GAP_SCORES}, {k: pick[ref[k]][k] for k in GAP_SCORES}, seq, which, **kw)
-        if GAP_BOUND in pick:
-          bin_gaps[f"{GAP_BOUND} - {m}"] = breakdown.bin_differences(
-              {k: pick[GAP_BOUND][k] for k in GAP_SCORES}, {k: pick[m][k] for k in GAP_SCORES}, seq, which, **kw)
+      bin_gaps = {f"{a} - {b}": breakdown.bin_differences({k: pick[a][k] for k in BIN_GAP_SCORES},
+                                                          {k: pick[b][k] for k in BIN_GAP_SCORES}, seq, which, **kw)
+                  for a, b in pairs if b == "reference"}
       split[attr] = {"edges": [float(x) for x in edges], "bins": ranges, "methods": per_method, "gaps": bin_gaps}
     conditions = {}
     if g == "heldout":
       for n in e["sets"]:
-        s = records["sets"][n]
+        s = _with_reference(records["sets"][n], ref)
         conditions[n.split("-", 1)[1]] = {
             m: {k: stats.summarize(by_sequence(s["methods"][m]["scores"][k], s["sequence"]), **kw)
                 for k in ("intensity_mae_object", "f1", "psnr_balanced")}
@@ -167,7 +194,7 @@ def _objects_table(table: dict) -> list[str]:
 
 def _gap_label(key: str) -> str:
   a, b = key.split(" - ")
-  return f"{label(a)} − {'the reference classic method' if b == 'reference' else label(b)}"
+  return f"{label(a)} − {label(b)}"
 
 
 def _gaps_table(gaps: dict) -> list[str]:
@@ -185,7 +212,7 @@ def _breakdown_tables(split: dict) -> list[str]:
   header = "| method | " + " | ".join(f"{a} {i + 1}" for a in attrs for i in range(3)) + " |"
   ranges = "| *range* | " + " | ".join(_range(split[a]["bins"][i], a) for a in attrs for i in range(3)) + " |"
   counts = "| *sequences / frames* | " + " | ".join(
-      "—" if split[a]["bins"][i] is None else f"{split[a]['bins'][i]['n_sequences']} / {split[a]['bins'][i]['n_frames']}"
+      "—" if (r := split[a]["bins"][i]) is None else f"{r['n_sequences']} / {r['n_frames']}"
       for a in attrs for i in range(3)) + " |"
   methods = list(next(iter(split.values()))["methods"])
   for metric in OBJECT_SCORES:
@@ -199,19 +226,27 @@ def _breakdown_tables(split: dict) -> list[str]:
   return lines
 
 
+def _is_called(d: dict | None) -> bool:
+  return (d is not None and math.isfinite(d["mean"]) and stats.excludes_zero(d)
+          and d["n_sequences"] >= MIN_CALL_SEQUENCES)
+
+
 def _bin_gaps_table(split: dict) -> list[str]:
   keys = list(next(iter(split.values()))["gaps"])
   if not keys:
     return []
-  cols = [(key, k) for key in keys for k in GAP_SCORES]
-  lines = ["| attribute: tercile (range) | " + " | ".join(f"{_gap_label(key)}: {ereport.METRIC_LABELS[k][0]}"
-                                                         for key, k in cols) + " |",
-           "|---|" + "---|" * len(cols)]
-  for a, s in split.items():
-    for i in range(3):
-      diffs = [None if s["gaps"][key][i] is None else s["gaps"][key][i][k] for key, k in cols]
-      lines.append(f"| {a} {i + 1} ({_range(s['bins'][i], a)}) | " + " | ".join(
-          stats.format_interval(d, _digits(k), signed=True, missing="—") for d, (_, k) in zip(diffs, cols)) + " |")
+  attrs = list(split)
+  lines = ["| difference | " + " | ".join(f"{a} {i + 1}" for a in attrs for i in range(3)) + " |",
+           "|---|" + "---|" * (3 * len(attrs))]
+  for key in keys:
+    for k in BIN_GAP_SCORES:
+      cells = []
+      for a in attrs:
+        for d in split[a]["gaps"][key]:
+          d = None if d is None else d[k]
+          text = stats.format_interval(d, _digits(k), signed=True, missing="—")
+          cells.append(f"**{text}**" if _is_called(d) else text)
+      lines.append(f"| {_gap_label(key)}, {_head(k)} | " + " | ".join(cells) + " |")
   return lines
 
 
@@ -221,24 +256,30 @@ def _called(split: dict, key: str, metric: str) -> tuple[list[str], list[str]]:
   for a, s in split.items():
     for i in range(3):
       d = None if s["gaps"].get(key) is None or s["gaps"][key][i] is None else s["gaps"][key][i][metric]
-      if d is None or not math.isfinite(d["mean"]) or not stats.excludes_zero(d):
+      if not _is_called(d):
         continue
       (better if (d["mean"] > 0) == HIGHER_IS_BETTER[metric] else worse).append(f"{a} {i + 1}")
   return better, worse
 
 
-def _tighter(table: dict) -> list[str]:
-  if not all(b in table for b in BOUNDS):
+def _truth_lines(table: dict) -> list[str]:
+  """Which reading of the truth is the better on each score, and which methods do better than it."""
+  if not all(b in table for b in TRUTH):
     return []
-  out = []
-  for k in ("intensity_mae_object", "psnr_balanced", "f1", "rmse_object"):
-    a, b = (table[x][k]["mean"] for x in BOUNDS)
+  out, above = [], []
+  for k in ("intensity_mae_object", "psnr_balanced", "recall", "f1", "rmse_object"):
+    a, b = (table[x][k]["mean"] for x in TRUTH)
     sign = 1 if HIGHER_IS_BETTER[k] else -1
-    best = BOUNDS[0] if sign * a >= sign * b else BOUNDS[1]
+    best = TRUTH[0] if sign * a >= sign * b else TRUTH[1]
     out.append(f"{ereport.METRIC_LABELS[k][0]}: {best.split('_')[1]} "
                f"({a:.{_digits(k)}f} bilinear, {b:.{_digits(k)}f} nearest)")
-  return ["- Of the two readings of the truth, the better on each score (the ceiling at this density is at "
-          "least it): " + "; ".join(out) + "."]
+    level = table[best][k]["mean"]
+    beat = [label(m) for m in table if m not in (ZERO, *TRUTH, *REFERENCE[1:]) and "@" not in m
+            and sign * table[m][k]["mean"] > sign * level]
+    above.append(f"{ereport.METRIC_LABELS[k][0]}: {', '.join(beat) if beat else 'none'}")
+  return ["- Of the two readings of the truth at the scan points, the better on each score: " + "; ".join(out) + ".",
+          "- Methods reading the 8 × 8 input that score better than that reading (means): " + "; ".join(above)
+          + "."]
 
 
 def to_markdown(summary: dict, header: list[str], choices: dict, *, stride: int, grid, invocations=()) -> str:
@@ -247,31 +288,42 @@ def to_markdown(summary: dict, header: list[str], choices: dict, *, stride: int,
   h = tuple(int(g) for g in grid)
   low = tuple(-(-(n - stride // 2) // stride) for n in h)
   ref = summary["reference"]
-  lines = ["# Headroom: every method's object scores beside what the input's scan grid supports", ""]
+  lines = ["# Headroom: every method's object scores beside what the input supports", ""]
   lines += header + [""]
   lines += [
-      f"Every method on the objects of each test set, at the input's {low[0]} × {low[1]} scan points "
-      f"(stride {stride} of the {h[0]} × {h[1]} grid), beside two readings of the *truth* through the same "
-      f"scan points: its intensity and depth at the {low[0]} × {low[1]} points, read back to the full grid "
-      "bilinearly as the classic methods read the sparse scan (depth as a normalised convolution of the "
-      "object indicator, surface where it reaches the cut chosen on validation), or from the nearest scan point "
-      "(`experiments/studies/headroom/bounds.py`). They are no strict bound (each scan point of a confocal "
-      "capture sees the whole scene, and a prior on shapes can place detail between the points); they say how "
-      "much of each object score survives sampling the image itself at the input's density. The all-zero image "
-      "is the floor of every score.",
+      f"Every method on the objects of each test set from the input's {low[0]} × {low[1]} scan points "
+      f"(stride {stride} of the {h[0]} × {h[1]} grid), the all-zero image as the floor of every score, and "
+      "two kinds of reference for what the input supports:",
+      "",
+      f"- **the truth at the scan points**: the true intensity and depth at the {low[0]} × {low[1]} points, "
+      "read back to the full grid bilinearly as the classic methods read the sparse scan (depth as a "
+      "normalised convolution of the object indicator, surface where it reaches the cut chosen on validation) "
+      "or from the nearest scan point (`experiments/studies/headroom/bounds.py`). No strict bound: every scan "
+      "point of a confocal capture sees the whole scene, so a reconstruction can place objects between the "
+      "points;",
+      "- **better inputs**: each score's *reference classic method* (the classic method with the best "
+      "validation mean on that score) fed, with its settings and surface threshold chosen again on the "
+      "validation split fed the same input, the noise-free transient at "
+      f"the same {low[0]} × {low[1]} points (the file's stored clean transient: no Poisson noise, ambient light, "
+      f"dark counts or jitter), the noisy capture at all {h[0]} × {h[1]} scan points the input is cut from, or "
+      "both. What the reference gains there is what the input costs it.",
       "",
       "Every choice is made on the `cpu` preset's validation split, as the main job makes it: the classic "
       "methods' settings and surface thresholds, the learned models' surface thresholds, the bilinear reading's "
-      "cut, and for each object score the *reference classic method*, the one with the best validation mean "
-      "on that score (" + ", ".join(f"{ereport.METRIC_LABELS[k][0]}: {label(v)}" for k, v in ref.items())
-      + "). Means with 95 % bootstrap intervals over sequences; a difference is called where its interval "
-      "excludes 0.", ""]
+      "cut, and the reference classic method of each score (" + ", ".join(
+          f"{ereport.METRIC_LABELS[k][0]}: {label(v)}" for k, v in ref.items())
+      + "; the *reference classic* rows take each score from its reference). Means with 95 % bootstrap "
+      "intervals over sequences; a difference is called where its interval excludes 0 (in a tercile, also "
+      f"resting on at least {MIN_CALL_SEQUENCES} sequences; bold in the tercile tables).", ""]
   for g, e in summary["groups"].items():
     lines += [f"## Objects on {GROUP_TITLES[g]}", "",
               f"{e['n_sequences']} sequences, {e['n_frames']} frames"
               + (f" ({', '.join(s.split('-', 1)[1] for s in e['sets'])})." if g == "heldout" else "."), ""]
     lines += _objects_table(e["table"])
-    lines += [""] + _tighter(e["table"])
+    if g == GROUPS[0]:
+      lines += ["", "`headroom.png` draws the object intensity error and the surface F1 of the networks, the reference "
+                "rows and the bilinear truth against the object-size terciles of every group."]
+    lines += [""] + _truth_lines(e["table"])
     if e["gaps"]:
       lines += ["", "Paired differences on the same frames:", ""] + _gaps_table(e["gaps"])
     if e["conditions"]:
@@ -284,15 +336,15 @@ def to_markdown(summary: dict, header: list[str], choices: dict, *, stride: int,
               _mean(e["conditions"][c].get(m, {}).get(metric), _digits(metric)) for c in conds) + " |")
     lines += ["", f"### Broken down on {GROUP_TITLES[g]}", "",
               "Terciles of each attribute over this group's frames (object size: true object pixels as a share "
-              "of the image; depth: their mean true depth; photons: the sequence's photon budget; motion: the "
-              "dynamic object's speed over the input's three frames). Means per tercile; the intervals are in "
-              "the JSON file and, for the differences, below."]
+              "of the image; depth: their mean true depth, m; photons: the sequence's photon budget per scan "
+              "point and frame; motion: the dynamic object's speed over the input's three frames, m per frame). "
+              "Means per tercile; every interval is in `headroom.json`, and those of the differences below."]
     lines += _breakdown_tables(e["breakdown"])
     gap_lines = _bin_gaps_table(e["breakdown"])
     if gap_lines:
-      lines += ["", "Paired differences per tercile:", ""] + gap_lines
+      lines += ["", "Paired differences per tercile (bold: called):", ""] + gap_lines + [""]
       for key in next(iter(e["breakdown"].values()))["gaps"]:
-        for metric in ("intensity_mae_object", "f1"):
+        for metric in BIN_GAP_SCORES:
           better, worse = _called(e["breakdown"], key, metric)
           lines.append(f"- {_gap_label(key)}, {ereport.METRIC_LABELS[metric][0]}: called better in "
                        f"{', '.join(better) or 'no tercile'}; called worse in {', '.join(worse) or 'no tercile'}.")
@@ -321,48 +373,57 @@ def _choices(choices: dict) -> list[str]:
     b = choices["bound"]
     lines.append(f"\nThe bilinear reading's cut: {b['cut']} (validation surface F1 {b['f1']:.3f}; "
                  + ", ".join(f"{k}: {v:.3f}" for k, v in b["f1_by_cut"].items()) + ").")
+  for src, methods in choices.get("oracle", {}).items():
+    for m, c in methods.items():
+      opts = ", ".join(f"{k}={v}" for k, v in c["options"].items()) or "no options"
+      lines.append(f"\n{label(m)} fed {_INPUT_WORDS[src]}: {opts}, surface threshold {c['threshold']} "
+                   f"(validation intensity PSNR {c['psnr']:.2f} dB, surface F1 {c['f1']:.3f}).")
   val = choices.get("validation_means", {})
   if val:
     lines += ["", "Validation means of the classic methods, from which each score's reference is chosen:", "",
-              "| method | " + " | ".join(_head(k) for k in OBJECT_SCORES) + " |",
-              "|---|" + "---|" * len(OBJECT_SCORES)]
+              "| method | " + " | ".join(_head(k) for k in REFERENCE_SCORES) + " |",
+              "|---|" + "---|" * len(REFERENCE_SCORES)]
     for m, r in val.items():
-      lines.append(f"| {label(m)} | " + " | ".join(_mean({"mean": r[k]}, _digits(k)) for k in OBJECT_SCORES) + " |")
+      lines.append(f"| {label(m)} | " + " | ".join(_mean({"mean": r.get(k)}, _digits(k)) for k in REFERENCE_SCORES)
+                   + " |")
   return lines + [""]
 
 
 # ---------------------------------------------------------------------- figure
 def plot(summary: dict, path) -> None:
-  """Object intensity error and surface F1 against object size (terciles), per group and method."""
+  """Object intensity error and surface F1 against object size (terciles), per group: the networks, the
+  reference classic method on its input and on the better inputs, the truth at the scan points, the floor."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
   gs = list(summary["groups"])
   metrics = ("intensity_mae_object", "f1")
-  fig, axes = plt.subplots(len(metrics), len(gs), figsize=(4.2 * len(gs), 3.4 * len(metrics)), squeeze=False)
-  grays = {"fbp": "0.75", "lct": "0.6", "fk": "0.85", "phasor": "0.45", "rsd": "0.3"}
+  fig, axes = plt.subplots(len(metrics), len(gs), figsize=(4.4 * len(gs), 3.5 * len(metrics)), squeeze=False)
+  style = {"reference": dict(color="0.35", lw=2.0, marker="s"),
+           "reference@clean": dict(color="tab:green", lw=1.4, ls="--"),
+           "reference@full": dict(color="tab:purple", lw=1.4, ls="--"),
+           "reference@clean_full": dict(color="tab:brown", lw=1.4, ls="--"),
+           "truth_bilinear": dict(color="k", lw=1.8, ls=":"),
+           "ours": dict(color="tab:blue", lw=2.4, marker="o"),
+           "ours_s": dict(color="tab:orange", lw=2.0, marker="^")}
   for c, g in enumerate(gs):
     split = summary["groups"][g]["breakdown"]["size"]
-    x = [None if b is None else b["mean"] for b in split["bins"]]
+    xs = [np.nan if b is None else 100 * b["mean"] for b in split["bins"]]
     for r, metric in enumerate(metrics):
       ax = axes[r, c]
       for m, per_bin in split["methods"].items():
+        if m not in style and (m in (ZERO, *CLASSIC, *TRUTH) or "@" in m):
+          continue
         y = [np.nan if s is None or s[metric]["mean"] is None else s[metric]["mean"] for s in per_bin]
-        xs = [np.nan if v is None else 100 * v for v in x]
-        if m in BOUNDS:
-          kw = dict(color="k", ls="--" if m == "bound_bilinear" else ":", lw=1.8)
-        elif m == ZERO:
-          kw = dict(color="tab:red", ls="-.", lw=1.2)
-        elif m in grays:
-          kw = dict(color=grays[m], lw=1.2)
-        else:
-          kw = dict(lw=2.2, marker="o")
-        ax.plot(xs, y, label=label(m), **kw)
-      ax.set_xlabel("object size (% of the image, tercile mean)")
-      ax.set_ylabel(ereport.METRIC_LABELS[metric][0] + (" ↓" if not HIGHER_IS_BETTER[metric] else " ↑"))
+        ax.plot(xs, y, label=label(m), **style.get(m, dict(lw=2.0, marker="d")))
+      ax.set_xlabel("object size (% of the image; tercile means)")
+      ax.set_ylabel(ereport.METRIC_LABELS[metric][0] + (" ↑" if HIGHER_IS_BETTER[metric] else " ↓"))
+      ax.grid(alpha=0.3)
       if r == 0:
         ax.set_title(GROUP_TITLES[g].replace("`", ""), fontsize=9)
-  axes[0, -1].legend(fontsize=7, loc="best")
+  axes[0, -1].legend(fontsize=7, loc="upper right")
+  fig.suptitle("object intensity error (top, lower is better) and surface F1 (bottom) by object-size tercile; "
+               "the all-zero image scores 0.42-0.54 and 0 (headroom.md)", fontsize=9)
   fig.tight_layout()
   fig.savefig(path, dpi=100)
   plt.close(fig)

@@ -4,8 +4,9 @@ Every record is one JSON file under ``RESULTS/headroom/``:
 
 * ``choices.json``: what the validation split chose (the classic methods' settings and surface
   thresholds, :func:`nlosjax.evaluation.baselines.tune`; each learned model's surface threshold,
-  :func:`nlosjax.evaluation.protocol.tune_model_thresholds`; the bilinear bound's surface cut;
-  for each object score, the classic method with the best validation mean);
+  :func:`nlosjax.evaluation.protocol.tune_model_thresholds`; the bilinear reading's surface cut;
+  for each score, the *reference* classic method with the best validation mean; each reference
+  method's settings and threshold for each better input, chosen on validation fed that input);
 * ``<set>/attributes.json``: each evaluated frame's sequence, frame and attributes
   (:func:`experiments.studies.headroom.breakdown.frame_attributes`);
 * ``<set>/<method>.json``: a method's per-frame scores on the set
@@ -26,18 +27,27 @@ from typing import Callable
 import numpy as np
 
 from experiments.studies.headroom import bounds, breakdown
+from nlosjax.evaluation import baselines
 
-__all__ = ["CLASSIC", "ZERO", "BOUNDS", "OBJECT_SCORES", "DEFAULT_MODELS", "HELDOUT_CONDITIONS",
-           "preset", "set_files", "Study"]
+__all__ = ["CLASSIC", "ZERO", "TRUTH", "INPUTS", "OBJECT_SCORES", "REFERENCE_SCORES", "DEFAULT_MODELS",
+           "HELDOUT_CONDITIONS", "preset", "set_files", "reference_classic", "oracle", "load_records", "Study"]
 
 #: The classic methods, in table order.
 CLASSIC = ("fbp", "lct", "fk", "phasor", "rsd")
 #: The all-zero image: the floor of every score.
 ZERO = "zero"
 #: The truth read through the input's scan grid (:mod:`~experiments.studies.headroom.bounds`).
-BOUNDS = tuple(f"bound_{r}" for r in bounds.READINGS)
-#: The object scores the study is about (and the whole-image guard beside them).
+TRUTH = tuple(f"truth_{r}" for r in bounds.READINGS)
+#: Better inputs than the network's, each fed to the reference classic methods as chosen on validation:
+#: ``clean`` the noise-free transient at the same 8 x 8 points (the file's stored ``clean``: no Poisson
+#: noise, ambient light, dark counts or jitter), ``full`` the noisy capture at every scan point the
+#: input is cut from, ``clean_full`` both. Record ``<method>@<input>``.
+INPUTS = ("clean", "full", "clean_full")
+#: The object scores the study is about.
 OBJECT_SCORES = ("intensity_mae_object", "psnr_balanced", "rmse_object", "recall", "precision", "f1")
+#: The scores a reference classic method is chosen for: the object scores and the whole-image PSNR (the
+#: main job's choice of the best classic method), the guard beside them.
+REFERENCE_SCORES = OBJECT_SCORES + ("psnr",)
 #: The networks scored when no ``--model`` is given: the shipped ``cpu`` weights.
 DEFAULT_MODELS = {"ours": "pretrained:cpu/ours", "ours_s": "pretrained:cpu/ours_s"}
 #: The held-out renderer's conditions scored by default: its base and the conditions that move one
@@ -125,12 +135,17 @@ def load_records(results: pathlib.Path) -> dict:
   return out
 
 
+def oracle(method: str, source: str) -> str:
+  """The record name of classic ``method`` fed input ``source`` (:data:`INPUTS`)."""
+  return f"{method}@{source}"
+
+
 def reference_classic(means: dict) -> dict:
-  """``metric -> method``: for each of :data:`OBJECT_SCORES` the method of ``means`` (``method -> metric
+  """``metric -> method``: for each of :data:`REFERENCE_SCORES` the method of ``means`` (``method -> metric
   -> mean``, in priority order) with the best mean; ties keep the earlier."""
   from nlosjax.evaluation.scores import HIGHER_IS_BETTER
   out = {}
-  for metric in OBJECT_SCORES:
+  for metric in REFERENCE_SCORES:
     sign = 1.0 if HIGHER_IS_BETTER[metric] else -1.0
     order = list(means)
     out[metric] = max(order, key=lambda m: (sign * means[m][metric], -order.index(m)))
@@ -182,8 +197,8 @@ class Study:
   # ------------------------------------------------------------------ choices
   def choices(self, val_path) -> dict:
     """What validation chooses (module docstring); read from ``choices.json`` where it holds it."""
-    from nlosjax.evaluation import protocol
     from experiments.main_job import tune_classic
+    from nlosjax.evaluation import protocol
     path = self.root / "choices.json"
     ch = _read(path) if path.exists() else {}
     changed = False
@@ -222,12 +237,32 @@ class Study:
     (``method -> record``; ties: the earlier in :data:`CLASSIC`), written into ``choices.json``."""
     path = self.root / "choices.json"
     ch = _read(path)
-    means = {m: {k: float(np.nanmean(val[m]["scores"][k])) for k in OBJECT_SCORES} for m in CLASSIC if m in val}
+    means = {m: {k: float(np.nanmean(val[m]["scores"][k])) for k in REFERENCE_SCORES} for m in CLASSIC if m in val}
     ref = reference_classic(means)
     if ch.get("reference") != ref or ch.get("validation_means") != means:
       ch.update(reference=ref, validation_means=means)
       self._write(path, ch)
     return ref
+
+  def oracle_choices(self, val_path) -> dict:
+    """Each reference method's settings and surface threshold for each better input, chosen on the
+    validation split fed that input (:func:`nlosjax.evaluation.baselines.tune`); kept in ``choices.json``."""
+    path = self.root / "choices.json"
+    ch = _read(path)
+    refs = sorted(set(ch["reference"].values()) & set(self.methods))
+    have = ch.setdefault("oracle", {})
+    missing = [(src, m) for src in INPUTS for m in refs if m not in have.get(src, {})]
+    if missing:
+      data = self._truth(val_path, "val")
+      inputs = self._better_inputs(val_path, "val", data)
+      for src, m in missing:
+        self.log(f"validation: tuning {m} on the {src} input ...")
+        x, stride = inputs[src]
+        tuned = baselines.tune(x, data["intensity"], data["depth"], data["setup"], stride, methods=(m,),
+                               batch_size=self.typed.train.eval_batch, log=self.log)[m]
+        have.setdefault(src, {})[m] = tuned
+      self._write(path, ch)
+    return have
 
   def log_invocation(self, args: str, wall_s: float) -> None:
     """Append this invocation's arguments and wall time to ``invocations.json`` (the report lists them)."""
@@ -238,9 +273,35 @@ class Study:
                  "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")})
     self._write_json(path, {"invocations": runs})
 
+  def _better_inputs(self, path, split, data) -> dict:
+    """``source -> ([N, T, h, w] counts, stride)`` of each of :data:`INPUTS`, on ``data``'s frames in order."""
+    from nlosjax.data.dataset import TripletLoader
+    from nlosjax.data.dataset.undersampling import undersample
+    opts = self.typed.data.loader
+    loader = TripletLoader(path, split=split, batch_size=self.typed.train.eval_batch, stride=1, offset=0,
+                           shuffle=False, drop_remainder=False, ends=opts.ends, target="clean")
+    noisy, clean, seq, frm = [], [], [], []
+    try:
+      for step in range(len(loader)):
+        b = loader.batch(step)
+        noisy.append(b["measurement"][:, b["measurement"].shape[1] // 2])
+        clean.append(b["transient"])
+        seq.append(b["sequence"])
+        frm.append(b["frame"])
+    finally:
+      loader.close()
+    if not (np.array_equal(np.concatenate(seq), data["sequence"])
+            and np.array_equal(np.concatenate(frm), data["frame"])):
+      raise RuntimeError(f"{path}: the full-grid loader reads other frames than the protocol's")
+    noisy, clean = np.concatenate(noisy), np.concatenate(clean)
+    stride = data["stride"]
+    return {"clean": (undersample(clean, stride, stride // 2), stride), "full": (noisy, 1),
+            "clean_full": (clean, 1)}
+
   # ------------------------------------------------------------------ scoring
   def score_set(self, set_name: str, path, split: str, choices: dict, *, learned: bool = True) -> None:
-    """Every method's record on one set (those that exist are kept); ``learned=False``: no model."""
+    """Every method's record on one set (those that exist are kept); ``learned=False``: no model and no
+    better input (the validation split, where the references are chosen)."""
     from nlosjax.evaluation import protocol, scores
     folder = self.root / set_name
     data = None
@@ -253,8 +314,10 @@ class Study:
     todo += [label for label, spec in (self.models.items() if learned else ())
              if not self._path(set_name, label).exists()
              or _read(self._path(set_name, label)).get("spec") != spec]
-    fixed = [m for m in (ZERO, *BOUNDS) if not self._path(set_name, m).exists()]
-    if frames is None or fixed or todo:
+    fixed = [m for m in (ZERO, *TRUTH) if not self._path(set_name, m).exists()]
+    refs = sorted(set(choices.get("reference", {}).values()) & set(self.methods)) if learned else []
+    oracles = [(m, src) for m in refs for src in INPUTS if not self._path(set_name, oracle(m, src)).exists()]
+    if frames is None or fixed or todo or oracles:
       data = self._truth(path, split)
       seq, frm = data["sequence"].tolist(), data["frame"].tolist()
       if frames is not None and (frames["sequence"] != seq or frames["frame"] != frm):
@@ -282,6 +345,20 @@ class Study:
         cut = choices["bound"]["cut"] if reading == "bilinear" else 1.0
         i, d = bounds.bound_images(data["intensity"], data["depth"], data["stride"], reading, cut)
         record(m, i, d, cut=cut)
+    if oracles:
+      inputs = self._better_inputs(path, split, data)
+      for m, src in oracles:
+        self.log(f"[{set_name}] {oracle(m, src)} ...")
+        x, stride = inputs[src]
+        setting = choices["oracle"][src][m]
+        out_i, out_d = [], []
+        for s in range(0, len(x), self.typed.train.eval_batch):
+          i, d = baselines.classic_images(x[s:s + self.typed.train.eval_batch], data["setup"], stride, m,
+                                          setting["options"], setting["threshold"])
+          out_i.append(i)
+          out_d.append(d)
+        record(oracle(m, src), np.concatenate(out_i), np.concatenate(out_d), options=setting["options"],
+               threshold=setting["threshold"], input=src)
     for m in todo:
       self.log(f"[{set_name}] {m} ...")
       if m in self.methods:
