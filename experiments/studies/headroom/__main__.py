@@ -50,6 +50,8 @@ def main(argv=None) -> int:
   argv = sys.argv[1:] if argv is None else list(argv)
   args = parser.parse_args(argv)
   from experiments.provenance import provenance
+  from experiments.studies.mechanisms import code_at_start
+  code_at_start()          # the records name the commit this process started from, not a later one
   t0 = time.perf_counter()
   results = pathlib.Path(args.results)
   cfg = study.preset(results / "data" if args.tiny else None)
