@@ -41,13 +41,13 @@ MB = 1e6
 
 def _programs(config_name: str, variant: str, batch: int):
   """``{name: (constants_fn, bound_fn, abstract_args, concrete_args or None)}`` for the preset's model."""
-  from experiments import configs
+  from experiments.cli import load_config
   from nlosjax import train as T
   from nlosjax.physics import illumination_wavelet, operator_args
   from nlosjax.train.sharding import make_mesh
   from nlosjax.train.step import train_step
 
-  cfg = T.read_preset(configs.get_config(config_name))
+  cfg = T.RunConfig.from_dict(load_config(config_name))
   setup = cfg.data.spec().setup
   mcfg = T.model_config_for(cfg, setup, variant)
   model = T.network(mcfg)
@@ -144,7 +144,7 @@ def report(result: dict, command: str) -> str:
 
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  parser.add_argument("--config", default="paper", help="preset (default: paper)")
+  parser.add_argument("--config", default="paper", help="preset name or .py file (default: paper)")
   parser.add_argument("--variant", default=OURS, help="model variant (default: ours)")
   parser.add_argument("--batch", type=int, default=1, help="batch of the compiled programs (default: 1)")
   parser.add_argument("--repeats", type=int, default=2, help="rounds per way (default: 2)")

@@ -194,9 +194,9 @@ def main(argv=None) -> int:
   p.add_argument("--out", type=pathlib.Path, default=DEFAULT_OUT)
   args = p.parse_args(argv)
   command = "python -m benchmarks.depth_range" + (" " + " ".join(sys.argv[1:] if argv is None else argv)).rstrip()
-  from experiments.configs import get_config
+  from experiments.cli import load_config
   from nlosjax import train as T
-  config = T.read_preset(get_config(args.config))
+  config = T.RunConfig.from_dict(load_config(args.config))
   study = split_study(config, args.methods, max_frames=args.max_frames)
   scans = scan_study(args.methods)
   print(write_report(args.out, command, study, scans, args.methods))

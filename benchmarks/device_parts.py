@@ -234,7 +234,7 @@ def config_for(case) -> dict:
   cfg["model"].update(model)
   if batch is not None:
     cfg["train"]["batch_size"] = batch
-  return train.with_defaults(cfg)
+  return cfg
 
 
 def setup_of(config: dict) -> Setup:

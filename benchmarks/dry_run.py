@@ -23,13 +23,13 @@ DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "dry_run.md"
 
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  parser.add_argument("--config", default="paper", help="preset name (default: %(default)s)")
+  parser.add_argument("--config", default="paper", help="preset name or .py file (default: %(default)s)")
   parser.add_argument("--out", default=str(DEFAULT_OUT), help="Markdown output")
   args = parser.parse_args(argv)
-  from experiments import configs
+  from experiments.cli import load_config
   from nlosjax.plan import dry_run, format_plan
-  from nlosjax.train import read_preset
-  config = read_preset(configs.get_config(args.config))
+  from nlosjax.train import RunConfig
+  config = RunConfig.from_dict(load_config(args.config))
   report = format_plan(dry_run(config))
   command = "python -m benchmarks.dry_run" + (f" --config {args.config}" if args.config != "paper" else "")
   lines = [f"# Dry run of the `{args.config}` preset: memory and time before any data exist", ""]

@@ -1007,17 +1007,16 @@ def render(gpu: dict, here: dict | None, info_gpu: dict, info_here: dict | None,
 
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  parser.add_argument("--config", default="paper", help="preset name (default: %(default)s)")
+  parser.add_argument("--config", default="paper", help="preset name or .py file (default: %(default)s)")
   parser.add_argument("--batch", type=int, default=4, help="global batch (default: %(default)s)")
   parser.add_argument("--variant", default=OURS, help="model variant (default: %(default)s)")
   parser.add_argument("--out", default=str(DEFAULT_OUT), help="Markdown output")
   args = parser.parse_args(argv)
   if args.batch < 1:
     parser.error("--batch must be at least 1")
-  from experiments import configs
-  from nlosjax import train as T
+  from experiments.cli import load_config
   from nlosjax.ssm import resolve_method
-  config = T.with_defaults(configs.get_config(args.config))
+  config = load_config(args.config)
   print("lowering as a GPU process traces it ...", flush=True)
   info_gpu = lower_step(config, args.variant, args.batch, scan_method=resolve_method("auto", backend="gpu"))
   gpu = census(info_gpu.pop("hlo"), info_gpu.pop("stablehlo"), info_gpu["model"])

@@ -67,7 +67,7 @@ def _config(name: str, frames: int):
   if name in ("cpu", USM):   # what the cpu preset trains, on its data's Setup
     from experiments import configs
     from nlosjax import train
-    preset = train.read_preset(configs.get_config("cpu"))
+    preset = train.RunConfig.from_dict(configs.get_config("cpu"))
     setup = preset.data.spec().setup
     if name == USM:                  # USM reconstructs one frame
       return train.model_config_for(preset, setup, USM)

@@ -53,7 +53,7 @@ def train_seconds_per_step(config: dict, data_path, workdir: pathlib.Path, ahead
   cfg["train"].update(steps=steps, log_every=1, checkpoint_every=steps, select_checkpoint="last",
                       variants=[OURS])
   cfg["train"].pop("stop", None)
-  cfg = T.read_preset(cfg)
+  cfg = T.RunConfig.from_dict(cfg)
   _, state = T.train_model(cfg, data_path, workdir, OURS, log=lambda s: None)
   rows = [json.loads(line) for line in (workdir / OURS / "metrics.jsonl").read_text().splitlines()]
   t = {r["step"]: r["time_s"] for r in rows}
@@ -73,10 +73,10 @@ def main(argv=None) -> int:
   import jax
   import numpy as np
 
-  from experiments import configs
   from experiments import provenance as _machine
+  from experiments.cli import load_config
   from nlosjax import train as T
-  config = T.with_defaults(configs.get_config(args.config))
+  config = load_config(args.config)
   data_path = pathlib.Path(config["data"]["path"])
   T.ensure_dataset(T.RunConfig.from_dict(config), data_path)
   read_s = read_time(config, data_path)

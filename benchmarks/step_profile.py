@@ -229,7 +229,7 @@ def render(results: list[dict], command: str, config_name: str) -> str:
 
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  parser.add_argument("--config", default="cpu", help="preset name (default: %(default)s)")
+  parser.add_argument("--config", default="cpu", help="preset name or .py file (default: %(default)s)")
   parser.add_argument("--variants", nargs="+", default=[OURS_S, OURS],
                       help="model variants to profile (default: %(default)s)")
   parser.add_argument("--steps", type=int, default=5, help="timed and profiled steps each (default: %(default)s)")
@@ -237,9 +237,8 @@ def main(argv=None) -> int:
   args = parser.parse_args(argv)
   if args.steps < 1:
     parser.error("--steps must be at least 1")
-  from experiments import configs
-  from nlosjax import train as T
-  config = T.with_defaults(configs.get_config(args.config))
+  from experiments.cli import load_config
+  config = load_config(args.config)
   results = []
   for variant in args.variants:
     print(f"profiling {variant} ...", flush=True)

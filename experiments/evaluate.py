@@ -61,7 +61,7 @@ def main(argv=None) -> dict:
       if not ds.names(args.split):
         raise ValueError(f"{data}: no sequence in split {args.split!r}")
     config, trained = inference.load_run(args.checkpoint, setup=setup)
-    config = train.read_preset(config)
+    config = train.RunConfig.from_dict(config)
     workdir, _, _ = inference.find_checkpoints(args.checkpoint)
     chosen = workdir / "results" / "validation.json"
     settings, best, source = {}, None, "defaults (the run chose none)"

@@ -143,7 +143,6 @@ def study_run(folder, results) -> dict:
 def state_run(folder, results, preset: str = "cpu") -> dict:
   """What a study's committed run state says about its model (module docstring); ValueError naming the file."""
   from experiments import configs
-  from nlosjax import train
   from nlosjax.train import read_selection
   from nlosjax.train.run_state import BEST_FILE, PARAMS_FILE, read_meta
   folder = pathlib.Path(folder)
@@ -159,7 +158,7 @@ def state_run(folder, results, preset: str = "cpu") -> dict:
   except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
     raise ValueError(f"{record_path}: not the run's record ({e})") from None
   # The record keeps the parts of the run's config its numbers depend on; the rest is the preset's.
-  config = train.with_defaults(configs.get_config(preset))
+  config = configs.get_config(preset)
   for section, values in parts.items():
     config[section] = {**config.get(section, {}), **values}
   config["train"]["variants"] = [variant]

@@ -20,7 +20,8 @@
 
 Writes into ``workdir``: ``config.json``, ``<variant>[-seed<k>]/{checkpoints,
 metrics.jsonl, selection.json}``, and ``results/{table.md, table.json,
-comparisons.json, validation.json, comparison.png, training_curves.png}``.
+comparisons.json, validation.json, comparison.png, training_curves.png, scores.npz}``
+(``scores.npz``: every method's per-frame test scores, for later comparisons).
 Rerunning after an interruption resumes from the checkpoints.
 
 With several processes (``jax.distributed.initialize`` first; ``experiments.train
@@ -74,9 +75,9 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
                        export: train.StateExport | None = None) -> dict:
   """Run the main job (module docstring); returns the test table ``method -> metric -> summary``.
 
-  ``config``: the run's :class:`~nlosjax.train.RunConfig` (a preset's dict is read with its
-  ``train`` defaults filled, :func:`nlosjax.train.read_preset`); recorded in
-  ``workdir/config.json`` (:meth:`~nlosjax.train.RunConfig.to_dict`).
+  ``config``: the run's :class:`~nlosjax.train.RunConfig` (built from the preset by
+  :meth:`~nlosjax.train.RunConfig.from_dict`); recorded in ``workdir/config.json``
+  (:meth:`~nlosjax.train.RunConfig.to_dict`).
 
   ``export``: each model's resumable state mirrored into ``export.directory /
   <model folder>`` and resumed from there when it is ahead of ``workdir``
@@ -88,8 +89,7 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
   dataset layout (test split; no choice is made on them), each scored like
   the test split into ``results/table1_<name>.{md,json}``.
   """
-  cfg = train.read_preset(config)
-  tr = cfg.train
+  cfg, tr = config, config.train
   primary = jax.process_index() == 0
   if tr.check_memory:
     from nlosjax.plan import check_fits
@@ -116,7 +116,7 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
     digest, fingerprint = dataset_identity(data_path)
     export = dataclasses.replace(export, data_digest=digest, data_fingerprint=fingerprint)
     log(f"dataset: content digest {export.data_digest}")
-  validate = protocol.validation_psnr(cfg, data_path)
+  validate = protocol.validation_scores(cfg, data_path)     # train.stop.metric decides among them
   trained, logs, checkpoints = {}, {}, {}
   for variant in tr.variants:
     for seed in range(base, base + n_seeds):
@@ -130,6 +130,8 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
       selection = train.read_selection(workdir / folder) or {}
       checkpoints[folder] = {"variant": variant, "seed": seed, "step": selection.get("step"),
                              "val_psnr": selection.get("val_psnr", {}),
+                             **({"metric": selection["metric"], "val_score": selection["val_score"]}
+                                if "metric" in selection else {}),
                              "steps_taken": selection.get("steps_taken", tr.steps),
                              "stop_reason": selection.get("stop_reason", "steps")}
   if not primary:                         # process 0 evaluates; the others are done
@@ -152,7 +154,7 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
              f"{jax.devices()[0].platform}, {jax.device_count()} device(s); "
              f"main job wall time {time.perf_counter() - t0:.0f} s.")
   protocol.write_results(workdir / "results", table, comparisons, evaluation["images"],
-                         caption=caption, validation=validation, logs=logs)
+                         caption=caption, validation=validation, logs=logs, evaluation=evaluation)
   for name, path in (extra_test_sets or {}).items():
     log(f"extra test set {name}: {path} ...")
     ev = protocol.evaluate(cfg, path, trained, split="test", classic_settings=settings,
@@ -160,7 +162,7 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
     t, c = protocol.tabulate(ev, best_classic_method=best)
     n_seq = len(set(ev["sequence"].tolist()))
     protocol.write_results(
-        workdir / "results", t, c, ev["images"], stem=f"table1_{name}",
+        workdir / "results", t, c, ev["images"], stem=f"table1_{name}", evaluation=ev,
         caption=(f"Extra test set `{name}`: `{path}` ({n_seq} sequences, {ev['n_frames']} frames),"
                  " made by code the training data do not share; the same models (checkpoints"
                  " chosen on validation) and classic settings (tuned on validation) as the test"

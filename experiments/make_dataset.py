@@ -5,9 +5,10 @@
         [--seed S] [--workers W] [--clean | --no-clean] [--albedo] [--quiet]
 
 Reads the config as ``python -m experiments.train`` does (:mod:`experiments.cli`:
-a preset of ``experiments/configs`` or a ``.py`` file, then the
-``--config.section.key=value`` overrides; an unknown key or section exits with
-the known ones before anything is simulated), applies the flags below, and
+a preset of ``experiments/configs`` or a ``.py`` file, read by
+``ml_collections.config_flags`` with the ``--config.section.key=value`` overrides;
+an unknown key or a bad value exits naming it before anything is simulated),
+applies the flags below, and
 calls :func:`nlosjax.data.dataset.write_dataset` with
 ``DatasetSpec.from_config(config["data"])`` at ``config["data"]["path"]``
 (progress bar, crash-safe: it writes ``FILE.partial`` and renames it when done;
@@ -67,7 +68,7 @@ def apply_flags(args, config: dict, overrides=()) -> dict:
   Raises:
     ValueError: a flag and one of ``overrides`` set the same key, or a bad ``--sequences``.
   """
-  touched = [cli.override_key(arg)[0] for arg in overrides]
+  touched = [cli.override_key(arg) for arg in overrides]
   data = config.setdefault("data", {})
   counts = dict(data.get("num_sequences", {}))
   if args.sequences is not None:

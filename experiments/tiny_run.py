@@ -1,7 +1,6 @@
 """A tiny training run: the cpu preset shrunk to seconds, for the tests and smoke runs (``--tiny``)."""
 
 from experiments import configs
-from nlosjax import train as T
 from nlosjax.data.scenes import params as scene_params
 from nlosjax.variants import OURS, USM
 
@@ -34,4 +33,4 @@ def tiny_config(data_path, **train):
   cfg[USM] = {"recipe": OURS, "model": dict(TINY_USM)}
   cfg["train"] = {"steps": 4, "batch_size": 2, "log_every": 1, "checkpoint_every": 2,
                   "eval_batch_size": 2, **train}
-  return T.with_defaults(cfg)
+  return cfg

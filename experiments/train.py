@@ -31,11 +31,14 @@ size, :mod:`nlosjax.plan`), and exits without generating data. With several
 processes each one reads only its rows of every global batch; process 0 makes
 the dataset (on a file system the others see), writes the logs and evaluates.
 
-``--config`` and the ``--config.section.key=value`` overrides are parsed by
-:mod:`experiments.cli`, as in ``python -m experiments.make_dataset``: with the
-same ``--config`` and ``--config.data.*`` overrides it writes the dataset file
-this command would make for itself. An unknown key or section exits, listing
-the known ones, before any data is made or model trained.
+``--config`` (a preset's name or a file whose ``get_config()`` returns an
+``ml_collections.ConfigDict``) and the ``--config.section.key=value`` overrides
+are read by ``ml_collections.config_flags`` (:mod:`experiments.cli`), as in
+``python -m experiments.make_dataset``: with the same ``--config`` and
+``--config.data.*`` overrides it writes the dataset file this command would
+make for itself. The config is locked: an unknown key or a value of the wrong
+type exits with one line naming it, before any data is made or model trained.
+The typed :class:`~nlosjax.train.RunConfig` is built from it once, here.
 
 Compiled programs are kept in the clone's persistent XLA compilation cache
 (``.cache/xla``; ``NLOSJAX_CACHE_DIR`` names another folder, ``NLOSJAX_CACHE=0``
@@ -116,11 +119,15 @@ def run(args, config, parser, argv=None):
     if args.seeds < 1:
       parser.error(f"--seeds must be >= 1, got {args.seeds}")
     config.setdefault("train", {})["seeds"] = args.seeds
-  from nlosjax.train import read_preset
+  from nlosjax.train import RunConfig
   try:
-    config = read_preset(config)        # typed and frozen from here on
-  except ValueError as e:
-    parser.error(str(e))
+    config = RunConfig.from_dict(config)        # typed and frozen from here on
+    config.data.spec()                          # every data value checked before any work
+  except (TypeError, ValueError) as e:
+    raise SystemExit(f"--config {args.config}: {e}") from None
+  independent = config.extra.get("independent")
+  if independent and "path" not in independent:
+    raise SystemExit(f"--config {args.config}: independent.path is needed where the independent set is set")
   if args.num_processes > 1:
     if not args.coordinator:
       parser.error("--num-processes > 1 needs --coordinator host:port (process 0's address)")
@@ -138,12 +145,11 @@ def run(args, config, parser, argv=None):
   if args.process_id == 0:
     record_invocation(args.workdir, argv)
   extra = {}
-  spec = config.extra.get("independent")
-  if spec:
+  if independent:
     from experiments.independent_set import ensure_independent_set
     extra["independent"] = ensure_independent_set(
-        spec["path"], dict(config.data.section), spec.get("sequences", 8), spec.get("frames", 8),
-        spec.get("seed", 2026))
+        independent["path"], dict(config.data.section), independent.get("sequences", 8),
+        independent.get("frames", 8), independent.get("seed", 2026))
   kwargs = {"extra_test_sets": extra} if extra else {}
   if args.resume_from:
     kwargs["export"] = _state_export(args)

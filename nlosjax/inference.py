@@ -140,11 +140,9 @@ def training_setup(config) -> Setup:
   :meth:`~nlosjax.train.RunConfig.from_dict`).
 
   Raises:
-    TypeError: ``config`` is not a RunConfig.
     KeyError, ValueError: a config without a usable ``data`` section (callers name the file).
   """
-  from nlosjax import train
-  return train.require_run_config(config, "training_setup").data.setup()
+  return config.data.setup()
 
 
 def restore_params(ckpt, model_config, *, step: int | None = None,

@@ -46,7 +46,7 @@ from jax.sharding import PartitionSpec as P
 from nlosjax import train
 from nlosjax.models.network import flop_counts
 from nlosjax.physics import Setup, operator_args
-from nlosjax.train.config import RunConfig, require_run_config
+from nlosjax.train.config import RunConfig
 
 GIB = 2 ** 30
 #: Fraction of the device memory a plan may use (XLA needs some room beyond its plan:
@@ -149,7 +149,7 @@ def _abstract_batch(mcfg, batch: int, mesh) -> dict:
 
 def compile_train_step(config: RunConfig, mcfg, variant: str, mesh):
   """``(compiled, abstract_state, abstract_batch)``: the run's real train step, compiled from shapes."""
-  tr = require_run_config(config, "compile_train_step").train
+  tr = config.train
   batch = tr.batch_size
   n = mesh.devices.size
   if batch % n:
@@ -174,7 +174,6 @@ def _compile_inference(mcfg, batch: int):
 
 def plan_variant(config: RunConfig, setup: Setup, variant: str, mesh, *, inference: bool = True) -> dict:
   """Compile ``variant``'s train (and inference) step for ``setup``: ``{"model_config", "train", "inference"}``."""
-  config = require_run_config(config, "plan_variant")
   mcfg = train.model_config_for(config, setup, variant)
   t = time.perf_counter()
   compiled, _, _ = compile_train_step(config, mcfg, variant, mesh)
@@ -214,7 +213,6 @@ def measure_reduced(config: RunConfig, setup: Setup, variant: str, mesh, *, step
   where the grid or bins do not divide, the input would be under 4 x 4 scan
   points or 32 bins, or the model rejects the Setup.
   """
-  config = require_run_config(config, "measure_reduced")
   stride = config.data.stride()
   batch = config.train.batch_size
   found, last_error = [], None
@@ -306,7 +304,6 @@ def _model_fields(config) -> set:
 
 def verdict(config: RunConfig, plan: StepPlan, memory: int | None, variant: str) -> str | None:
   """None when ``plan`` fits ``MEMORY_FRACTION`` of ``memory`` (or memory is unknown), else the error message."""
-  config = require_run_config(config, "verdict")
   if memory is None:
     return None
   limit = int(MEMORY_FRACTION * memory)
@@ -320,7 +317,6 @@ def verdict(config: RunConfig, plan: StepPlan, memory: int | None, variant: str)
 
 def check_fits(config: RunConfig, *, log: Callable[[str], None] = print) -> None:
   """Compile every variant's train step from shapes; raise :class:`DoesNotFit` if one would not fit."""
-  config = require_run_config(config, "check_fits")
   setup, mesh = config.data.spec().setup, train.mesh_for(config)
   memory, _ = device_memory()
   for variant in config.train.variants:
@@ -339,7 +335,6 @@ def dry_run(config: RunConfig, *, measure: bool = True, log: Callable[[str], Non
   StepPlan, "reduced": {...} | None, "step_s", "run_s", "fits": bool,
   "problem": str | None}}}``; times are estimates (module docstring, step 3).
   """
-  config = require_run_config(config, "dry_run")
   setup, mesh = config.data.spec().setup, train.mesh_for(config)
   memory, source = device_memory()
   steps = config.train.steps

@@ -56,7 +56,7 @@ def devices(data, out):
 
   def restore_step2(workdir, n):
     """The step-2 checkpoint of ``workdir`` restored into a fresh state replicated on ``n`` devices."""
-    cfg = T.with_defaults(tiny_config(data, steps=4, devices=n, batch_size=4))
+    cfg = tiny_config(data, steps=4, devices=n, batch_size=4)
     typed = T.RunConfig.from_dict(cfg)
     mcfg = T.model_config_for(typed, _setup(data), "ours_s")
     optim, weights = T.training_recipe(typed, "ours_s")
@@ -100,7 +100,7 @@ def worker(data, out, port, pid):
 
   from tests.tiny_run import tiny_config
   cfg = tiny_config(data, steps=4, batch_size=4)
-  loader = T.make_loader(T.read_preset(cfg), data, "train", batch_size=4, shuffle=True, seed=0,
+  loader = T.make_loader(T.RunConfig.from_dict(cfg), data, "train", batch_size=4, shuffle=True, seed=0,
                          shard=(jax.process_index(), jax.process_count()))
   rows = loader.batch(0)
   _, state = T.train_model(T.RunConfig.from_dict(cfg), data, out / "shared", "ours_s", log=lambda s: None)

@@ -124,16 +124,16 @@ def test_bad_configs_are_refused(kwargs, match):
 def test_the_training_loop_builds_ik_and_two_steps_move_the_kernel_and_the_attention():
   import optax
 
-  from experiments import cli
+  from experiments import configs
   from nlosjax import losses, train
   from nlosjax.train.sharding import make_mesh
   from nlosjax.train.state import create_train_state
   from nlosjax.train.step import make_train_step
-  config = train.with_defaults({"data": {"input_stride": 4}, "model": {"wavelet_cycles": 4.0},
-                                "ik": {"model": {"extract_width": 1, "bands": 3}}})
+  config = {"data": {"input_stride": 4}, "model": {"wavelet_cycles": 4.0},
+            "ik": {"model": {"extract_width": 1, "bands": 3}}}
   mcfg = train.model_config_for(RunConfig.from_dict(config), TINY, "ik")
   assert mcfg == IKConfig(setup=TINY, stride=4, extract_width=1, bands=3, wavelet_cycles=4.0)
-  assert cli._schema(("ik", "model"))[0] >= {"extract_width", "bands", "attention_width"}
+  assert set(configs.skeleton().ik.model) >= {"extract_width", "bands", "attention_width"}
   state = create_train_state(mcfg.module(), mcfg.input_shape(2), optax.adam(1e-2), jax.random.PRNGKey(0),
                              make_mesh())
   before = jax.device_get(state.params)

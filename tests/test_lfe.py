@@ -131,19 +131,19 @@ def test_wrong_frames_and_negative_counts_are_refused():
 def test_the_training_loop_builds_lfe_and_one_step_moves_every_learned_part():
   import optax
 
-  from experiments import cli
+  from experiments import configs
   from nlosjax import losses, train
   from nlosjax.train.sharding import make_mesh
   from nlosjax.train.state import create_train_state
   from nlosjax.train.step import make_train_step
-  config = train.with_defaults({"data": {"input_stride": 4}, "model": {"wavelet_cycles": 4.0},
-                                "train": {"optim": {"learning_rate": 1e-3}},
-                                "lfe": {"model": {"extract_width": 1}, "optim": {"learning_rate": 3e-4}}})
+  config = {"data": {"input_stride": 4}, "model": {"wavelet_cycles": 4.0},
+            "train": {"optim": {"learning_rate": 1e-3}},
+            "lfe": {"model": {"extract_width": 1}, "optim": {"learning_rate": 3e-4}}}
   mcfg = train.model_config_for(RunConfig.from_dict(config), TINY, "lfe")
   assert mcfg == LFEConfig(setup=TINY, stride=4, extract_width=1, wavelet_cycles=4.0)
   assert train.training_recipe(RunConfig.from_dict(config), "lfe")[0].learning_rate == 3e-4
   assert train.training_recipe(RunConfig.from_dict(config), "ours")[0].learning_rate == 1e-3
-  assert cli._schema(("lfe", "model"))[0] >= {"extract_width", "physics", "lct_snr"}
+  assert set(configs.skeleton().lfe.model) >= {"extract_width", "physics", "lct_snr"}
   weights = losses.LossWeights()
   state = create_train_state(mcfg.module(), mcfg.input_shape(2), optax.adam(1e-2), jax.random.PRNGKey(0),
                              make_mesh())

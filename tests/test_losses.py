@@ -89,6 +89,39 @@ def test_object_intensity_is_the_rmse_over_true_surface_pixels_by_a_loop():
   assert np.all(np.isfinite(np.asarray(g)))
 
 
+def test_balanced_rmse_weighs_object_and_background_pixels_half_each_by_a_loop():
+  pred, tgt = RNG.uniform(size=(4, 5, 6)), RNG.uniform(size=(4, 5, 6))
+  depth = np.where(RNG.uniform(size=(4, 5, 6)) < 0.8, 0.0, 0.9)      # few object pixels, as in the data
+  depth[2] = 0.0                                                       # background only
+  depth[3] = 1.1                                                       # objects only
+  for balance in (0.0, 0.3, 1.0):
+    per_sample = []
+    for b in range(4):
+      obj = [(pred[b, i, j] - tgt[b, i, j]) ** 2 for i in range(5) for j in range(6) if depth[b, i, j] != 0.0]
+      bg = [(pred[b, i, j] - tgt[b, i, j]) ** 2 for i in range(5) for j in range(6) if depth[b, i, j] == 0.0]
+      every = np.mean(obj + bg)
+      halves = 0.5 * (np.mean(obj) + np.mean(bg)) if obj and bg else np.mean(obj or bg)
+      per_sample.append(np.sqrt((1 - balance) * every + balance * halves))
+    got = losses.balanced_rmse_loss(jnp.asarray(pred), jnp.asarray(tgt), jnp.asarray(depth), balance)
+    assert float(got) == pytest.approx(np.mean(per_sample), rel=1e-5), balance
+  assert float(losses.balanced_rmse_loss(jnp.asarray(pred), jnp.asarray(tgt), jnp.asarray(depth), 0.0)) == \
+      pytest.approx(float(losses.rmse_loss(jnp.asarray(pred), jnp.asarray(tgt))), rel=1e-6)
+  # Inside total_loss, balance makes L_int and L_dep balanced (depth: its own map marks the objects).
+  out, t = _batch(), _batch()
+  w = losses.LossWeights(phasor_field=0.0, alpha1=0.0, gamma=0.0, balance=1.0)
+  _, terms = _total_loss(out, t, w, None)
+  dep = np.asarray(t["depth"])
+  assert float(terms["int"]) == pytest.approx(float(losses.balanced_rmse_loss(
+      out["intensity"], t["intensity"], dep, 1.0)), rel=1e-6)
+  assert float(terms["dep"]) == pytest.approx(float(losses.balanced_rmse_loss(out["depth"], dep, dep, 1.0)),
+                                              rel=1e-6)
+  with pytest.raises(ValueError, match="balance"):
+    losses.LossWeights(balance=1.5)
+  assert "balance" not in losses.LossWeights().to_dict()        # older runs' recorded weights still match
+  g = jax.grad(lambda i: losses.balanced_rmse_loss(i, i, jnp.zeros((2, 3)), 1.0))(jnp.ones((2, 3)))
+  assert np.all(np.isfinite(np.asarray(g))) and not np.any(np.asarray(g))
+
+
 def test_total_loss_does_not_depend_on_batch_size_and_composes_as_the_paper():
   wl = illumination_wavelet(SETUP)
   out, tgt = _batch(1), _batch(1)

@@ -25,7 +25,7 @@ def _fast_compiles():
 
 def test_paper_recipe_is_explicit_and_matches_model_config_paper(tmp_path):
   cfg = configs.get_config("paper")
-  tr = T.with_defaults(cfg)["train"]
+  tr = cfg["train"]
   assert (tr["batch_size"], tr["optim"]["learning_rate"], tr["optim"]["weight_decay"]) == (4, 1e-4, 0.95)
   # 150 training sequences x 30 triplets / batch 4 per epoch, 40 epochs.
   assert tr["steps"] == 40 * 150 * 30 // 4 and tr["checkpoint_every"] == 150 * 30 // 4
@@ -36,7 +36,7 @@ def test_paper_recipe_is_explicit_and_matches_model_config_paper(tmp_path):
       assert getattr(paper, key) == value, key
   # The model section builds exactly ModelConfig.paper() on the preset's data.
   setup = T.RunConfig.from_dict(cfg).data.spec().setup
-  mcfg = T.model_config_for(RunConfig.from_dict(T.with_defaults(cfg)), setup, "ours")
+  mcfg = T.model_config_for(RunConfig.from_dict(cfg), setup, "ours")
   assert dataclasses.replace(mcfg, volume_activation="relu") == paper
 
 
@@ -56,7 +56,7 @@ def tiny(tmp_path_factory):
 
 @pytest.mark.full
 def test_dry_run_plans_from_shapes_and_measures_without_data(tiny):
-  result = plan.dry_run(T.read_preset(tiny), log=lambda s: None)
+  result = plan.dry_run(T.RunConfig.from_dict(tiny), log=lambda s: None)
   assert not __import__("pathlib").Path(tiny["data"]["path"]).exists()      # no data generated
   for v in result["variants"].values():
     p = v["train"]
@@ -82,13 +82,13 @@ def test_dry_run_plans_from_shapes_and_measures_without_data(tiny):
 def test_a_plan_over_the_device_memory_is_refused_with_the_fix(tiny, monkeypatch):
   monkeypatch.setattr(plan, "device_memory", lambda device=None: (2 ** 20, "test"))
   with pytest.raises(plan.DoesNotFit, match="train.batch_size|remat") as e:
-    plan.check_fits(T.read_preset(tiny), log=lambda s: None)
+    plan.check_fits(T.RunConfig.from_dict(tiny), log=lambda s: None)
   assert "more devices" in str(e.value) and "check_memory=False" in str(e.value)
   # The main job refuses before making any data.
   from experiments.main_job import train_and_evaluate
   cfg = {**tiny, "train": {**tiny["train"], "check_memory": True}}
   with pytest.raises(plan.DoesNotFit):
-    train_and_evaluate(cfg, tiny["data"]["path"] + ".work", log=lambda s: None)
+    train_and_evaluate(T.RunConfig.from_dict(cfg), tiny["data"]["path"] + ".work", log=lambda s: None)
   assert not __import__("pathlib").Path(tiny["data"]["path"]).exists()
 
 

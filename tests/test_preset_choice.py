@@ -58,9 +58,8 @@ def test_a_workdir_candidate_is_its_runs_model_config_and_parameters(monkeypatch
   ``variant -> (model_config, params)``; a variant it lacks is refused by name."""
   import pytest
 
-  from nlosjax import inference, train
+  from nlosjax import inference
   monkeypatch.setattr(inference, "load_run", lambda source: ({"c": 1}, {"ours": ("mcfg", "params")}))
-  monkeypatch.setattr(train, "with_defaults", lambda cfg: {**cfg, "defaults": True})
-  assert preset_choice.load_candidate("runs/x", "ours") == ("mcfg", "params", {"c": 1, "defaults": True})
+  assert preset_choice.load_candidate("runs/x", "ours") == ("mcfg", "params", {"c": 1})
   with pytest.raises(SystemExit, match="no trained ours_s"):
     preset_choice.load_candidate("runs/x", "ours_s")

@@ -152,7 +152,7 @@ def test_real_preset_model_moves_to_the_measured_scan_at_its_trained_resolution(
   from nlosjax.data.dataset import DatasetSpec
   from nlosjax.physics.wavelet import illumination_wavelet
 
-  config = T.with_defaults(get_config("real"))
+  config = get_config("real")
   spec = DatasetSpec.from_config(config["data"])
   mcfg = T.model_config_for(RunConfig.from_dict(config), spec.setup,
                             "ours_s")      # raises if the physics layer can't be built
@@ -277,7 +277,7 @@ def test_every_variant_of_the_real_preset_can_build_its_loss_wavelet():
   from nlosjax.data.dataset import DatasetSpec
   from nlosjax.physics.wavelet import illumination_wavelet
 
-  config = T.with_defaults(get_config("real"))
+  config = get_config("real")
   setup = DatasetSpec.from_config(config["data"]).setup
   for variant in ("ours", "ours_s", "usm"):
     m = T.model_config_for(RunConfig.from_dict(config), setup, variant)

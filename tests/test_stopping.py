@@ -76,11 +76,11 @@ def test_stop_rules_are_checked_and_reach_the_cli():
   for bad in ({"rule": "loss"}, {"every": 0}, {"patience": 1.5}, {"min_delta_db": -1}):
     with pytest.raises(ValueError, match="train.stop"):
       T.StopRule.from_config(bad)
-  from experiments.cli import apply_overrides, load_config
-  cfg = apply_overrides(load_config("cpu"), ["--config.train.stop.rule=plateau", "--config.train.stop.patience=6"])
-  assert T.StopRule.from_config(T.with_defaults(cfg)["train"]["stop"]).patience == 6
-  with pytest.raises(SystemExit, match="known: every, max_steps"):
-    apply_overrides(load_config("cpu"), ["--config.train.stop.patients=6"])
+  from experiments.cli import load_config
+  cfg = load_config("cpu", ["--config.train.stop.rule=plateau", "--config.train.stop.patience=6"])
+  assert T.StopRule.from_config(cfg["train"]["stop"]) == T.StopRule(rule="plateau", patience=6)
+  with pytest.raises(SystemExit, match="config.train.stop has no key 'patients' .did you mean 'patience'"):
+    load_config("cpu", ["--config.train.stop.patients=6"])
 
 
 def test_the_learning_rate_spans_max_steps_under_the_plateau_rule():
@@ -128,6 +128,30 @@ def test_a_plateau_run_stops_where_its_validations_say_and_keeps_the_best(data_p
   a = T.read_metrics(folder / "metrics.jsonl")
   b = T.read_metrics(tmp_path / "fixed" / "ours_s" / "metrics.jsonl")[:6]
   assert [r["loss"] for r in a] == [r["loss"] for r in b]
+
+
+def test_a_plateau_run_on_the_balanced_psnr_decides_on_it_and_keeps_every_score(data_path, tmp_path):
+  """The callback returns every score; the rule stops and chooses on ``metric`` alone: the hand-made
+  whole-image PSNRs would stop at step 6 and keep step 4, the balanced ones keep rising to step 8."""
+  psnr = iter([5.0, 6.5, 6.0, 6.2])
+  balanced = iter([3.0, 3.5, 4.0, 4.5])
+  validate = lambda mcfg, params: {"psnr": next(psnr), "psnr_balanced": next(balanced), "f1": 0.5}  # noqa: E731
+  cfg = tiny_config(data_path, stop=plateau(metric="psnr_balanced"), optim=OPTIM)
+  _, state = T.train_model(RunConfig.from_dict(cfg), data_path, tmp_path, "ours_s", validate=validate, log=quiet)
+  curve = T.read_curve(tmp_path / "ours_s")
+  assert [(p["step"], p["val_psnr"], p["score"]) for p in curve["curve"]] == \
+      [(2, 5.0, 3.0), (4, 6.5, 3.5), (6, 6.0, 4.0), (8, 6.2, 4.5)]
+  assert curve["curve"][0]["val"] == {"psnr": 5.0, "psnr_balanced": 3.0, "f1": 0.5}
+  assert (curve["stop_reason"], curve["best_step"], curve["best_score"]) == ("max_steps", 8, 4.5)
+  assert curve["rule"]["metric"] == "psnr_balanced" and int(state.step) == 8
+  sel = T.read_selection(tmp_path / "ours_s")
+  assert (sel["metric"], sel["step"], sel["val_score"]) == ("psnr_balanced", 8, {2: 3.0, 4: 3.5, 6: 4.0, 8: 4.5})
+  # The default rule records as before; a number cannot feed a rule on another metric.
+  assert "metric" not in T.StopRule(rule="plateau").to_dict()
+  with pytest.raises(ValueError, match="dict of scores"):
+    T.StopRule(rule="plateau", metric="psnr_balanced").score(5.0)
+  with pytest.raises(ValueError, match="metric must be one of"):
+    T.StopRule(metric="ssim")
 
 
 @pytest.mark.full
@@ -199,8 +223,9 @@ def test_a_killed_plateau_run_resumes_to_the_same_curve_and_parameters(data_path
 @pytest.mark.full
 def test_the_default_rule_is_unchanged(data_path, tmp_path):
   cfg = tiny_config(data_path, steps=MAX_STEPS, optim=OPTIM)
-  assert T.StopRule.from_config(cfg["train"]["stop"]) == T.StopRule() and T.StopRule().rule == "steps"
-  default_cfg = {**cfg, "train": {k: v for k, v in cfg["train"].items() if k != "stop"}}
+  assert "stop" not in cfg["train"] and T.StopRule().rule == "steps"
+  assert RunConfig.from_dict(cfg).train.stop == T.StopRule()             # a config silent on the rule
+  default_cfg = cfg
   explicit = tiny_config(data_path, steps=MAX_STEPS, optim=OPTIM, stop={"rule": "steps"})
   _, a = T.train_model(RunConfig.from_dict(default_cfg), data_path, tmp_path / "a", "ours_s", log=quiet)
   _, b = T.train_model(RunConfig.from_dict(explicit), data_path, tmp_path / "b", "ours_s", validate=lambda m,

@@ -4,12 +4,11 @@ import pytest
 from experiments import configs
 from experiments.studies import mechanisms as M
 from experiments.studies import time_to_plateau as P
-from nlosjax.train import with_defaults
 from tests.test_mechanisms import fake_record
 
 
 def test_the_short_schedule_differs_from_the_study_in_two_numbers_only():
-  base = with_defaults(configs.get_config("cpu"))
+  base = configs.get_config("cpu")
   base["train"]["optim"] = M.study_optim(base)          # as the CLIs build the study's base
   assert base["train"]["optim"]["learning_rate"] == 1e-3
   for row in ("full", "ours_s"):

@@ -39,7 +39,8 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path, monkeypatch):
   monkeypatch.setattr(baselines, "option_grid", lambda method, setup: grid(method, setup)[:2])
   cfg = tiny_config(data_path, steps=2, seeds=2, select_checkpoint="val", keep_checkpoints=2,
                     checkpoint_every=1, variants=("ours_s", "ours", "usm"))
-  table = train_and_evaluate(cfg, tmp_path, extra_test_sets={"again": data_path}, log=lambda s: None)
+  table = train_and_evaluate(T.RunConfig.from_dict(cfg), tmp_path, extra_test_sets={"again": data_path},
+                             log=lambda s: None)
   saved = json.loads((tmp_path / "results" / "table.json").read_text())
   # Every classic method and the variants trained (LFE is a variant this run does not train).
   methods = {m for m in report.TABLE_METHODS if m not in T.VARIANT_FRAMES} | {"ours_s", "ours", "usm"}
@@ -133,8 +134,8 @@ def test_evaluate_cli_errors_name_the_problem(data_path, tmp_path):
 
 def test_bad_configs_raise(data_path, tmp_path):
   cfg = tiny_config(data_path)
-  with pytest.raises(ValueError, match="unknown key"):
-    T.with_defaults({**cfg, "train": {**cfg["train"], "stepz": 3}})
+  with pytest.raises(TypeError, match="stepz"):
+    T.RunConfig.from_dict({**cfg, "train": {**cfg["train"], "stepz": 3}})
   with pytest.raises(ValueError, match="variant"):
     T.model_config_for(cfg, None, "ours_xl")
   empty = tmp_path / "empty.h5"

@@ -287,8 +287,8 @@ def test_summary_counts_parameters_and_the_lct_ffts():
 # ------------------------------------------------------------------ recipe
 def test_published_recipe_and_variant_config():
   widths = {k: v for k, v in TINY_KW.items() if k != "stride"}
-  config = train.with_defaults({"data": {"input_stride": 2}, "train": {"loss": {"object_intensity": 3.0}},
-                                "usm": {"recipe": "published", "model": widths}})
+  config = {"data": {"input_stride": 2}, "train": {"loss": {"object_intensity": 3.0}},
+            "usm": {"recipe": "published", "model": widths}}
   optim, weights = train.training_recipe(RunConfig.from_dict(config), "usm")
   assert optim == train.OptimConfig(**PUBLISHED_OPTIM)
   assert (optim.learning_rate, optim.weight_decay, optim.cosine, optim.clip_norm) == (1e-4, 1e-4,

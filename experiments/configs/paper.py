@@ -21,6 +21,9 @@ Why each value: docs/decisions.md, "The paper preset's choices".
 
 import dataclasses
 
+from ml_collections import ConfigDict
+
+from experiments import configs
 from experiments.configs import cpu
 from nlosjax.models.network import ModelConfig
 from nlosjax.variants import OURS, OURS_S, USM
@@ -39,49 +42,51 @@ def model_section(model: ModelConfig) -> dict:
           if k not in ("setup", "stride", "frames") and getattr(model, k) != defaults[k]}
 
 
-def get_config() -> dict:
-  # The cpu preset's detector and scene distributions, at the paper's sizes.
-  data = cpu.get_config()["data"]
-  data.update({
-      "wall_size": 2.0,            # m
-      "grid": 128,                 # full-resolution scan points per axis
-      "bin_width": 33e-12,         # s
-      "num_bins": 512,             # Setup.max_depth = 2.53 m
-      "input_stride": 8,           # 128 -> 16
-      "input_offset": 4,           # first kept point (stride // 2, the model's convention)
-      "frames": 32,                # F per sequence (30 triplets each with ends="valid")
-      "num_sequences": {"train": 150, "val": 16, "test": 17},
-      "store_clean": False,        # about 1 GiB per sequence: the target is the full-resolution measurement
-      "renderer": "lct",           # the light-cone renderer: transport would take days at this size
-      "retroreflective": 0.0,      # every object diffuse (r^-4)
-      "render_batch": 4,
-      "loader": {"ends": "valid", "target": "measurement", "in_memory": False, "prefetch": 4},
-      "path": "runs/data/paper.h5",
-  })
+def get_config() -> ConfigDict:
+  # The cpu preset's detector and scene distributions, at the paper's sizes; its own model,
+  # training, USM recipe and (none) independent set.
+  config = cpu.get_config()
+  unset = configs.skeleton()
+  config.model, config.train, config[USM], config.independent = unset.model, unset.train, unset[USM], unset.independent
+  config.data.update(
+      wall_size=2.0,                 # m
+      grid=128,                      # full-resolution scan points per axis
+      bin_width=33e-12,              # s
+      num_bins=512,                  # Setup.max_depth = 2.53 m
+      input_stride=8,                # 128 -> 16
+      input_offset=4,                # first kept point (stride // 2, the model's convention)
+      frames=32,                     # F per sequence (30 triplets each with ends="valid")
+      store_clean=False,             # about 1 GiB per sequence: the target is the full-resolution measurement
+      renderer="lct",                # the light-cone renderer: transport would take days at this size
+      retroreflective=0.0,           # every object diffuse (r^-4)
+      render_batch=4,
+      path="runs/data/paper.h5",
+  )
+  config.data.num_sequences.update(train=150, val=16, test=17)
+  config.data.loader.update(ends="valid", target="measurement", in_memory=False, prefetch=4)
   # ModelConfig.paper() itself (its widths: C = 32, N = 16, two ST-Mamba blocks, the physics
   # layer one channel at a time, rematerialisation), with the cpu preset's softplus volume.
-  model = model_section(ModelConfig.paper(volume_activation="softplus"))
-  train = {
-      "steps": EPOCHS * STEPS_PER_EPOCH,   # 45,000
-      "batch_size": 4,
-      "seed": 0,
-      "seeds": 1,                  # training seeds per variant
-      "log_every": 50,             # steps
-      "checkpoint_every": STEPS_PER_EPOCH,   # one checkpoint per epoch
-      "keep_checkpoints": 5,
-      "select_checkpoint": "val",  # the kept checkpoint with the best validation PSNR is evaluated
-      "eval_batch_size": 4,
-      "variants": (OURS_S, OURS),
-      "data_workers": 2,           # processes generating the data
-      "check_memory": True,        # refuse a run whose predicted memory exceeds the device's
-      "optim": {
-          "learning_rate": 1e-4,   # AdamW, as printed
-          "weight_decay": 0.95,    # as printed
-          "warmup_steps": 0,       # no schedule: the paper names none
-          "cosine": False,
-          "clip_norm": 1.0,        # global gradient-norm clipping
-      },
-      "loss": {},                  # the paper's loss weights (Sec. 5.1)
-  }
-  usm = {"recipe": "published", "model": {}}   # USM's own optimiser, loss and widths
-  return {"data": data, "model": model, "train": train, USM: usm}
+  config.model.update(model_section(ModelConfig.paper(volume_activation="softplus")))
+  train = config.train
+  train.steps = EPOCHS * STEPS_PER_EPOCH     # 45,000
+  train.batch_size = 4
+  train.seed = 0
+  train.seeds = 1                    # training seeds per variant
+  train.log_every = 50               # steps
+  train.checkpoint_every = STEPS_PER_EPOCH   # one checkpoint per epoch
+  train.keep_checkpoints = 5
+  train.select_checkpoint = "val"    # the kept checkpoint with the best validation PSNR is evaluated
+  train.eval_batch_size = 4
+  train.variants = (OURS_S, OURS)
+  train.data_workers = 2             # processes generating the data
+  train.check_memory = True          # refuse a run whose predicted memory exceeds the device's
+  train.optim.update(
+      learning_rate=1e-4,            # AdamW, as printed
+      weight_decay=0.95,             # as printed
+      warmup_steps=0,                # no schedule: the paper names none
+      cosine=False,
+      clip_norm=1.0,                 # global gradient-norm clipping
+  )
+  # train.loss unset: the paper's loss weights (Sec. 5.1).
+  config[USM].recipe = "published"   # USM's own optimiser, loss and widths
+  return config

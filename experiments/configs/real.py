@@ -18,56 +18,56 @@ stopped at 900 steps).
 Why each value: docs/decisions.md, "The real preset's geometry".
 """
 
+from ml_collections import ConfigDict
+
+from experiments import configs
 from experiments.configs import cpu
 
 
-def get_config() -> dict:
+def get_config() -> ConfigDict:
   config = cpu.get_config()
-  data = config["data"]
-  data.update({
-      "wall_size": 0.6,            # m
-      "grid": 64,                  # full-resolution scan points per axis
-      "bin_width": 64e-12,         # s, 4 x 16 ps
-      "num_bins": 128,             # Setup.max_depth = 128 * c * 64 ps / 2 = 1.23 m
-      "input_stride": 4,           # 64 -> 16
-      "input_offset": 2,
-      "photons": (1e3, 3e4),       # incident signal photons per scan point per frame
-      "falloff": "diffuse",        # light-cone renderer only: transport draws each object's falloff
-      "renderer": "transport",     # as the cpu preset
-      "retroreflective": 0.8,      # share of r^-2 objects, as the measured targets
-      "path": "runs/data/real-v3.h5",   # v3: charts, regular-weight glyphs, line and non-rigid motion
-  })
-  data["scene"] = {
-      **data["scene"],
-      "num_static": (0, 2),
-      "depth_range": (0.35, 1.1),
-      "lateral_extent": 0.2,
-      "size_range": (0.12, 0.4),
+  data = config.data
+  data.update(
+      wall_size=0.6,                 # m
+      grid=64,                       # full-resolution scan points per axis
+      bin_width=64e-12,              # s, 4 x 16 ps
+      num_bins=128,                  # Setup.max_depth = 128 * c * 64 ps / 2 = 1.23 m
+      input_stride=4,                # 64 -> 16
+      input_offset=2,
+      photons=(1e3, 3e4),            # incident signal photons per scan point per frame
+      falloff="diffuse",             # light-cone renderer only: transport draws each object's falloff
+      renderer="transport",          # as the cpu preset
+      retroreflective=0.8,           # share of r^-2 objects, as the measured targets
+      path="runs/data/real-v3.h5",   # v3: charts, regular-weight glyphs, line and non-rigid motion
+  )
+  data.scene.update(
+      num_static=(0, 2),
+      depth_range=(0.35, 1.1),
+      lateral_extent=0.2,
+      size_range=(0.12, 0.4),
       # Drawn uniformly from the tuple: planar kinds 4x as likely as boxes and bars.
-      "kinds": ("letter", "digit", "polygon", "plate", "letter", "digit", "bars", "dots",
-                "box", "bar"),
-      "dynamic_kinds": ("letter", "digit", "letter", "digit", "polygon", "plate", "bars", "dots"),
-      "glyph_weights": ("bold", "regular"),
-      "max_tilt_deg": 20.0,
-      "helix_radius": (0.02, 0.1),
-      "helix_pitch": (0.02, 0.1),
-      "albedo_range": (0.5, 1.0),
-      "motions": ("helix", "line"),
-      "spin_speed": (0.0, 0.0),    # rad/s: no spin
-      "deform": (0.0, 0.3),        # non-rigid deformation of the moving target
-  }
+      kinds=("letter", "digit", "polygon", "plate", "letter", "digit", "bars", "dots", "box", "bar"),
+      dynamic_kinds=("letter", "digit", "letter", "digit", "polygon", "plate", "bars", "dots"),
+      glyph_weights=("bold", "regular"),
+      max_tilt_deg=20.0,
+      helix_radius=(0.02, 0.1),
+      helix_pitch=(0.02, 0.1),
+      albedo_range=(0.5, 1.0),
+      motions=("helix", "line"),
+      spin_speed=(0.0, 0.0),         # rad/s: no spin
+      deform=(0.0, 0.3),             # non-rigid deformation of the moving target
+  )
   # The cpu preset's independent set is drawn at the cpu Setup; this preset has none.
-  config.pop("independent", None)
+  config.independent = configs.skeleton().independent
   # The physics layer at full time resolution with a 5.7 cm virtual wavelength
   # (docs/decisions.md, "The real preset's geometry").
-  config["model"]["volume_time_stride"] = 1
-  config["model"]["wavelet_sampling"] = 3.0
+  config.model.volume_time_stride = 1
+  config.model.wavelet_sampling = 3.0
   # The peak learning rate every real weight was trained with (the cpu preset's before its main
   # job took the short schedule, 3e-3; whether that schedule serves here is
   # experiments/studies/real_preset's v5-*-short runs).
-  config["train"]["optim"]["learning_rate"] = 1e-3
+  config.train.optim.learning_rate = 1e-3
   # Trained until validation stops improving: the mechanism study's rule
   # (experiments.studies.mechanisms.design.STUDY_STOP), written out so the preset reads alone.
-  config["train"]["stop"] = {"rule": "plateau", "every": 50, "patience": 4, "min_delta_db": 0.05,
-                             "max_steps": 3000}
+  config.train.stop.update(rule="plateau", every=50, patience=4, min_delta_db=0.05, max_steps=3000)
   return config

@@ -37,32 +37,33 @@ a reconstruction or a downstream score; the realism audit's classifier is the
 only score they were tuned against.
 """
 
+from ml_collections import ConfigDict
+
 from experiments.configs import real_v4
 
 
-def get_config() -> dict:
+def get_config() -> ConfigDict:
   config = real_v4.get_config()
-  data = config["data"]
-  data.update({
-      "photons": (3e3, 2.5e4),     # incident signal photons per scan point per frame
-      "efficiency": (0.15, 0.3),   # detected: 450-7500 signal counts per histogram
-      "ambient": (600.0, 5e3),    # incident ambient photons per histogram
-      "path": "runs/data/real-v5.h5",
-  })
-  data["physics"] = {
-      **data["physics"],
-      "families": ("transport",),
-      "jitter_stretch": (1.0, 1.8),            # the measured SPAD curve's time axis
-      "gaussian_jitter": 0.0,
-      "tail": 1.0,
-      "tail_weight": (0.6, 0.9),
-      "tail_decay": (2.5e-10, 6e-10),          # s
-      "dark_counts": (0.5, 50.0),              # per histogram
-      "gain_sigma": (0.02, 0.15),
-      "cosine_power": (2.0, 6.0),
-      "vignetting": (0.2, 0.6),
-      "gate_time": (2.1e-9, 2.6e-9),           # s
-      "sweep": 0.5,
-      "sweep_length": (0.0, 1.0),              # full-resolution scan steps
-  }
+  data = config.data
+  data.update(
+      photons=(3e3, 2.5e4),     # incident signal photons per scan point per frame
+      efficiency=(0.15, 0.3),   # detected: 450-7500 signal counts per histogram
+      ambient=(600.0, 5e3),    # incident ambient photons per histogram
+      path="runs/data/real-v5.h5",
+  )
+  data.physics.update(
+      families=("transport",),
+      jitter_stretch=(1.0, 1.8),            # the measured SPAD curve's time axis
+      gaussian_jitter=0.0,
+      tail=1.0,
+      tail_weight=(0.6, 0.9),
+      tail_decay=(2.5e-10, 6e-10),          # s
+      dark_counts=(0.5, 50.0),              # per histogram
+      gain_sigma=(0.02, 0.15),
+      cosine_power=(2.0, 6.0),
+      vignetting=(0.2, 0.6),
+      gate_time=(2.1e-9, 2.6e-9),           # s
+      sweep=0.5,
+      sweep_length=(0.0, 1.0),              # full-resolution scan steps
+  )
   return config

@@ -206,7 +206,7 @@ def main(argv=None) -> int:
   if len(files) < 2:
     raise SystemExit("leave-one-scan-out needs at least two measured scans")
   config, trained = load_source(args.checkpoint, args.variants)
-  config = T.read_preset(config)
+  config = T.RunConfig.from_dict(config)
   data_path = pathlib.Path(args.data or config.data.path)
   T.ensure_dataset(config, data_path)
   validate = protocol.validation_psnr(config, data_path)

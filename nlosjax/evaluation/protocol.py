@@ -26,11 +26,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from nlosjax.evaluation import baselines, figures, report, scores
-from nlosjax.train.config import RunConfig, require_run_config
+from nlosjax.train.config import RunConfig
 from nlosjax.variants import COMPARISONS, VARIANTS
 
-__all__ = ["load_split", "model_images", "validation_psnr", "surface_cut", "choose_surface_threshold",
-           "tune_model_thresholds",
+__all__ = ["load_split", "model_images", "validation_scores", "validation_psnr", "surface_cut",
+           "choose_surface_threshold", "tune_model_thresholds",
            "evaluate", "tabulate", "best_classic", "write_results"]
 
 #: Surface thresholds tried for a learned model on validation: 0 keeps the model's own depth
@@ -49,7 +49,7 @@ def load_split(config: RunConfig, data_path, split: str, *, batch_size: int) -> 
     the open ``loader`` (unshuffled) feeds :func:`model_images`; close it.
   """
   from nlosjax.train import make_loader
-  loader = make_loader(require_run_config(config, "load_split"), data_path, split, batch_size=batch_size,
+  loader = make_loader(config, data_path, split, batch_size=batch_size,
                        shuffle=False, seed=0)
   gi, gd, mid, seq, frame = [], [], [], [], []
   for step in range(len(loader)):
@@ -97,21 +97,40 @@ def model_images(mcfg, params, loader) -> dict:
   return {"intensity": np.concatenate(inten), "depth": np.concatenate(depth)}
 
 
-def validation_psnr(config: RunConfig, data_path, *, split: str = "val") -> Callable:
-  """``(model_config, params) -> mean intensity PSNR (dB)`` on ``split``: the checkpoint criterion."""
+def validation_scores(config: RunConfig, data_path, *, split: str = "val") -> Callable:
+  """``(model_config, params) -> {score: mean over the frames of split}``: the checkpoint criteria.
+
+  The scores (dB where PSNR; higher is better but for the error): ``psnr`` (whole-image
+  intensity PSNR), ``psnr_balanced`` (object and background pixels weighted equally,
+  :func:`nlosjax.metrics.psnr_balanced`), ``intensity_mae_object`` and ``f1`` (of the
+  model's own depth map: surface where it is at least
+  :data:`nlosjax.metrics.SURFACE_MIN_DEPTH`). ``train.stop.metric`` names the one a
+  run stops and chooses on (:class:`nlosjax.train.StopRule`); the others ride along in
+  its validation curve. Frames without objects are left out of the object scores' means.
+  """
   from nlosjax import metrics
-  config = require_run_config(config, "validation_psnr")
   batch_size = config.train.eval_batch
 
-  def score(mcfg, params) -> float:
+  def score(mcfg, params) -> dict:
     data = load_split(config, data_path, split, batch_size=batch_size)
     try:
       im = model_images(mcfg, params, data["loader"])
     finally:
       data["loader"].close()
-    return float(np.mean(np.asarray(metrics.psnr(im["intensity"], data["intensity"]))))
+    gi, gd = data["intensity"], data["depth"]
+    out = {"psnr_balanced": metrics.psnr_balanced(im["intensity"], gi, gd),
+           "intensity_mae_object": metrics.intensity_mae_object(im["intensity"], gi, gd),
+           "f1": metrics.f1(im["depth"], gd)}
+    return {"psnr": float(np.mean(np.asarray(metrics.psnr(im["intensity"], gi)))),
+            **{k: float(np.nanmean(np.asarray(v, np.float64))) for k, v in out.items()}}
 
   return score
+
+
+def validation_psnr(config: RunConfig, data_path, *, split: str = "val") -> Callable:
+  """``(model_config, params) -> mean intensity PSNR (dB)`` on ``split``: the whole-image criterion."""
+  scores = validation_scores(config, data_path, split=split)
+  return lambda mcfg, params: scores(mcfg, params)["psnr"]
 
 
 def surface_cut(intensity, depth, threshold: float) -> np.ndarray:
@@ -146,7 +165,6 @@ def tune_model_thresholds(config: RunConfig, data_path, trained: dict, *, split:
   Returns:
     ``variant -> {"threshold": float, "f1": float, "f1_by_threshold": {str(th): float}}``.
   """
-  config = require_run_config(config, "tune_model_thresholds")
   batch_size = config.train.eval_batch
   data = load_split(config, data_path, split, batch_size=batch_size)
   out = {}
@@ -208,7 +226,6 @@ def evaluate(config: RunConfig, data_path, trained: dict, *, split: str = "test"
     each sequence's first evaluated frame).
   """
   from tqdm import tqdm
-  config = require_run_config(config, "evaluate")
   batch_size = config.train.eval_batch
   classic_settings = classic_settings or {}
   model_thresholds = model_thresholds or {}
@@ -283,17 +300,24 @@ def tabulate(evaluation: dict, *, best_classic_method: str | None = None, n_boot
 
 def write_results(out_dir, table: dict, comparisons: list[dict], images: dict, *, caption: str,
                   validation: dict | None = None, logs: dict | None = None,
-                  stem: str = "table") -> None:
+                  stem: str = "table", evaluation: dict | None = None) -> None:
   """``table.json``, ``comparisons.json``, ``validation.json``, ``table.md``, figures in ``out_dir``.
 
   ``table.json`` is ``method -> metric -> {"mean", "ci95": [lo, hi], "std",
   "n_sequences", "n_frames", "n_seeds"}``. Another ``stem`` (a second test
   set) writes ``{stem}.json``, ``{stem}.md``, ``{stem}_comparisons.json`` and
-  ``{stem}_comparison.png`` instead.
+  ``{stem}_comparison.png`` instead. With ``evaluation`` (an :func:`evaluate` result), its
+  per-frame scores too, ``scores.npz`` (``{stem}_scores.npz``): ``<method>/<metric>``
+  ``[N]`` or ``[seeds, N]`` and ``sequence``, ``frame`` ``[N]``, so any later comparison
+  (each learned model against each classic method, on any score) pairs the same frames.
   """
   out = pathlib.Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
   prefix = "" if stem == "table" else f"{stem}_"
+  if evaluation is not None:
+    arrays = {f"{m}/{k}": np.asarray(v) for m, s in evaluation["scores"].items() for k, v in s.items()}
+    np.savez_compressed(out / f"{prefix}scores.npz", sequence=np.asarray(evaluation["sequence"]),
+                        frame=np.asarray(evaluation["frame"]), **arrays)
   (out / f"{stem}.json").write_text(json.dumps(table, indent=2) + "\n")
   (out / f"{prefix}comparisons.json").write_text(json.dumps(comparisons, indent=2) + "\n")
   text = report.format_tables(table, caption)

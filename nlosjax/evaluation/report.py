@@ -178,9 +178,10 @@ def format_choices(validation: dict) -> str:
                    + " | ".join(f"{c['f1_by_threshold'][t]:.3f}" for t in ths) + " |")
   checkpoints = validation.get("checkpoints", {})
   if checkpoints:
-    lines += ["", "| model | seed | checkpoint step | val. intensity PSNR (dB) at each kept step |",
-              "|---|---|---|---|"]
+    lines += ["", "| model | seed | checkpoint step | chosen on | validation score (dB) at each kept step |",
+              "|---|---|---|---|---|"]
     for c in checkpoints.values():
-      steps = ", ".join(f"{s}: {v:.2f}" for s, v in c["val_psnr"].items())
-      lines.append(f"| {label(c['variant'])} | {c['seed']} | {c['step']} | {steps} |")
+      metric = c.get("metric", "psnr")
+      steps = ", ".join(f"{s}: {v:.2f}" for s, v in c.get("val_score", c["val_psnr"]).items())
+      lines.append(f"| {label(c['variant'])} | {c['seed']} | {c['step']} | {METRIC_LABELS[metric][0]} | {steps} |")
   return "\n".join(lines) + "\n"

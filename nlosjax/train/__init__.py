@@ -17,13 +17,14 @@ One concern per module, each usable alone; everything is importable from
 * :mod:`~nlosjax.train.checkpoint` -- :class:`Checkpointer` (orbax: params,
   optimizer state, step and data position; refuses another run's checkpoint),
   :func:`run_signature`.
-* :mod:`~nlosjax.train.config` -- :class:`RunConfig`: a run's config typed, one schema per
-  section (:class:`TrainConfig`, :class:`DataConfig`, :class:`BaselineConfig`) and
-  :meth:`RunConfig.from_dict`, the one reader of a preset's dict (unknown keys raise);
-  the library's functions take a :class:`RunConfig` only (:func:`require_run_config`).
+* :mod:`~nlosjax.train.config` -- :class:`RunConfig`: a run's config typed, a frozen
+  dataclass per section (:class:`TrainConfig`, :class:`DataConfig`, :class:`BaselineConfig`),
+  built once by :meth:`RunConfig.from_dict` where the application reads its config; the
+  library's functions take the :class:`RunConfig`.
 * :mod:`~nlosjax.train.config_record` -- :func:`model_record`: a model config
-  field by field as JSON, and :func:`compare_model` (the one rule: a field a file
-  predates passes at its default; ``repr`` strings of older files are parsed).
+  field by field as JSON, and :func:`compare_model`: whether a checkpoint's or shipped
+  weights' recorded model config is the one a run rebuilds (a field a file predates passes
+  at its default; ``repr`` strings of older files are parsed).
 * :mod:`~nlosjax.train.stopping` -- :class:`StopRule` (``train.stop``): a fixed
   step count (the default) or the plateau of the validation PSNR
   (:func:`plateau_reached`), the learning-rate horizon it implies, and the
@@ -41,17 +42,7 @@ is :func:`experiments.main_job.train_and_evaluate`; the dry run is :mod:`nlosjax
 """
 
 from nlosjax.train.checkpoint import Checkpointer, param_fingerprint, run_signature
-from nlosjax.train.config import (
-    TRAIN_DEFAULTS,
-    USM_RECIPES,
-    BaselineConfig,
-    DataConfig,
-    RunConfig,
-    TrainConfig,
-    read_preset,
-    require_run_config,
-    with_defaults,
-)
+from nlosjax.train.config import USM_RECIPES, BaselineConfig, DataConfig, RunConfig, TrainConfig
 from nlosjax.train.config_record import compare as compare_model
 from nlosjax.train.config_record import model_record
 from nlosjax.train.loop import (
@@ -74,12 +65,12 @@ from nlosjax.train.stopping import StopRule, plateau_reached, read_curve, stop_r
 
 __all__ = [
     "BATCH_KEYS", "BaselineConfig", "Checkpointer", "DataConfig", "OptimConfig", "RunConfig", "StateExport",
-    "StopRule", "TRAIN_DEFAULTS", "TrainConfig", "TrainState", "read_preset", "require_run_config",
+    "StopRule", "TrainConfig", "TrainState",
     "TrainingPaused", "export_state", "import_state",
     "USM_RECIPES", "VARIANT_FRAMES", "abstract_train_state", "compare_model", "create_train_state",
     "ensure_dataset", "initialize_distributed", "learning_rate_at", "make_loader", "make_mesh",
     "make_optimizer", "make_targets", "make_train_step", "mesh_for", "model_config_for", "model_record",
     "network", "param_fingerprint", "plateau_reached", "read_curve", "read_metrics", "read_selection",
     "run_signature", "select_frames", "shard_batch", "stop_reason", "to_host", "train_model",
-    "train_step", "training_recipe", "with_defaults"
+    "train_step", "training_recipe"
 ]

@@ -1,18 +1,14 @@
-"""A run's config, typed: one schema per section and :meth:`RunConfig.from_dict`, the one reader of a preset's dict.
+"""A run's config, typed: frozen dataclasses per section and :meth:`RunConfig.from_dict`, which builds them.
 
-A preset (``experiments/configs``) writes a nested dict of plain values (``data``,
-``model``, ``train``, ``usm``, ``lfe``, ``ik``). :meth:`RunConfig.from_dict` reads it
-once: each section's schema is a frozen dataclass (:class:`TrainConfig`,
-:class:`DataConfig`, :class:`BaselineConfig`; :func:`section_schema` lists every
-section's keys, for the command line's overrides too), a key no section reads is a
-``ValueError`` naming the known ones, and the library's functions read the typed
-fields. A key the config leaves out takes its default where it has one; the data
-section's Setup keys are needed only by what builds a Setup from them.
-
-The library's functions take a :class:`RunConfig` only (a dict raises ``TypeError``,
-:func:`require_run_config`); the application reads its preset once, at its entry
-(:func:`read_preset`, which fills the ``train`` defaults, or :meth:`RunConfig.from_dict`).
-:meth:`RunConfig.to_dict` is what a run records (``config.json``).
+A preset (``experiments/configs``, an ``ml_collections.ConfigDict`` read and locked by
+``config_flags`` at the entry point) becomes a nested dict of plain values (``data``,
+``model``, ``train``, ``usm``, ``lfe``, ``ik``); :meth:`RunConfig.from_dict` builds the typed
+config from it once, at the entry point: :class:`TrainConfig`, :class:`DataConfig`,
+:class:`BaselineConfig`. A key the dict leaves out takes its dataclass default; the data
+section's Setup keys are needed only by what builds a Setup from them. The library's
+functions take the :class:`RunConfig` (their annotations say so) and never re-read the dict.
+:meth:`RunConfig.to_dict` is what a run records (``config.json``), and ``from_dict`` reads
+that back, also for runs recorded by older versions.
 """
 
 from __future__ import annotations
@@ -41,18 +37,6 @@ def _frozen(mapping: Mapping | None) -> Mapping:
   return types.MappingProxyType(dict(mapping or {}))
 
 
-def _field_names(cls, drop=()) -> set[str]:
-  return {f.name for f in dataclasses.fields(cls)} - set(drop)
-
-
-def _check_section(path: tuple[str, ...], section: Mapping) -> None:
-  keys, subsections = section_schema(path)
-  known = keys | subsections
-  unknown = set(section) - known
-  if unknown:
-    raise ValueError(f"config {'.'.join(path)} section: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
-
-
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
   """A config's ``train`` section: how each variant trains and is chosen.
@@ -60,7 +44,7 @@ class TrainConfig:
   Attributes:
     steps: training steps (the ``"steps"`` stopping rule; the plateau rule uses ``stop.max_steps``).
     batch_size: sequences per step; eval_batch_size: per evaluation batch (None: ``batch_size``;
-      :attr:`eval_batch` reads it).
+      :attr:`eval_batch` reads it; 8 where a config is silent, as every preset's main job had it).
     seed, seeds: the first training seed and how many (``seed``, ``seed + 1``, ...; tables
       then cover seeds too).
     log_every, checkpoint_every: steps between log rows and between checkpoints.
@@ -84,7 +68,7 @@ class TrainConfig:
   log_every: int = 10
   checkpoint_every: int = 50
   keep_checkpoints: int = 2
-  eval_batch_size: int | None = None
+  eval_batch_size: int | None = 8
   variants: tuple[str, ...] = (OURS_S, OURS)
   data_workers: int = 1
   optim: OptimConfig = OptimConfig()
@@ -96,13 +80,11 @@ class TrainConfig:
 
   @classmethod
   def from_dict(cls, section: Mapping | None) -> "TrainConfig":
-    """The section of a ``train`` mapping (None: the defaults); unknown keys raise ``ValueError``."""
+    """The section of a ``train`` mapping (None: the defaults); an unknown key raises ``TypeError``."""
     d = dict(section or {})
-    _check_section(("train",), d)
     for key, kind in (("optim", OptimConfig), ("loss", losses.LossWeights)):
       value = d.get(key)
       if value is None or isinstance(value, Mapping):
-        _check_section(("train", key), value or {})
         d[key] = kind(**(value or {}))
     if "stop" in d and not isinstance(d["stop"], StopRule):
       d["stop"] = StopRule.from_config(d["stop"])
@@ -146,8 +128,6 @@ class BaselineConfig:
   @classmethod
   def from_dict(cls, name: str, section: Mapping | None) -> "BaselineConfig":
     d = dict(section or {})
-    for path, sub in (((name,), d), ((name, "model"), d.get("model")), ((name, "optim"), d.get("optim"))):
-      _check_section(path, sub or {})
     recipe = d.get("recipe", OURS)
     if recipe not in USM_RECIPES:
       raise ValueError(f"config usm.recipe must be one of {USM_RECIPES}, got {recipe!r}")
@@ -193,10 +173,6 @@ class DataConfig:
   def from_dict(cls, section: Mapping | None) -> "DataConfig":
     from nlosjax.data.dataset import LoaderOptions
     d = dict(section or {})
-    for path in (("data",), ("data", "scene"), ("data", "physics"), ("data", "num_sequences")):
-      sub = d if len(path) == 1 else d.get(path[1])
-      if isinstance(sub, Mapping):
-        _check_section(path, sub)
     stride = None if d.get("input_stride") is None else int(d["input_stride"])
     offset = d.get("input_offset")
     if stride is not None:
@@ -253,13 +229,8 @@ class RunConfig:
 
   @classmethod
   def from_dict(cls, config: Mapping) -> "RunConfig":
-    """Read a preset's nested dict (the one reader); unknown keys of a known section raise ``ValueError``."""
-    if isinstance(config, RunConfig):
-      return config
-    if not isinstance(config, Mapping):
-      raise ValueError(f"a run config must be a mapping or a RunConfig, got {type(config).__name__}")
+    """Build the typed config from a preset's nested dict or a run's ``config.json`` (once, at the entry point)."""
     model = dict(config.get("model") or {})
-    _check_section(("model",), model)
     sections = {"data", "model", "train", *BASELINES}
     return cls(data=DataConfig.from_dict(config.get("data")), model=_frozen(model),
                train=TrainConfig.from_dict(config.get("train")),
@@ -288,87 +259,8 @@ def _train_dict(t: TrainConfig) -> dict:
   return out
 
 
-#: What a preset's ``train`` section gets where it is silent (:func:`with_defaults`):
-#: :class:`TrainConfig`'s defaults, with 8 sequences per evaluation batch.
-TRAIN_DEFAULTS = types.MappingProxyType(_train_dict(TrainConfig(eval_batch_size=8)))
-
-
 def _thaw(value):
   """A plain, mutable deep copy of a (possibly read-only) mapping tree."""
   if isinstance(value, Mapping):
     return {k: _thaw(v) for k, v in value.items()}
   return copy.deepcopy(value)
-
-
-def with_defaults(config: Mapping) -> dict:
-  """A preset's dict with :data:`TRAIN_DEFAULTS` filled into its ``train`` section (a new dict, as
-  ``config.json`` records it); unknown ``train`` keys raise ``ValueError``."""
-  _check_section(("train",), config.get("train") or {})
-  return {**config, "train": {**_thaw(TRAIN_DEFAULTS), **(config.get("train") or {})}}
-
-
-def read_preset(config: RunConfig | Mapping) -> RunConfig:
-  """The one way the application's entry points read a config: a :class:`RunConfig` as it is,
-  a preset's dict with its ``train`` defaults filled (:func:`with_defaults`) and read once."""
-  if isinstance(config, RunConfig):
-    return config
-  if not isinstance(config, Mapping):
-    raise ValueError(f"a run config must be a mapping or a RunConfig, got {type(config).__name__}")
-  return RunConfig.from_dict(with_defaults(config))
-
-
-def section_schema(path: tuple[str, ...]) -> tuple[set[str], set[str]]:
-  """``(keys, sub-sections)`` of the config section at ``path`` (``()``: the top level), from the
-  typed sections' fields: the one schema the reader and the command line's overrides share.
-
-  Empty sets for a path no section has.
-  """
-  if path == ():
-    return set(), {"data", "model", "train", *BASELINES}
-  if path == ("data",):
-    from nlosjax.data.dataset.spec import LOAD_KEYS, SETUP_KEYS, DatasetSpec
-    subsections = {"scene", "loader", "num_sequences", "physics"}
-    keys = ({*SETUP_KEYS, *LOAD_KEYS}
-            | _field_names(DatasetSpec, ("setup", "num_train", "num_test", "num_val"))) - subsections
-    return keys, subsections
-  if path == ("data", "physics"):
-    from nlosjax.data.dataset.physics import PhysicsMix
-    return _field_names(PhysicsMix), set()
-  if path == ("data", "scene"):
-    from nlosjax.data.scenes import SceneParams
-    return _field_names(SceneParams) | {"max_tilt_deg"}, set()
-  if path == ("data", "loader"):
-    from nlosjax.data.dataset import LoaderOptions
-    return _field_names(LoaderOptions), set()
-  if path == ("data", "num_sequences"):
-    from nlosjax.data.dataset.spec import SPLITS
-    return set(SPLITS), set()
-  if path == ("model",):
-    return _field_names(model_class(next(iter(VARIANTS))), ("setup", "stride", "frames")), set()   # frames: by variant
-  if path == ("train",):
-    return _field_names(TrainConfig, ("optim", "loss", "stop")), {"optim", "loss", "stop"}
-  if path == ("train", "stop"):
-    return _field_names(StopRule), set()
-  if path == ("train", "loss"):
-    return _field_names(losses.LossWeights), set()
-  if path == ("train", "optim") or (len(path) == 2 and path[0] in BASELINES and path[1] == "optim"):
-    return _field_names(OptimConfig), set()
-  if len(path) == 1 and path[0] in BASELINES:
-    return ({"recipe"} if path[0] == USM else set()), {"model", "optim"}
-  if len(path) == 2 and path[0] in BASELINES and path[1] == "model":
-    return _field_names(model_class(path[0]), ("setup", "stride")), set()
-  return set(), set()
-
-
-def require_run_config(config: RunConfig, where: str = "the library") -> RunConfig:
-  """``config`` itself where it is a :class:`RunConfig`; ``TypeError`` naming the fix otherwise.
-
-  The library never reads a config dict: a preset's dict is read once, where the application
-  takes it (:func:`read_preset` fills the ``train`` defaults; :meth:`RunConfig.from_dict` reads
-  it as it is, as a run's ``config.json``).
-  """
-  if not isinstance(config, RunConfig):
-    raise TypeError(f"{where} takes a nlosjax.train.RunConfig, got {type(config).__name__}; read a "
-                    "preset's dict once with nlosjax.train.read_preset(d) (train defaults filled) or "
-                    "RunConfig.from_dict(d) (as it is, e.g. a run's config.json)")
-  return config

@@ -21,7 +21,7 @@ import numpy as np
 
 from nlosjax import losses
 from nlosjax.train.checkpoint import Checkpointer, run_signature
-from nlosjax.train.config import BASELINES, RunConfig, model_class, require_run_config
+from nlosjax.train.config import BASELINES, RunConfig, model_class
 from nlosjax.train.optimizer import OptimConfig, learning_rate_at, make_optimizer
 from nlosjax.train.run_state import StateExport, TrainingPaused, copy_logs, export_state, import_state, read_meta
 from nlosjax.train.sharding import mesh_for, shard_batch, to_host
@@ -51,15 +51,14 @@ def model_config_for(config: RunConfig, setup, variant: str):
   """
   if variant not in VARIANT_FRAMES:
     raise ValueError(f"variant must be one of {tuple(VARIANT_FRAMES)}, got {variant!r}")
-  cfg = require_run_config(config, "model_config_for")
   cls = model_class(variant)
   if variant in BASELINES:
-    baseline = dict(cfg.baselines[variant].model)
+    baseline = dict(config.baselines[variant].model)
     for key in ("wavelet_cycles", "wavelet_sampling"):
-      if key in cfg.model:
-        baseline.setdefault(key, cfg.model[key])
-    return cls(setup=setup, stride=cfg.data.stride(), **baseline)
-  return cls(setup=setup, stride=cfg.data.stride(), **{**cfg.model, "frames": VARIANT_FRAMES[variant]})
+      if key in config.model:
+        baseline.setdefault(key, config.model[key])
+    return cls(setup=setup, stride=config.data.stride(), **baseline)
+  return cls(setup=setup, stride=config.data.stride(), **{**config.model, "frames": VARIANT_FRAMES[variant]})
 
 
 def select_frames(measurement: np.ndarray, frames: int) -> np.ndarray:
@@ -78,7 +77,7 @@ def make_loader(config: RunConfig, path, split: str, *, batch_size: int, shuffle
   variant reads, a wider one serves a network of more frames).
   """
   from nlosjax.data.dataset import TripletLoader
-  data = require_run_config(config, "make_loader").data
+  data = config.data
   opts = data.loader
   return TripletLoader(path, split=split, batch_size=batch_size, stride=data.stride(), offset=data.input_offset,
                        seed=seed, shuffle=shuffle, drop_remainder=shuffle,
@@ -100,9 +99,8 @@ def ensure_dataset(config: RunConfig, path: pathlib.Path, log: Callable[[str], N
   """
   from nlosjax.data.dataset import extend_dataset, write_dataset
   path = pathlib.Path(path)
-  cfg = require_run_config(config, "ensure_dataset")
-  spec = cfg.data.spec()
-  workers = cfg.train.data_workers
+  spec = config.data.spec()
+  workers = config.train.data_workers
   if path.exists():
     result = extend_dataset(path, spec, workers=workers)
     log(f"dataset: using {path}" + (f" (added {result.generated} sequences the config asks for)"
@@ -136,7 +134,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
   """Train one variant (a name of :data:`nlosjax.variants.VARIANTS`), resuming from ``workdir/<folder>``.
 
   Args:
-    config: the run config (a :class:`~nlosjax.train.config.RunConfig`; a dict raises ``TypeError``);
+    config: the run config (a :class:`~nlosjax.train.config.RunConfig`);
       the seed is ``train.seed``.
     data_path: the dataset file.
     workdir: the run folder.
@@ -175,7 +173,6 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
   from tqdm import tqdm
 
   from nlosjax.models.network import format_summary, model_summary
-  config = require_run_config(config, "train_model")
   tr = config.train
   steps, batch_size, seed = tr.steps, tr.batch_size, tr.seed
   stop = tr.stop
@@ -305,7 +302,7 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
           ckpt.wait()                     # the curve may name only finished checkpoints
           score = tracker.record(mcfg, state, done, to_host)
           export_now(state)
-          bar.set_postfix(val_psnr=f"{score:.2f}")
+          bar.set_postfix(**{f"val_{stop.metric}": f"{score:.2f}"})
           bar.update(1)
           if tracker.reason(done):
             break
@@ -333,16 +330,21 @@ def train_model(config: RunConfig, data_path, workdir, variant: str, *, folder: 
     last = state
     selection = {"select": tr.select_checkpoint, "step": int(state.step), "val_psnr": {}}
     if selection["select"] == "val" and validate is not None:
-      candidates = {}
+      candidates, deciding, every = {}, {}, {}
       for step in ckpt.all_steps():
         candidate, _ = ckpt.restore(state, step)
-        selection["val_psnr"][step] = float(validate(mcfg, to_host(candidate.params)))
+        deciding[step], every[step] = stop.score(validate(mcfg, to_host(candidate.params)))
+        selection["val_psnr"][step] = every[step].get("psnr", deciding[step])
         candidates[step] = candidate
-      best = max(selection["val_psnr"], key=lambda k: (selection["val_psnr"][k], k))
+      if stop.metric != "psnr":
+        selection.update(metric=stop.metric, val_score=deciding)
+      if any(len(v) > 1 for v in every.values()):
+        selection["val"] = every               # every score of every kept step, for a later look
+      best = max(deciding, key=lambda k: (deciding[k], k))
       state = candidates[best]
       selection["step"] = int(best)
-      log(f"[{label}] checkpoint chosen on validation: step {best} "
-          f"({', '.join(f'{k}: {v:.2f} dB' for k, v in selection['val_psnr'].items())})")
+      log(f"[{label}] checkpoint chosen on validation {stop.metric}: step {best} "
+          f"({', '.join(f'{k}: {v:.2f} dB' for k, v in deciding.items())})")
     ckpt.close()
     if primary:
       (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
@@ -367,10 +369,13 @@ def _finish_plateau(tracker: PlateauTracker, state: TrainState, ckpt: Checkpoint
   selection = {"select": "plateau", "step": int(best.step), "steps_taken": int(done),
                "stop_reason": reason, "rule": tracker.rule.to_dict(),
                "val_psnr": {p["step"]: p["val_psnr"] for p in tracker.curve}}
+  if tracker.rule.metric != "psnr":
+    selection.update(metric=tracker.rule.metric,
+                     val_score={p["step"]: s for p, s in zip(tracker.curve, tracker.scores)})
   if primary:
     (vdir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-  log(f"[{label}] stopped after {done} steps ({reason}); best on validation: step {int(best.step)}"
-      f" ({summary['best_val_psnr']:.2f} dB)")
+  log(f"[{label}] stopped after {done} steps ({reason}); best on validation {tracker.rule.metric}: step "
+      f"{int(best.step)} ({summary.get('best_score', summary['best_val_psnr']):.2f} dB)")
   return best
 
 
@@ -383,21 +388,22 @@ def training_recipe(config: RunConfig, variant: str) -> tuple[OptimConfig, losse
   and I-K always) with Ours' recipe, its own section's ``optim`` entries (e.g. its own
   learning rate, chosen on validation) replacing ``train.optim``'s.
   """
-  cfg = require_run_config(config, "training_recipe")
-  optim = cfg.train.optim
+  optim = config.train.optim
   if variant in BASELINES:
-    section = cfg.baselines[variant]
+    section = config.baselines[variant]
     if variant == USM and section.recipe == "published":
       from nlosjax.models.usm import PUBLISHED_LOSS, PUBLISHED_OPTIM
       return OptimConfig(**PUBLISHED_OPTIM), losses.LossWeights(**PUBLISHED_LOSS)
     optim = dataclasses.replace(optim, **section.optim)   # LFE's, I-K's "transient" is their input
-  return optim, cfg.train.loss
+  return optim, config.train.loss
 
 
 def read_selection(folder) -> dict | None:
   """A model folder's ``selection.json`` (written by :func:`train_model`), or None.
 
-  ``{"select": "last" | "val" | "plateau", "step": chosen step, "val_psnr": {step: dB}}``;
+  ``{"select": "last" | "val" | "plateau", "step": chosen step, "val_psnr": {step: dB}}``, and
+  where the rule decides on another score (``train.stop.metric``) ``"metric"`` and
+  ``"val_score": {step: dB}``;
   a plateau run adds ``"steps_taken"``, ``"stop_reason"`` (``"plateau"`` or
   ``"max_steps"``) and ``"rule"`` (its curve with times: ``validation_curve.json``,
   :func:`nlosjax.train.stopping.read_curve`).
@@ -407,4 +413,6 @@ def read_selection(folder) -> dict | None:
     return None
   d = json.loads(path.read_text())
   d["val_psnr"] = {int(k): v for k, v in d.get("val_psnr", {}).items()}
+  if "val_score" in d:
+    d["val_score"] = {int(k): v for k, v in d["val_score"].items()}
   return d

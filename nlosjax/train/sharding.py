@@ -40,8 +40,7 @@ def mesh_for(config) -> Mesh:
   With several processes (``jax.distributed``) the mesh spans every process's
   devices and ``train.devices`` must be None.
   """
-  from nlosjax.train.config import require_run_config
-  n = require_run_config(config, "mesh_for").train.devices
+  n = config.train.devices
   if n is None:
     return make_mesh()
   n = int(n)

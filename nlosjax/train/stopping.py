@@ -6,8 +6,9 @@ A config's ``train.stop`` section (:class:`StopRule`) picks the rule:
   module existed; nothing is validated during training (``train.select_checkpoint``
   still chooses among the kept checkpoints afterwards).
 * ``{"rule": "plateau", "every": 50, "patience": 4, "min_delta_db": 0.05,
-  "max_steps": 3000}``: the validation intensity PSNR (the ``validate`` callback
-  of :func:`nlosjax.train.train_model`, dB) is measured every ``every`` steps
+  "max_steps": 3000}``: the validation score ``metric`` (the ``validate`` callback
+  of :func:`nlosjax.train.train_model`, dB: the intensity PSNR, or the
+  object-balanced PSNR, :data:`METRICS`) is measured every ``every`` steps
   and at ``max_steps``; training stops at the first validation after which
   the best of the last ``patience`` validations is not more than
   ``min_delta_db`` above the best of all earlier ones (:func:`plateau_reached`),
@@ -31,8 +32,9 @@ were tuned with.
 
 Everything a resume needs is on disk in the model folder: the regular
 checkpoints, ``best_checkpoint/`` (the best state so far), and
-``validation_curve.json`` (one point per validation: step, PSNR, wall time,
-learning rate). The rule is a pure function of the curve, so a resumed run
+``validation_curve.json`` (one point per validation: step, the intensity PSNR, every
+other score the callback returned and the deciding one, wall time, learning rate).
+The rule is a pure function of the curve, so a resumed run
 restores its patience state by reading the curve, and a finished run (whose
 curve already says stop) trains nothing.
 """
@@ -48,6 +50,10 @@ import time
 from typing import Any, Callable, Sequence
 
 RULES = ("steps", "plateau")
+#: Validation scores a rule can stop and choose on (dB, higher is better): the whole-image intensity
+#: PSNR (the default, which an image dark everywhere scores well on) and the object-balanced PSNR
+#: (:func:`nlosjax.metrics.psnr_balanced`: object and background pixels weigh half each).
+METRICS = ("psnr", "psnr_balanced")
 CURVE_FILE = "validation_curve.json"
 BEST_FOLDER = "best_checkpoint"
 
@@ -62,6 +68,8 @@ class StopRule:
     patience: validations without an improvement before stopping (plateau).
     min_delta_db: an improvement must exceed this many dB to count (plateau).
     max_steps: the longest run and the learning-rate schedule's horizon (plateau).
+    metric: the validation score the plateau rule and ``train.select_checkpoint = "val"``
+      decide on (:data:`METRICS`).
   """
 
   rule: str = "steps"
@@ -69,10 +77,13 @@ class StopRule:
   patience: int = 4
   min_delta_db: float = 0.05
   max_steps: int = 3000
+  metric: str = "psnr"
 
   def __post_init__(self):
     if self.rule not in RULES:
       raise ValueError(f"train.stop.rule must be one of {RULES}, got {self.rule!r}")
+    if self.metric not in METRICS:
+      raise ValueError(f"train.stop.metric must be one of {METRICS}, got {self.metric!r}")
     for name in ("every", "patience", "max_steps"):
       v = getattr(self, name)
       if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -91,7 +102,26 @@ class StopRule:
     return cls(**stop)
 
   def to_dict(self) -> dict:
-    return dataclasses.asdict(self)
+    """The rule's fields; ``metric`` only where it is not the PSNR (curves and runs recorded before it
+    existed compare equal)."""
+    d = dataclasses.asdict(self)
+    if d["metric"] == "psnr":
+      d.pop("metric")
+    return d
+
+  def score(self, value) -> tuple[float, dict]:
+    """``(deciding score, every score)`` of a ``validate`` callback's return: a float (the
+    intensity PSNR) or a dict of scores (:func:`nlosjax.evaluation.protocol.validation_scores`)."""
+    if isinstance(value, dict):
+      scores = {k: float(v) for k, v in value.items()}
+      if self.metric not in scores:
+        raise ValueError(f"train.stop.metric {self.metric!r}: the validation callback returned only "
+                         f"{sorted(scores)}")
+      return scores[self.metric], scores
+    if self.metric != "psnr":
+      raise ValueError(f"train.stop.metric {self.metric!r} needs a validation callback returning a dict of "
+                       "scores (nlosjax.evaluation.protocol.validation_scores), got a single number")
+    return float(value), {"psnr": float(value)}
 
   def horizon(self, steps: int) -> int:
     """The run's last possible step and the schedule's horizon: ``steps`` or ``max_steps``."""
@@ -201,7 +231,8 @@ class PlateauTracker:
     folder: the model folder.
     rule: the plateau :class:`StopRule`.
     best: a :class:`~nlosjax.train.checkpoint.Checkpointer` for the best state (keep 1).
-    validate: ``(model_config, params) -> validation PSNR`` (dB).
+    validate: ``(model_config, params) -> validation PSNR`` (dB), or a dict of scores holding
+      the rule's ``metric`` (:meth:`StopRule.score`).
     learning_rate: ``step -> learning rate`` of the run's schedule (recorded with each point).
     primary: whether this process writes the curve.
   """
@@ -220,7 +251,8 @@ class PlateauTracker:
 
   @property
   def scores(self) -> list[float]:
-    return [p["val_psnr"] for p in self.curve]
+    """The deciding score of each point: ``score`` where the rule's metric is not the PSNR, else ``val_psnr``."""
+    return [p.get("score", p["val_psnr"]) for p in self.curve]
 
   def resume(self, start: int) -> None:
     """Read the curve written before a kill, keeping the points up to step ``start``."""
@@ -248,10 +280,14 @@ class PlateauTracker:
   def record(self, mcfg, state, step: int, to_host: Callable) -> float:
     """Validate ``state`` (at ``step``), save it as the best if it is, write the curve; returns the PSNR."""
     t0 = time.perf_counter()
-    score = float(self.validate(mcfg, to_host(state.params)))
+    score, scores = self.rule.score(self.validate(mcfg, to_host(state.params)))
     val_s = time.perf_counter() - t0
-    self.curve.append({"step": int(step), "val_psnr": score,
-                       "time_s": round(self._time_base + time.perf_counter() - self._t0, 3),
+    point = {"step": int(step), "val_psnr": scores.get("psnr", score)}
+    if len(scores) > 1:
+      point["val"] = scores
+    if self.rule.metric != "psnr":
+      point["score"] = score
+    self.curve.append({**point, "time_s": round(self._time_base + time.perf_counter() - self._t0, 3),
                        "val_s": round(val_s, 3), "lr": float(self.learning_rate(step))})
     if self.best_step == step and step not in self.best.all_steps():
       self.best.save(state, step, force=True)
@@ -262,10 +298,13 @@ class PlateauTracker:
   def summary(self, steps_done: int) -> dict:
     """The curve file's contents after ``steps_done`` steps."""
     best = best_index(self.scores) if self.curve else None
-    return {"rule": self.rule.to_dict(), "curve": self.curve,
-            "best_step": None if best is None else self.curve[best]["step"],
-            "best_val_psnr": None if best is None else self.curve[best]["val_psnr"],
-            "steps_taken": int(steps_done), "stop_reason": self.reason(steps_done)}
+    out = {"rule": self.rule.to_dict(), "curve": self.curve,
+           "best_step": None if best is None else self.curve[best]["step"],
+           "best_val_psnr": None if best is None else self.curve[best]["val_psnr"],
+           "steps_taken": int(steps_done), "stop_reason": self.reason(steps_done)}
+    if self.rule.metric != "psnr":
+      out["best_score"] = None if best is None else self.scores[best]
+    return out
 
   def write(self, steps_done: int | None = None) -> None:
     if self.primary:

@@ -63,9 +63,8 @@ MAMBA_NAMES = {"S": "S-Mamba", "T": "T-Mamba", "T<->": "T-Mamba (bidirectional)"
 
 def row_config(base: dict, row: str, steps: int, seed: int | None = None) -> dict:
   """The run config of one ablation row: ``base`` with the row's changes, ``steps`` and ``seed``."""
-  from nlosjax.train import with_defaults
   *_, model, loss, optim = ROWS[row]
-  cfg = copy.deepcopy(with_defaults(base))
+  cfg = copy.deepcopy(base)
   cfg["model"] = {**cfg.get("model", {}), **model}
   tr = cfg["train"]
   tr["steps"] = int(steps)
@@ -216,9 +215,8 @@ def main(argv=None):
   args, overrides = parser.parse_known_args(argv)
   from tqdm import tqdm
 
-  from experiments.cli import apply_overrides, load_config
-  from nlosjax.train import with_defaults
-  base = with_defaults(apply_overrides(load_config(args.config), overrides))
+  from experiments.cli import load_config
+  base = load_config(args.config, overrides)
   rows = args.only or list(ROWS)
   workdir = pathlib.Path(args.workdir)
   if args.seeds < 1:

@@ -198,7 +198,7 @@ def main(argv=None) -> int:
   for label, spec in specs.items():
     mcfg, params, cfg = load_model(spec)
     models[label] = (mcfg, params)
-    configs_of[label] = T.read_preset(cfg)
+    configs_of[label] = T.RunConfig.from_dict(cfg)
     print(f"[{label}] {spec}")
   first = configs_of[next(iter(models))]
   for cfg in configs_of.values():

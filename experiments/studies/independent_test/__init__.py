@@ -49,7 +49,6 @@ def main(argv=None):
   t0 = time.perf_counter()
   config, trained = inference.load_run(args.checkpoint, seeds=not args.first_seed_only)
   n_seeds = {v: (len(m) if isinstance(m, list) else 1) for v, m in trained.items()}
-  config = T.with_defaults(config)
   from experiments.independent_set import GENERATOR_VERSION as generator
   from experiments.independent_set import ensure_independent_set
   path = args.data or (config.get("independent") or {}).get("path", "runs/data/independent-cpu.h5")

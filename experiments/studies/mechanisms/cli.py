@@ -81,7 +81,7 @@ def main(argv=None) -> int:
   if args.hours is not None and not args.state:
     parser.error("--hours needs --state DIR (where the paused state goes)")
   from experiments.cli import override_key
-  keep_loss = tuple(k[2] for k, _ in map(override_key, overrides) if k[:2] == ("train", "loss") and len(k) == 3)
+  keep_loss = tuple(k[2] for k in map(override_key, overrides) if k[:2] == ("train", "loss") and len(k) == 3)
   command = "python -m experiments.studies.mechanisms " + " ".join(argv)
   workdir = pathlib.Path(args.workdir or ("runs/mechanisms-tiny" if args.tiny else "runs/mechanisms"))
   results = pathlib.Path(args.results or (workdir / "results" if args.tiny else RESULTS))
@@ -89,9 +89,7 @@ def main(argv=None) -> int:
     base = tiny_base(workdir)
     design = dict(TINY_DESIGN)
   else:
-    from nlosjax.train import with_defaults
     stop = study_stop(base)
-    base = with_defaults(base)
     base["train"]["stop"] = stop
     base["train"]["optim"] = study_optim(base, overrides)
     design = {"budgets": tuple(BUDGETS), "rows": MAIN_ROWS, "seeds": SEEDS}

@@ -106,7 +106,7 @@ def study_optim(base: dict, overrides=()) -> dict:
   """The runs' ``train.optim``: the config's, with :data:`STUDY_OPTIM` over it except the keys
   set on the command line (``overrides``: the ``--config.train.optim.KEY=VALUE`` arguments)."""
   from experiments.cli import override_key
-  mine = {k[2] for k, _ in map(override_key, overrides) if k[:2] == ("train", "optim") and len(k) == 3}
+  mine = {k[2] for k in map(override_key, overrides) if k[:2] == ("train", "optim") and len(k) == 3}
   return {**base.get("train", {}).get("optim", {}), **{k: v for k, v in STUDY_OPTIM.items() if k not in mine}}
 
 

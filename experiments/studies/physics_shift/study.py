@@ -74,8 +74,7 @@ def data_stem(base: dict, physics: dict | None = None) -> str:
 
 def design_config(base: dict, design: str, physics: dict | None = None) -> dict:
   """The preset config ``base`` with the data of ``design`` (its own file under ``runs/data``)."""
-  from nlosjax.train import with_defaults
-  cfg = copy.deepcopy(with_defaults(base))
+  cfg = copy.deepcopy(base)
   data = cfg["data"]
   if design in ("base", "wide_base"):
     if data.get("renderer") == "mix":     # the preset's scenes by transport alone

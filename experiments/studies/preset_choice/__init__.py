@@ -39,15 +39,15 @@ RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
 def load_candidate(source: str, variant: str):
   """``(model_config, params, training config)`` of one candidate's ``variant``."""
-  from nlosjax import inference, train
+  from nlosjax import inference
   if source.startswith("pretrained:"):
     mcfg, params, provenance = inference.load_pretrained(source[len("pretrained:"):], variant)
-    return mcfg, params, train.with_defaults(provenance["config"])
+    return mcfg, params, provenance["config"]
   config, trained = inference.load_run(source)
   if variant not in trained:
     raise SystemExit(f"{source}: no trained {variant} (it has {sorted(trained)})")
   mcfg, params = trained[variant]                   # load_run without seeds: (model_config, params)
-  return mcfg, params, train.with_defaults(config)
+  return mcfg, params, config
 
 
 def validation_file(config: dict) -> tuple:

@@ -56,7 +56,6 @@ RUNS = (
 def run_config(run: Run) -> dict:
   """The run's training config: its candidate's, with the dataset in the store and the run's seed."""
   from experiments.cli import load_config
-  from nlosjax import train
   config = load_config(run.config)
   config["data"]["path"] = str(store.data_path(pathlib.Path(config["data"]["path"]).name))
   config["train"] = {**config["train"], "seed": run.seed, "variants": (run.variant,)}
@@ -64,7 +63,7 @@ def run_config(run: Run) -> dict:
     config["train"]["optim"] = {**config["train"]["optim"], "learning_rate": run.learning_rate}
   if run.max_steps is not None:
     config["train"]["stop"] = {**config["train"]["stop"], "max_steps": run.max_steps}
-  return train.with_defaults(config)
+  return config
 
 
 def workdir(run: Run) -> pathlib.Path:
@@ -358,7 +357,7 @@ def run_alignment(a: Alignment, files, *, deadline: float | None, start_one: boo
   from nlosjax import train
   from nlosjax.evaluation import protocol
   config, trained = cli.load_source(a.source, [a.variant])
-  config = train.read_preset(config)
+  config = train.RunConfig.from_dict(config)
   data_path = store.data_path(pathlib.Path(config.data.path).name)   # made in the store, checked strictly
   data_path.parent.mkdir(parents=True, exist_ok=True)
   train.ensure_dataset(config, data_path, log=log)   # a file of another config is refused

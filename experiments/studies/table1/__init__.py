@@ -39,16 +39,17 @@ def main(argv=None):
   args, overrides = parser.parse_known_args(argv)
   if args.seeds < 1:
     parser.error(f"--seeds must be >= 1, got {args.seeds}")
-  from experiments.cli import apply_overrides, load_config
+  from experiments.cli import load_config
   from experiments.main_job import train_and_evaluate
   from experiments.provenance import provenance
-  config = apply_overrides(load_config(args.config), overrides)
+  from nlosjax.train import RunConfig
+  config = load_config(args.config, overrides)
   config.setdefault("train", {})["seeds"] = args.seeds
   t0 = time.perf_counter()
   cmd = "python -m experiments.studies.table1 " + " ".join(sys.argv[1:] if argv is None else argv)
   facts = provenance(cmd.strip())          # the commit the run starts from
   workdir = pathlib.Path(args.workdir)
-  train_and_evaluate(config, workdir)
+  train_and_evaluate(RunConfig.from_dict(config), workdir)
   results = workdir / "results"
   out = pathlib.Path(args.out)
   out.parent.mkdir(parents=True, exist_ok=True)

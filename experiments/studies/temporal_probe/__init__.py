@@ -99,7 +99,7 @@ def main(argv=None):
   from nlosjax import train as T
   from nlosjax.models.network import STMambaNet
   run = pathlib.Path(args.checkpoint)
-  config = T.with_defaults(json.loads((run / "config.json").read_text()))
+  config = json.loads((run / "config.json").read_text())
   mcfg, params, _ = inference.load_trained(run / OURS, step=_chosen_step(run / OURS))
   if mcfg.frames != 3:
     raise SystemExit(f"{run / OURS} is a {mcfg.frames}-frame model; the probe needs 3 frames")

@@ -234,9 +234,7 @@ def main(argv=None) -> int:
   parser.add_argument("--report-only", action="store_true")
   args, base, overrides = parse_config(parser, argv)
   from experiments.studies.mechanisms.records import code_at_start
-  from nlosjax.train import with_defaults
   code_at_start()                          # the commit and code this process loads, for the records
-  base = with_defaults(base)
   base["train"]["optim"] = study_optim(base, overrides)   # the study side's, as experiments.studies.mechanisms runs it
   results = pathlib.Path(args.results)
   if not args.report_only:

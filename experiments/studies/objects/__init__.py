@@ -1,0 +1,57 @@
+"""Does the network earn its lead on the objects? Recipes trained for the hidden objects, chosen on validation.
+
+    python -m experiments.studies.objects [--rows paper balanced ...] [--variants ours ours_s]
+        [--seeds 3] [--workdir DIR] [--choose] [--report-only] [--out FILE]
+
+Each row (:data:`ROWS`) is the ``cpu`` preset's main job (``python -m experiments.train``: the
+preset's data, 400 steps, its checkpoint kept on validation, every classic method tuned on
+validation, the test split and the independent set scored per frame) with a few config
+overrides: the paper's recipe as the preset ran it, then the levers of issue 87 one by one
+(choosing the checkpoint on the object-balanced PSNR, object-balanced losses, the object term,
+a wider network, a longer schedule). Each row's run folder lives in the store
+(``$NLOSJAX_HOME/runs/objects/<row>``, :mod:`experiments.store`); a finished row is not trained
+again, an interrupted one resumes from its checkpoints.
+
+**Choices on validation only.** After training, every row's models and the classic methods (at
+the settings the row's main job tuned) are scored frame by frame on the validation split
+(``<workdir>/<row>/results/val_scores.npz``). The row the preset should ship is the one whose
+Ours has the highest mean validation object-balanced PSNR over its seeds
+(:func:`choose`); the test split and the independent set only write the final tables.
+
+**The report** (``results/objects.md``, objects first): per row and set, every method's object
+scores (object intensity error, balanced PSNR beside the all-zero image's, recall, precision,
+F1, object depth error) and the whole-image PSNR beside its all-zero floor, mean [95 % interval
+over sequences and seeds]; then, for each row, each learned model minus every classic method on
+each object score, paired on the same frames (:func:`nlosjax.evaluation.scores.compare_scores`),
+and Ours minus Ours-S. Whether a goal of issue 87 holds is read off those intervals.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+#: This study's results folder.
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+
+_SELECT = ("--config.train.stop.metric=psnr_balanced",)
+_BALANCED = ("--config.train.loss.balance=1.0", "--config.train.loss.object_intensity=0.0") + _SELECT
+#: Row -> (what it changes, the ``experiments.train`` overrides over the ``cpu`` preset).
+ROWS = {
+    "paper": ("the preset's recipe: the paper's whole-image losses with the object intensity term (weight "
+              "3), the checkpoint kept on the validation intensity PSNR", ()),
+    "select": ("the preset's recipe, the checkpoint kept on the validation object-balanced PSNR", _SELECT),
+    "balanced": ("object-balanced intensity and depth losses (object and background pixels weigh half each), "
+                 "no object term, kept on the balanced PSNR", _BALANCED),
+    "balanced_obj": ("object-balanced losses with the object term (weight 3), kept on the balanced PSNR",
+                     _BALANCED[:1] + _SELECT),
+    "wide": ("object-balanced losses, a wider network (width 16, 4 channels through the physics layer, "
+             "refinement width 8)",
+             _BALANCED + ("--config.model.width=16", "--config.model.volume_features=4",
+                          "--config.model.refine_width=8")),
+    "long": ("object-balanced losses, three times the schedule (1200 steps)",
+             _BALANCED + ("--config.train.steps=1200",)),
+}
+#: Object scores of the report and of the goals: metric -> whether higher is better.
+OBJECT_SCORES = ("intensity_mae_object", "psnr_balanced", "recall", "precision", "f1", "rmse_object")
+#: The sets every row is scored on: label -> the main job's per-frame scores file.
+SETS = {"validation": "val_scores.npz", "test": "scores.npz", "independent": "table1_independent_scores.npz"}

@@ -1,0 +1,219 @@
+"""``python -m experiments.studies.objects``: train each recipe, score it on validation, write the report."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import pathlib
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from experiments.studies.objects import OBJECT_SCORES, RESULTS, ROWS, SETS
+from nlosjax.variants import OURS, OURS_S
+
+COMMAND = "python -m experiments.studies.objects"
+#: Scores of every table: the object ones, then the whole-image PSNR and the floors.
+TABLE_SCORES = OBJECT_SCORES + ("psnr", "psnr_zero", "psnr_balanced_zero")
+
+
+def run_row(row: str, workdir: pathlib.Path, variants, seeds: int, log=print) -> None:
+  """The row's main job (``experiments.train``) in ``workdir``; resumes where it stopped."""
+  if (workdir / "results" / SETS["test"]).exists():
+    log(f"[{row}] trained and scored already: {workdir}")
+    return
+  variants = "(" + "".join(f'"{v}",' for v in variants) + ")"
+  cmd = [sys.executable, "-m", "experiments.train", "--workdir", str(workdir),
+         f"--config.train.seeds={seeds}", f"--config.train.variants={variants}", *ROWS[row][1]]
+  log(f"[{row}] {' '.join(cmd[1:])}")
+  t0 = time.perf_counter()
+  with open(workdir.parent / f"{row}.log", "a") as out:
+    subprocess.run(cmd, check=True, stdout=out, stderr=subprocess.STDOUT)
+  log(f"[{row}] done in {time.perf_counter() - t0:.0f} s")
+
+
+def score_validation(workdir: pathlib.Path, log=print) -> pathlib.Path:
+  """Every model of the row and every classic method (at the row's settings) on the validation split,
+  per frame, into ``results/val_scores.npz``."""
+  from nlosjax import inference, train
+  from nlosjax.evaluation import protocol
+  out = workdir / "results" / SETS["validation"]
+  if out.exists():
+    return out
+  config, trained = inference.load_run(workdir, seeds=True, log=log)
+  cfg = train.RunConfig.from_dict(config)
+  chosen = json.loads((workdir / "results" / "validation.json").read_text())
+  thresholds = {v: c["threshold"] for v, c in chosen.get("learned", {}).items()}
+  ev = protocol.evaluate(cfg, cfg.data.path, trained, split="val", classic_settings=chosen["classic"],
+                         model_thresholds=thresholds, log=log)
+  arrays = {f"{m}/{k}": np.asarray(v) for m, s in ev["scores"].items() for k, v in s.items()}
+  np.savez_compressed(out, sequence=np.asarray(ev["sequence"]), frame=np.asarray(ev["frame"]), **arrays)
+  return out
+
+
+def read_scores(path: pathlib.Path) -> tuple[dict, np.ndarray]:
+  """``(method -> metric -> [N] or [K, N], sequence [N])`` of a per-frame scores file."""
+  out = {}
+  with np.load(path) as f:
+    for key in f.files:
+      if "/" in key:
+        method, metric = key.split("/", 1)
+        out.setdefault(method, {})[metric] = f[key]
+    return out, f["sequence"]
+
+
+def choose(validation: dict) -> str | None:
+  """The row whose Ours has the highest mean validation object-balanced PSNR (over its frames and seeds)."""
+  means = {row: float(np.nanmean(s[OURS]["psnr_balanced"])) for row, s in validation.items() if OURS in s}
+  return max(means, key=means.get) if means else None
+
+
+def _cell(summary: dict, digits: int, signed: bool = False) -> str:
+  from nlosjax.stats import format_interval
+  return format_interval(summary, digits, signed, missing="n/a")
+
+
+def table(per_frame: dict, sequence, methods=None) -> list[str]:
+  """Markdown rows: each method's object scores, then the whole-image PSNR and both floors."""
+  from nlosjax.evaluation import report, scores
+  methods = methods or [m for m in report.TABLE_METHODS if m in per_frame]
+  head = [report._header(k) for k in TABLE_SCORES]
+  lines = ["| method | " + " | ".join(head) + " | sequences / frames / seeds |",
+           "|---|" + "---|" * len(TABLE_SCORES) + "---|"]
+  for m in methods:
+    s = scores.summarize_scores({k: v for k, v in per_frame[m].items() if k in TABLE_SCORES}, sequence)
+    first = s["psnr"]
+    lines.append(f"| {report.label(m)} | " + " | ".join(
+        _cell(s[k], report.METRIC_LABELS[k][2]) if k in s else "n/a" for k in TABLE_SCORES)
+        + f" | {first['n_sequences']} / {first['n_frames']} / {first.get('n_seeds', 1)} |")
+  return lines
+
+
+def versus_classic(per_frame: dict, sequence) -> tuple[list[str], dict]:
+  """Markdown rows of each learned model minus every classic method, paired on the same frames,
+  and the verdicts ``{(a, b, metric): "better" | "worse" | "tie"}``."""
+  from nlosjax.evaluation import baselines, report, scores
+  metrics = OBJECT_SCORES + ("psnr",)
+  lines = ["| comparison | " + " | ".join(report._header(k) for k in metrics) + " |",
+           "|---|" + "---|" * len(metrics)]
+  verdicts = {}
+  learned = [v for v in (OURS, OURS_S) if v in per_frame]
+  pairs = [(a, b) for a in learned for b in baselines.CLASSIC_METHODS if b in per_frame]
+  if OURS in per_frame and OURS_S in per_frame:
+    pairs.append((OURS, OURS_S))
+  for a, b in pairs:
+    d = scores.compare_scores({k: per_frame[a][k] for k in metrics}, {k: per_frame[b][k] for k in metrics}, sequence)
+    cells = []
+    for k in metrics:
+      lo, hi = d[k]["ci95"]
+      better = scores.HIGHER_IS_BETTER[k]
+      verdicts[(a, b, k)] = ("tie" if not (lo > 0 or hi < 0) or math.isnan(d[k]["mean"])
+                             else "better" if (lo > 0) == better else "worse")
+      cells.append(_cell(d[k], report.METRIC_LABELS[k][2], signed=True))
+    lines.append(f"| {report.label(a)} - {report.label(b)} | " + " | ".join(cells) + " |")
+  return lines, verdicts
+
+
+def goals(test: dict, verdicts: dict) -> list[str]:
+  """Issue 87's goals on one set, each said met or not from the paired intervals of :func:`versus_classic`."""
+  from nlosjax.evaluation import baselines
+  out = []
+  classic = [m for m in baselines.CLASSIC_METHODS if m in test]
+  if OURS not in test:
+    return out
+  for k, what in (("intensity_mae_object", "object intensity error below every classic method's"),
+                  ("recall", "object recall at least the best classic method's"),
+                  ("f1", "surface F1 above every classic method's")):
+    if k == "recall":
+      best = max(classic, key=lambda m: float(np.nanmean(test[m][k])))
+      ok = verdicts.get((OURS, best, k)) in ("better", "tie") and float(np.nanmean(test[OURS][k])) >= float(
+          np.nanmean(test[best][k]))
+      out.append(f"- {what} ({best}): {'met' if ok else 'not met'} ({verdicts.get((OURS, best, k))})")
+    else:
+      ok = all(verdicts.get((OURS, m, k)) == "better" for m in classic)
+      worst = [m for m in classic if verdicts.get((OURS, m, k)) != "better"]
+      out.append(f"- {what}: {'met' if ok else 'not met' + ' against ' + ', '.join(worst)}")
+  ours = float(np.nanmean(test[OURS]["psnr"]))
+  zero = float(np.nanmean(test[OURS]["psnr_zero"]))
+  best = max(float(np.nanmean(test[m]["psnr"])) for m in classic)
+  out.append(f"- intensity PSNR at least 3 dB above both the all-zero image ({zero:.2f} dB) and the best classic"
+             f" method ({best:.2f} dB): Ours {ours:.2f} dB, {'met' if ours >= max(zero, best) + 3 else 'not met'}")
+  if OURS_S in test:
+    v = verdicts.get((OURS, OURS_S, "intensity_mae_object"))
+    out.append(f"- Ours ahead of Ours-S on the object intensity error: {v}")
+  return out
+
+
+def write_report(root: pathlib.Path, rows, out: pathlib.Path, command: str) -> str:
+  """The report from every row's score files under ``root`` (see the package docstring)."""
+  from experiments.provenance import provenance
+  from nlosjax.evaluation import report
+  found = {row: {name: root / row / "results" / f for name, f in SETS.items()
+                 if (root / row / "results" / f).exists()} for row in rows}
+  validation = {row: read_scores(f["validation"])[0] for row, f in found.items() if "validation" in f}
+  chosen = choose(validation)
+  lines = ["# Objects: the recipes of the cpu preset, chosen on the validation object scores", "",
+           *provenance(command), "",
+           "Each row is the `cpu` preset's main job with the overrides named (400 steps unless said; the",
+           "checkpoint kept on validation; the classic methods tuned on validation). Mean [95 % bootstrap",
+           "interval over sequences and training seeds]. The object scores first; the whole-image PSNR last,",
+           "beside the all-zero image's.", ""]
+  lines += ["## Rows", "", "| row | what | overrides |", "|---|---|---|"]
+  lines += [f"| {row} | {ROWS[row][0]} | {' '.join(f'`{o}`' for o in ROWS[row][1]) or 'none'} |" for row in rows]
+  lines += ["", "## The choice, on the validation split", ""]
+  if validation:
+    lines += ["Mean validation scores of each row's learned models (over seeds), beside the best classic "
+              "method on each score; the row chosen has the highest Ours object-balanced PSNR.", "",
+              "| row | model | " + " | ".join(report._header(k) for k in OBJECT_SCORES + ("psnr",)) + " |",
+              "|---|---|" + "---|" * (len(OBJECT_SCORES) + 1)]
+    for row, s in validation.items():
+      for v in (OURS, OURS_S):
+        if v in s:
+          lines.append(f"| {row} | {report.label(v)} | " + " | ".join(
+              f"{float(np.nanmean(s[v][k])):.3f}" for k in OBJECT_SCORES + ("psnr",)) + " |")
+    lines += ["", f"Chosen: **{chosen}**.", ""]
+  else:
+    lines += ["No row has been scored on validation yet.", ""]
+  for row in dict.fromkeys(r for r in ("paper", chosen) if r in found):
+    for name in ("test", "independent"):
+      if name not in found.get(row, {}):
+        continue
+      per_frame, seq = read_scores(found[row][name])
+      rows_, verdicts = versus_classic(per_frame, seq)
+      lines += [f"## {row}: {name} set", "", *table(per_frame, seq), "",
+                "Paired differences (a - b on the same frames):", "", *rows_, "",
+                "Goals (issue 87):", "", *goals(per_frame, verdicts), ""]
+  text = "\n".join(lines) + "\n"
+  out.parent.mkdir(parents=True, exist_ok=True)
+  out.write_text(text)
+  return text
+
+
+def main(argv=None) -> int:
+  from experiments import store
+  p = argparse.ArgumentParser(prog=COMMAND, description=__doc__)
+  p.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
+  p.add_argument("--variants", nargs="+", default=[OURS_S, OURS], choices=[OURS_S, OURS])
+  p.add_argument("--seeds", type=int, default=3, help="training seeds per model (default 3)")
+  p.add_argument("--workdir", type=pathlib.Path, default=None,
+                 help="folder of the rows' run folders (default: the store's runs/objects)")
+  p.add_argument("--report-only", action="store_true", help="rewrite the report from the score files only")
+  p.add_argument("--out", type=pathlib.Path, default=RESULTS / "objects.md")
+  args = p.parse_args(argv)
+  root = args.workdir or store.home() / "runs" / "objects"
+  root.mkdir(parents=True, exist_ok=True)
+  if not args.report_only:
+    for row in args.rows:
+      run_row(row, root / row, args.variants, args.seeds)
+      score_validation(root / row)
+  command = " ".join([COMMAND, *(argv if argv is not None else sys.argv[1:])])
+  write_report(root, args.rows, args.out, command)
+  print(f"wrote {args.out}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
