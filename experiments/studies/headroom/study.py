@@ -82,7 +82,7 @@ def set_files(cfg: dict, sets, conditions, log: Callable[[str], None] = print, *
   from experiments.studies.physics_shift import study as shift
   from nlosjax import train as T
   data_path = pathlib.Path(cfg["data"]["path"])
-  T.ensure_dataset(T.read_preset(cfg), data_path, log=log)
+  T.ensure_dataset(T.RunConfig.from_dict(cfg), data_path, log=log)
   out = {"val": (data_path, "val")}
   if "test" in sets:
     out["test"] = (data_path, "test")
@@ -166,7 +166,7 @@ class Study:
   def __init__(self, cfg: dict, results, models: dict, methods=CLASSIC, log: Callable[[str], None] = print):
     from experiments.studies.mechanisms import write_json
     from nlosjax import train as T
-    self.cfg, self.typed = cfg, T.read_preset(cfg)
+    self.cfg, self.typed = cfg, T.RunConfig.from_dict(cfg)
     self.root = pathlib.Path(results) / "headroom"
     self.models, self.methods, self.log = dict(models), tuple(methods), log
     self._write_json = write_json
