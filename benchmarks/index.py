@@ -42,6 +42,10 @@ GOALS = {
               "peak; scan fwd+bwd <= 6x the exp floor; auto within 10 % of the best; every correctness check "
               "passes",
     "dry_run": "refuses a run above 90 % of device memory",
+    "headroom": "know the headroom on the objects: every method's object scores beside what the 8 x 8 input "
+                "supports (the truth at its scan points; the reference classic method fed noise-free and full-scan "
+                "inputs), by object size, depth, photons and motion, on the test split, the independent set and the "
+                "held-out renderer",
     "main_job": "the main job within 1200 s (20 min on 2 cores)",
     "mechanisms": "full - no-SSM and full - Ours-S with intervals at both photon budgets, every run "
                   "trained to its validation plateau; the SSM probe of a trained Ours",

@@ -236,7 +236,9 @@ def make_sequence(rng: np.random.Generator, setup, frames: int, *, supersample: 
     ``[F, H, W]`` float32 in ``[0, 1]``, ``depth`` ``[F, H, W]`` float32 (m, 0 where
     empty), and ``objects``: per object a JSON-ready dict of its parameters
     (:func:`draw_object`) with ``dynamic`` (bool) and ``rays`` (``[F]`` number of
-    sub-pixel rays its own mask covers per frame, before occlusion).
+    sub-pixel rays its own mask covers per frame, before occlusion); ``trajectory``
+    ``[F, 3]`` float64, the dynamic object's centre ``(x, y, z)`` per frame (m), as the
+    training data store theirs.
   """
   H, W = setup.grid
   sub = (np.arange(supersample) + 0.5) / supersample - 0.5
@@ -256,6 +258,7 @@ def make_sequence(rng: np.random.Generator, setup, frames: int, *, supersample: 
   clean = np.zeros((frames, T, H, W), np.float64)
   inten = np.zeros((frames, H, W), np.float32)
   depth = np.zeros((frames, H, W), np.float32)
+  trajectory = np.zeros((frames, 3))
 
   def pix(a):
     return a.reshape(H, supersample, W, supersample).mean(axis=(1, 3))
@@ -270,6 +273,7 @@ def make_sequence(rng: np.random.Generator, setup, frames: int, *, supersample: 
         pos = 0.45 - np.abs((pos + 0.45) % 1.8 - 0.9)
         z = z + z_amp * math.sin(z_freq * f)
         angle = angle + spin * f
+        trajectory[f] = (pos[1], pos[0], z)
       m = shape_mask(o["kind"], X - pos[1], Y - pos[0], o["size"], angle,
                      **{k: o[k] for k in ("glyph", "stroke", "count") if k in o})
       area[i].append(int(m.sum()))
@@ -286,7 +290,8 @@ def make_sequence(rng: np.random.Generator, setup, frames: int, *, supersample: 
     depth[f] = np.where(cover > 0, zsum / np.maximum(cover, 1e-12), 0.0)
   described = [{**o, "pos": [float(x) for x in o["pos"]], "dynamic": i == len(objects) - 1,
                  "rays": area[i]} for i, o in enumerate(objects)]
-  return {"clean": clean, "intensity": inten, "depth": depth, "objects": described}
+  return {"clean": clean, "intensity": inten, "depth": depth, "objects": described,
+          "trajectory": trajectory}
 
 
 def _jitter_taps(setup, jitter) -> tuple[np.ndarray, int]:
@@ -328,7 +333,9 @@ def write_independent_set(path, data: dict, sequences: int = 8, frames: int = 8,
 
   Each sequence group holds ``measurement`` ``[F, T, H, W]`` uint32 counts, ``clean``
   ``[F, T, H, W]`` float32 (expected photons before the detector), ``intensity`` and
-  ``depth`` ``[F, H, W]`` float32 (depth in m), ``F = frames``, and the attributes
+  ``depth`` ``[F, H, W]`` float32 (depth in m), ``trajectory`` ``[F, 3]`` float64 (the
+  dynamic object's centre, m; files written before it was stored lack it), ``F = frames``,
+  and the attributes
   ``efficiency``, ``photons`` and ``objects`` (JSON, :func:`make_sequence`). The file is
   written to ``path.partial`` and renamed when complete.
   """
@@ -369,7 +376,8 @@ def write_independent_set(path, data: dict, sequences: int = 8, frames: int = 8,
       rate = efficiency * (blurred + ambient) + float(data["dark_counts"]) / T
       counts = rng.poisson(np.maximum(rate, 0.0))
       arrays = {"measurement": counts.astype(np.uint32), "clean": clean.astype(np.float32),
-                "intensity": np.asarray(scene["intensity"]), "depth": np.asarray(scene["depth"])}
+                "intensity": np.asarray(scene["intensity"]), "depth": np.asarray(scene["depth"]),
+                "trajectory": np.asarray(scene["trajectory"])}
       reserve_space(f, tmp, sum(v.nbytes for v in arrays.values()))
       g = group.create_group(f"test-{i:05d}")
       g.attrs.update({"split": "test", "index": i, "efficiency": efficiency, "photons": photons,

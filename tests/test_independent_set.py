@@ -98,3 +98,37 @@ def test_written_counts_are_poisson_around_the_stated_rate_per_bin(tmp_path):
       per_bin, rate_bin = counts.sum((0, 2, 3)), rate.sum((0, 2, 3))
       z_bins = (per_bin - rate_bin) / np.sqrt(rate_bin)
       assert abs(z_total) < 5 and np.abs(z_bins).max() < 5, (name, z_total, np.abs(z_bins).max())
+
+
+def dynamic_object_checks(depth, trajectory, size, ys, xs):
+  """Each frame where the dynamic object shows: some pixel lies at the trajectory's depth, and every
+  such pixel within the object's reach of the trajectory's (x, y). Returns the frames checked."""
+  checked = 0
+  for f in range(len(depth)):
+    x, y, z = trajectory[f]
+    at = np.isclose(depth[f], z, rtol=0, atol=1e-5)
+    if not at.any():                 # hidden behind a static object in this frame
+      continue
+    rows, cols = np.nonzero(at)
+    reach = 0.75 * size + np.hypot(xs[1] - xs[0], ys[1] - ys[0])
+    assert np.hypot(xs[cols] - x, ys[rows] - y).max() <= reach, (f, trajectory[f])
+    checked += 1
+  return checked
+
+
+def test_the_stored_trajectory_is_where_the_dynamic_object_was_drawn(tmp_path):
+  """The trajectory against the rendered depth maps: the dynamic object's depth is its z, and its
+  pixels lie around its (x, y) (a file whose trajectory swapped x and y, or left out the depth
+  oscillation, fails)."""
+  import json
+  path = I.write_independent_set(tmp_path / "ind.h5", DATA, sequences=3, frames=4, seed=3,
+                                 progress=False)
+  setup = DatasetSpec.from_config(DATA).setup
+  checked = 0
+  with open_dataset(path) as ds:
+    for name in ds.names("test"):
+      traj = ds.read(name, "trajectory")
+      assert traj.shape == (4, 3)
+      size = json.loads(ds.sequence_attrs(name)["objects"])[-1]["size"]
+      checked += dynamic_object_checks(ds.read(name, "depth"), traj, size, setup.scan_y, setup.scan_x)
+  assert checked >= 10

@@ -147,3 +147,22 @@ def test_wider_scenes_table_reports_object_error_against_the_best_classic_method
   del runs[("wide_base", "ours")]["sets"][name]["scores"]["intensity_mae_object"]
   row = next(x for x in report._wider_scenes(runs, classic, ["large"]) if x.startswith("| large | wide_base |"))
   assert "18.00" in row and row.count("not scored") == 3
+
+
+def test_the_stored_trajectory_is_where_the_dynamic_object_was_drawn(tmp_path):
+  """As for the independent set (tests/test_independent_set.py): the held-out renderer's trajectory
+  against its rendered depth maps, with this renderer's scan-pixel centres."""
+  from tests.test_independent_set import dynamic_object_checks
+  cfg = configs.get_config("cpu")
+  data = {**cfg["data"], "grid": 16, "num_bins": 64, "bin_width": 264e-12}
+  path = heldout.write_condition(tmp_path / "base.h5", data, "base", sequences=3, frames=4, seed=2,
+                                 progress=False)
+  centres = -1.0 + (np.arange(16) + 0.5) * 2.0 / 16          # wall 2 m, 16 pixels
+  checked = 0
+  with h5py.File(path) as f:
+    for g in f["sequences"].values():
+      traj = g["trajectory"][...]
+      assert traj.shape == (4, 3)
+      size = json.loads(g.attrs["objects"])[-1]["size"]
+      checked += dynamic_object_checks(g["depth"][...], traj, size, centres, centres)
+  assert checked >= 10

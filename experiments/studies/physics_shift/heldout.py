@@ -129,7 +129,8 @@ def make_sequence(rng: np.random.Generator, grid, wall_size: float, bin_width: f
 
   Returns:
     ``{"clean": [F, T, H, W] float64 (arbitrary units), "intensity": [F, H, W]
-    float32 in [0, 1], "depth": [F, H, W] float32 m (0 = empty), "objects": JSON-ready list}``.
+    float32 in [0, 1], "depth": [F, H, W] float32 m (0 = empty), "objects": JSON-ready list,
+    "trajectory": [F, 3] float64 the dynamic object's centre (x, y, z) per frame, m}``.
   """
   from experiments.independent_set import shape_mask
   H, W = grid
@@ -148,6 +149,7 @@ def make_sequence(rng: np.random.Generator, grid, wall_size: float, bin_width: f
   clean = np.zeros((frames, num_bins, H, W))
   inten = np.zeros((frames, H, W), np.float32)
   depth = np.zeros((frames, H, W), np.float32)
+  trajectory = np.zeros((frames, 3))
 
   def pix(a):
     return a.reshape(H, supersample, W, supersample).mean(axis=(1, 3))
@@ -163,6 +165,7 @@ def make_sequence(rng: np.random.Generator, grid, wall_size: float, bin_width: f
         pos = edge - np.abs((pos + edge) % (4 * edge) - 2 * edge)
         z = float(np.clip(z + z_amp * math.sin(z_freq * f), lo, hi))
         angle = angle + spin * f
+        trajectory[f] = (pos[1], pos[0], z)
       m = shape_mask(o["kind"], X - pos[1], Y - pos[0], o["size"], angle,
                      **{k: o[k] for k in ("glyph", "stroke", "count") if k in o})
       hit = m & (z < zbuf)
@@ -177,7 +180,8 @@ def make_sequence(rng: np.random.Generator, grid, wall_size: float, bin_width: f
     depth[f] = np.where(cover > 0, pix(np.where(hit, zbuf, 0.0)) / np.maximum(cover, 1e-12), 0.0)
   described = [{**o, "pos": [float(v) for v in o["pos"]], "dynamic": i == len(objects) - 1}
                for i, o in enumerate(objects)]
-  return {"clean": clean, "intensity": inten, "depth": depth, "objects": described}
+  return {"clean": clean, "intensity": inten, "depth": depth, "objects": described,
+          "trajectory": trajectory}
 
 
 def condition_attr(data: dict, name: str) -> str:
@@ -210,7 +214,7 @@ def write_condition(path, data: dict, name: str, sequences: int = 8, frames: int
   """Write condition ``name``'s test sequences for the preset ``data`` section to ``path`` (HDF5).
 
   The layout of :mod:`experiments.independent_set` (``measurement`` uint32,
-  ``clean``, ``intensity``, ``depth`` per ``test-<i>`` group), readable by
+  ``clean``, ``intensity``, ``depth``, ``trajectory`` per ``test-<i>`` group), readable by
   :func:`nlosjax.evaluation.protocol.evaluate`; written to ``path.partial``
   and renamed when complete. The seed stream is ``(seed, condition index)``.
   """
@@ -252,6 +256,7 @@ def write_condition(path, data: dict, name: str, sequences: int = 8, frames: int
       g["clean"] = clean.astype(np.float32)
       g["intensity"] = scene["intensity"]
       g["depth"] = scene["depth"]
+      g["trajectory"] = scene["trajectory"]
     f.attrs["complete"] = True
   tmp.replace(path)
   return path
