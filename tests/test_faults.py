@@ -287,6 +287,25 @@ def test_many_damaged_datasets_are_named_by_every_reader(tiny, tmp_path, record_
   _damaged_datasets(tiny, tmp_path, record_property, faults)
 
 
+def test_a_damaged_digest_cache_is_read_again_not_believed(tiny, tmp_path, record_property):
+  path = tmp_path / "data.h5"
+  shutil.copyfile(tiny["file"], path)
+  want = (D.dataset_digest(path), D.dataset_fingerprint(path))
+  store = path.with_name(path.name + ".digest.json")
+  rng = np.random.default_rng(23)
+  for k in range(2 * TINY):
+    store.unlink(missing_ok=True)
+    D.dataset_identity(path)                      # writes the cache
+    kind = ("flipped byte", "truncated")[k % 2]
+    if kind == "truncated":
+      F.truncate(store, float(rng.random()))
+    else:
+      F.flip(store, rng)
+    digest, fingerprint = D.dataset_identity(path)
+    assert digest == want[0] and json.dumps(fingerprint, sort_keys=True) == json.dumps(want[1], sort_keys=True)
+    F.record(record_property, "dataset digest cache", kind, "resumed")
+
+
 def _tiny_config_file(tmp_path, data_path) -> pathlib.Path:
   """A config file of the tiny preset at ``data_path``, without the independent test set."""
   path = tmp_path / "tiny_faults.py"

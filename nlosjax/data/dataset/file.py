@@ -966,6 +966,12 @@ def fingerprint_differences(recorded: dict, current: dict, *, rtol: float = FING
   return lines[:8] + ([f"... and {len(lines) - 8} more"] if len(lines) > 8 else [])
 
 
+def _cache_checksum(entry: dict) -> str:
+  """SHA-256 (16 hex characters) of a ``.digest.json`` entry without its checksum."""
+  body = json.dumps({k: v for k, v in entry.items() if k != "checksum"}, sort_keys=True)
+  return hashlib.sha256(body.encode()).hexdigest()[:16]
+
+
 def dataset_identity(path, *, parts: int = 2, cache: bool = True) -> tuple[str, dict[str, dict]]:
   """``(dataset_digest(path), dataset_fingerprint(path))`` from one read of the file, cached beside it.
 
@@ -984,7 +990,8 @@ def dataset_identity(path, *, parts: int = 2, cache: bool = True) -> tuple[str, 
     except (OSError, ValueError):
       saved = {}
     if (isinstance(saved, dict) and {k: saved.get(k, 2 if k == "parts" else None) for k in key} == key
-        and isinstance(saved.get("digest"), str) and isinstance(saved.get("fingerprint"), dict)):
+        and isinstance(saved.get("digest"), str) and isinstance(saved.get("fingerprint"), dict)
+        and saved.get("checksum", _cache_checksum(saved)) == _cache_checksum(saved)):   # a damaged cache: read again
       return saved["digest"], saved["fingerprint"]
   h = hashlib.sha256()
   fingerprint = {}
@@ -1000,7 +1007,8 @@ def dataset_identity(path, *, parts: int = 2, cache: bool = True) -> tuple[str, 
   if cache:                      # written whole, then renamed: processes sharing the file never read half
     tmp = store.with_name(f"{store.name}.{os.getpid()}.tmp")
     try:
-      tmp.write_text(json.dumps({**key, "digest": digest, "fingerprint": fingerprint}) + "\n")
+      entry = {**key, "digest": digest, "fingerprint": fingerprint}
+      tmp.write_text(json.dumps({**entry, "checksum": _cache_checksum(entry)}) + "\n")
       os.replace(tmp, store)
     except OSError:
       tmp.unlink(missing_ok=True)
