@@ -229,6 +229,16 @@ def run_child(fn, *, kill_after: float | None = None, fsize: int | None = None,
   return Child(killed=killed, error=None if info["error"] is None else tuple(info["error"]), seconds=seconds)
 
 
+def duration(fn, runs: int = 3) -> float:
+  """Seconds ``fn`` takes in a child, start to end (the least of ``runs``: the first warms up)."""
+  times = []
+  for _ in range(runs):
+    child = run_child(fn)
+    assert child.error is None, child.error
+    times.append(child.seconds)
+  return min(times)
+
+
 def kill_times(rng: np.random.Generator, duration: float, n: int) -> list[float]:
   """``n`` kill moments spread over ``[0, duration]`` (stratified: one in each of ``n`` slices)."""
   return [float((i + rng.random()) * duration / n) for i in range(n)]
