@@ -49,6 +49,12 @@ GOALS = {
     "main_job": "the main job within 1200 s (20 min on 2 cores)",
     "mechanisms": "full - no-SSM and full - Ours-S with intervals at both photon budgets, every run "
                   "trained to its validation plateau; the SSM probe of a trained Ours",
+    "objects": "on the cpu test split, the independent set and the held-out renderer: Ours' object intensity "
+               "error below every classic method's, object recall at least the best classic's and surface F1 "
+               "above it (95 % intervals over sequences and 3 seeds excluding 0); intensity PSNR >= 3 dB above "
+               "the all-zero image and the best classic method",
+    "objects_screen": "each recipe of the cpu preset scored on the validation objects; the preset's default "
+                      "chosen there",
     "physics": "each method <= 1.3x its FFT floor and >= 1x the same-variant NumPy/SciPy twin, "
                "at 64² and 128²",
     "physics_shift": "on every renderer family left out of training: Ours >= best classic + 1 dB, object "

@@ -19,7 +19,8 @@ def _frames(shift: float, n_seq: int = 6, per: int = 4, noise: float = 0.01, see
 def test_choose_takes_the_row_whose_ours_has_the_best_validation_balanced_psnr():
   val = {"paper": {"ours": {"psnr_balanced": np.array([[10.0, 11.0], [10.5, 10.5]])}},
          "balanced": {"ours": {"psnr_balanced": np.array([[12.0, np.nan], [11.0, 12.0]])}},
-         "ours_s_only": {"ours_s": {"psnr_balanced": np.array([30.0])}}}
+         "ours_s_only": {"ours_s": {"psnr_balanced": np.array([30.0])}},
+         "long": {"ours": {"psnr_balanced": np.array([[40.0]])}}}               # past the main job's budget
   assert study.choose(val) == "balanced"          # 11.67 over its frames and seeds, NaN left out
   assert study.choose({}) is None
 
