@@ -104,9 +104,14 @@ def test_dataset_identity_is_digest_and_fingerprint_from_one_read_and_cached(tmp
   assert D.dataset_identity(path) == want
   cache = tmp_path / "a.h5.digest.json"
   saved = json.loads(cache.read_text())
-  # An unchanged file is answered from the cache (a marked entry comes back) ...
-  cache.write_text(json.dumps({**saved, "digest": "from-cache"}))
+  # An unchanged file is answered from the cache (a marked entry, checksummed, comes back) ...
+  marked = {**saved, "digest": "from-cache"}
+  marked["checksum"] = dataset_file._cache_checksum(marked)
+  cache.write_text(json.dumps(marked))
   assert D.dataset_identity(path)[0] == "from-cache"
+  # ... an entry whose checksum no longer matches (damaged) is not believed: the file is read again ...
+  cache.write_text(json.dumps({**marked, "digest": "damaged"}))
+  assert D.dataset_identity(path) == want
   # ... another file under the same name is read again, and a broken cache is rewritten.
   _write(path, _arrays(seed=3))
   assert D.dataset_identity(path)[0] == D.dataset_digest(path) != want[0]

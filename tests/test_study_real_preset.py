@@ -67,7 +67,7 @@ def test_status_counts_the_fewest_and_most_steps_the_plateau_rule_leaves(tiny_st
   points = [{"step": s, "val_psnr": v, "time_s": 1.5 * s} for s, v in ((2, 10.0), (4, 12.0), (6, 11.0))]
   (folder / "validation_curve.json").write_text(json.dumps(
       {"curve": points, "best_step": 4, "best_val_psnr": 12.0, "stop_reason": None}))
-  (folder / "run_state.json").write_text(json.dumps({"step": 6, "best_step": 4}))
+  (folder / "run_state.json").write_text(json.dumps({"step": 6, "best_step": 4, "signature": "tiny"}))
   study.run_config = lambda run: tiny_config(pathlib.Path("x.h5"), stop={
       "rule": "plateau", "every": 2, "patience": 4, "min_delta_db": 0.05, "max_steps": 3000})
   row = study.status(TINY)

@@ -16,6 +16,7 @@ from experiments.studies.headroom.study import CLASSIC, INPUTS, OBJECT_SCORES, R
 from nlosjax import stats
 from nlosjax.evaluation import report as ereport
 from nlosjax.evaluation.scores import HIGHER_IS_BETTER, by_sequence, compare_scores
+from nlosjax.variants import OURS, OURS_S
 
 __all__ = ["GROUPS", "COLUMNS", "REFERENCE", "groups", "method_order", "label", "summarise", "to_markdown",
            "plot"]
@@ -96,7 +97,7 @@ def groups(records: dict) -> dict:
 
 def method_order(methods) -> list[str]:
   """The floor, the classic methods, the reference rows, the learned ones (the shipped first), the truth."""
-  known = [ZERO, *CLASSIC, *REFERENCE, "ours_s", "ours"]
+  known = [ZERO, *CLASSIC, *REFERENCE, OURS_S, OURS]
   learned = [m for m in methods if m not in known and m not in TRUTH and "@" not in m]
   return [m for m in known if m in methods] + sorted(learned) + [b for b in TRUTH if b in methods]
 
@@ -404,8 +405,8 @@ def plot(summary: dict, path) -> None:
            "reference@full": dict(color="tab:purple", lw=1.4, ls="--"),
            "reference@clean_full": dict(color="tab:brown", lw=1.4, ls="--"),
            "truth_bilinear": dict(color="k", lw=1.8, ls=":"),
-           "ours": dict(color="tab:blue", lw=2.4, marker="o"),
-           "ours_s": dict(color="tab:orange", lw=2.0, marker="^")}
+           OURS: dict(color="tab:blue", lw=2.4, marker="o"),
+           OURS_S: dict(color="tab:orange", lw=2.0, marker="^")}
   for c, g in enumerate(gs):
     split = summary["groups"][g]["breakdown"]["size"]
     xs = [np.nan if b is None else 100 * b["mean"] for b in split["bins"]]

@@ -28,6 +28,7 @@ import numpy as np
 
 from experiments.studies.headroom import bounds, breakdown
 from nlosjax.evaluation import baselines
+from nlosjax.variants import OURS, OURS_S
 
 __all__ = ["CLASSIC", "ZERO", "TRUTH", "INPUTS", "OBJECT_SCORES", "REFERENCE_SCORES", "DEFAULT_MODELS",
            "HELDOUT_CONDITIONS", "preset", "set_files", "reference_classic", "oracle", "load_records", "Study"]
@@ -49,7 +50,7 @@ OBJECT_SCORES = ("intensity_mae_object", "psnr_balanced", "rmse_object", "recall
 #: main job's choice of the best classic method), the guard beside them.
 REFERENCE_SCORES = OBJECT_SCORES + ("psnr",)
 #: The networks scored when no ``--model`` is given: the shipped ``cpu`` weights.
-DEFAULT_MODELS = {"ours": "pretrained:cpu/ours", "ours_s": "pretrained:cpu/ours_s"}
+DEFAULT_MODELS = {OURS: f"pretrained:cpu/{OURS}", OURS_S: f"pretrained:cpu/{OURS_S}"}
 #: The held-out renderer's conditions scored by default: its base and the conditions that move one
 #: of the breakdown's attributes (object size, depth, photons); the other conditions change the
 #: physics, which the physics_shift study covers.
