@@ -1,7 +1,7 @@
 """Does the network earn its lead on the objects? Recipes trained for the hidden objects, chosen on validation.
 
     python -m experiments.studies.objects [--rows paper balanced ...] [--variants ours ours_s]
-        [--seeds 3] [--workdir DIR] [--choose] [--report-only] [--out FILE]
+        [--seeds 3] [--workdir DIR] [--state DIR] [--hours H] [--report-only] [--out FILE]
 
 Each row (:data:`ROWS`) is the ``cpu`` preset's main job (``python -m experiments.train``: the
 preset's data, 400 steps, its checkpoint kept on validation, every classic method tuned on
@@ -10,7 +10,8 @@ overrides: the paper's recipe as the preset ran it, then the levers of issue 87 
 (choosing the checkpoint on the object-balanced PSNR, object-balanced losses, the object term,
 a wider network, a longer schedule). Each row's run folder lives in the store
 (``$NLOSJAX_HOME/runs/objects/<row>``, :mod:`experiments.store`); a finished row is not trained
-again, an interrupted one resumes from its checkpoints.
+again, an interrupted one resumes from its checkpoints, or on a fresh clone from the state each
+row mirrors into ``state/<row>`` (committed; ``--hours H`` pauses the study after H hours).
 
 **Choices on validation only.** After training, every row's models and the classic methods (at
 the settings the row's main job tuned) are scored frame by frame on the validation split
@@ -33,6 +34,8 @@ import pathlib
 
 #: This study's results folder.
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+#: Each row's committed resumable state (``state/<row>``; ``experiments.train --resume-from``).
+STATE = pathlib.Path(__file__).resolve().parent / "state"
 
 _SELECT = ("--config.train.stop.metric=psnr_balanced",)
 _BALANCED = ("--config.train.loss.balance=1.0", "--config.train.loss.object_intensity=0.0") + _SELECT

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from experiments.studies.objects import NOT_ELIGIBLE, OBJECT_SCORES, RESULTS, ROWS, SETS
+from experiments.studies.objects import NOT_ELIGIBLE, OBJECT_SCORES, RESULTS, ROWS, SETS, STATE
 from nlosjax.variants import OURS, OURS_S
 
 COMMAND = "python -m experiments.studies.objects"
@@ -20,19 +20,41 @@ COMMAND = "python -m experiments.studies.objects"
 TABLE_SCORES = OBJECT_SCORES + ("psnr", "psnr_zero", "psnr_balanced_zero")
 
 
-def run_row(row: str, workdir: pathlib.Path, variants, seeds: int, log=print) -> None:
-  """The row's main job (``experiments.train``) in ``workdir``; resumes where it stopped."""
+#: ``experiments.train``'s exit status when ``--hours`` paused it (its state exported).
+EXIT_PAUSED = 75
+
+
+def run_row(row: str, workdir: pathlib.Path, variants, seeds: int, log=print, *,
+            state: pathlib.Path | None = None, hours: float | None = None) -> bool:
+  """The row's main job (``experiments.train``) in ``workdir``; resumes where it stopped.
+
+  ``state``: the folder its resumable state is mirrored into (``--resume-from``; commit it to go
+  on from a fresh clone). ``hours``: pause after that long. Returns False where it paused.
+  """
   if (workdir / "results" / SETS["test"]).exists():
     log(f"[{row}] trained and scored already: {workdir}")
-    return
+    return True
   variants = "(" + "".join(f'"{v}",' for v in variants) + ")"
   cmd = [sys.executable, "-m", "experiments.train", "--workdir", str(workdir),
          f"--config.train.seeds={seeds}", f"--config.train.variants={variants}", *ROWS[row][1]]
+  if state is not None:
+    cmd += ["--resume-from", str(state)]
+    if hours is not None:
+      cmd += ["--hours", f"{hours:g}"]
   log(f"[{row}] {' '.join(cmd[1:])}")
   t0 = time.perf_counter()
+  workdir.mkdir(parents=True, exist_ok=True)
   with open(workdir.parent / f"{row}.log", "a") as out:
-    subprocess.run(cmd, check=True, stdout=out, stderr=subprocess.STDOUT)
+    done = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT)
+  if done.returncode == EXIT_PAUSED:
+    log(f"[{row}] paused after {time.perf_counter() - t0:.0f} s; its state is in {state}: commit it, "
+        "and rerun the same command to go on")
+    return False
+  if done.returncode:
+    raise SystemExit(f"[{row}] the main job failed (exit status {done.returncode}); "
+                     f"see {workdir.parent / (row + '.log')}")
   log(f"[{row}] done in {time.perf_counter() - t0:.0f} s")
+  return True
 
 
 def score_validation(workdir: pathlib.Path, log=print) -> pathlib.Path:
@@ -208,14 +230,23 @@ def main(argv=None) -> int:
   p.add_argument("--seeds", type=int, default=3, help="training seeds per model (default 3)")
   p.add_argument("--workdir", type=pathlib.Path, default=None,
                  help="folder of the rows' run folders (default: the store's runs/objects)")
+  p.add_argument("--state", type=pathlib.Path, default=STATE,
+                 help="folder of each row's committed resumable state, STATE/<row> (default: the study's state/)")
+  p.add_argument("--hours", type=float, default=None,
+                 help="pause after this many hours (state exported; exit status 75; rerun to go on)")
   p.add_argument("--report-only", action="store_true", help="rewrite the report from the score files only")
   p.add_argument("--out", type=pathlib.Path, default=RESULTS / "objects.md")
   args = p.parse_args(argv)
   root = args.workdir or store.home() / "runs" / "objects"
   root.mkdir(parents=True, exist_ok=True)
+  if args.hours is not None and not args.hours > 0:
+    p.error(f"--hours must be > 0, got {args.hours}")
   if not args.report_only:
+    deadline = None if args.hours is None else time.monotonic() + 3600 * args.hours
     for row in args.rows:
-      run_row(row, root / row, args.variants, args.seeds)
+      hours = None if deadline is None else max(deadline - time.monotonic(), 60) / 3600
+      if not run_row(row, root / row, args.variants, args.seeds, state=args.state / row, hours=hours):
+        return EXIT_PAUSED
       score_validation(root / row)
   command = " ".join([COMMAND, *(argv if argv is not None else sys.argv[1:])])
   write_report(root, args.rows, args.out, command)
