@@ -374,11 +374,13 @@ def test_a_tal_capture_reconstructs_bit_for_bit_as_its_twin_in_our_format(tmp_pa
     transient = np.random.default_rng(4).poisson(2.0, (48, 8, 8)).astype(np.float32)
     tal_path = io.save_tal(tmp_path / "c.hdf5", transient, setup)
   ours_path = io.save_capture(tmp_path / "c.h5", transient, setup)
-  volumes = []
+  volumes, setups = [], []
   for path, out in ((tal_path, "tal"), (ours_path, "ours")):
     cli.main([str(path), "--method", "fbp", "--out", str(tmp_path / out), "--no-cache", "--quiet"])
     with h5py.File(tmp_path / out / "volume.h5", "r") as f:
       volumes.append(f["volume"][()])
+      setups.append((f.attrs["wall_size"], tuple(f.attrs["grid"]), f.attrs["bin_width"], f.attrs["num_bins"]))
       assert f.attrs["source_format"] == ("tal" if out == "tal" else io.CAPTURE_FORMAT.replace("-", "_"))
   assert volumes[0].shape == (setup.num_bins,) + setup.grid
   np.testing.assert_array_equal(volumes[0], volumes[1])
+  assert setups[0] == setups[1]                       # the same Setup, bit for bit
