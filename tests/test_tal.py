@@ -81,10 +81,11 @@ def axes(height, width, wall=0.6):
 
 # ------------------------------------------------------------------ round trip
 
+@pytest.mark.parametrize("grid", [(4, 5), (8, 8)])
 @pytest.mark.parametrize("layout", ["T_Sx_Sy", "T_Si"])
-def test_round_trip_ours_to_tal_to_ours_is_exact(tmp_path, layout):
-  setup = Setup(wall_size=0.8, grid=(4, 5), bin_width=32e-12, num_bins=24)
-  transient = known_transient(24, 4, 5)
+def test_round_trip_ours_to_tal_to_ours_is_exact(tmp_path, layout, grid):
+  setup = Setup(wall_size=0.8, grid=grid, bin_width=32e-12, num_bins=24)
+  transient = known_transient(24, *grid)
   path = io.save_tal(tmp_path / "c.hdf5", transient, setup, layout=layout)
   assert io.detect_format(path) == "tal"
   back, read = io.load_measurement(path)

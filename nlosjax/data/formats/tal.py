@@ -188,7 +188,7 @@ def _scan_grid(path: Path, points: np.ndarray):
           f"{path}: unevenly spaced TAL scan grid along {name}: a column of points is {off / spacing:.3g}"
           f" spacings off the even grid from {values[0]:.6g} to {values[-1]:.6g} m; only regular grids"
           " are supported")
-  extent_x, extent_y = xs[-1] - xs[0], ys[-1] - ys[0]
+  extent_x, extent_y = np.ptp(points[:, 0]), np.ptp(points[:, 1])     # the values as stored, not cluster means
   if not math.isclose(extent_x, extent_y, rel_tol=1e-4):
     raise ValueError(
         f"{path}: the TAL scan points span {extent_x:.6g} m along x but {extent_y:.6g} m along y; a Setup"
