@@ -279,15 +279,13 @@ def _read_tal(path: Path, *, zero_bins=None, bin_factor=None, num_bins=None):
   if total < 2:
     raise ValueError(f"{path}: every recorded TAL bin lies before light reaches the wall (t_start"
                      f" {t_start:.6g} m, {raw_bins} bins of {delta_t:.6g} m)")
-  shifted = np.zeros((total, len(sensor)), np.float64)
-  for s in np.unique(shift):
-    points = shift == s
+  counts = np.zeros((total,) + grid, np.float64)
+  for s in np.unique(shift):                 # the points sharing one shift, moved together
+    points = np.flatnonzero(shift == s)
     src, dst = max(0, -int(s)), max(0, int(s))
     count = min(raw_bins - src, total - dst)
     if count > 0:
-      shifted[dst:dst + count, points] = histograms[src:src + count, points]
-  counts = np.zeros((total,) + grid, np.float64)
-  counts[:, rows, cols] = shifted
+      counts[dst:dst + count, rows[points], cols[points]] = histograms[src:src + count, points]
   zero_bins, bin_factor, num_bins = _time_plan(path, total, zero_bins, bin_factor, num_bins)
   counts = np.moveaxis(_bin_time(np.moveaxis(counts, 0, -1), zero_bins, bin_factor, num_bins), -1, 0)
   setup = _make_setup(path, wall_size=wall_size, grid=grid, bin_width=delta_t / SPEED_OF_LIGHT * bin_factor,
