@@ -1,7 +1,7 @@
 """Our phasor, f-k and FBP against y-tal's ``pf``, ``fk`` and ``fbp``: ``benchmarks/results/peer_tal.md``.
 
-    python -m benchmarks.peer_tal --ytal-python /tmp/ytal-venv/bin/python [--grids 32 64] [--repeats 1]
-        [--ytal-fbp-max-grid 32]
+    NLOSJAX_YTAL_PYTHON=/tmp/ytal-venv/bin/python python -m benchmarks.peer_tal [--grids 32 64]
+        [--repeats 1] [--ytal-fbp-max-grid 32]        # or --ytal-python PATH
 
 y-tal (PyPI ``y-tal``) lives in an environment of its own (it pins numpy < 2
 and needs ``pyfftw``, which it does not declare)::
@@ -28,8 +28,9 @@ our phasor's virtual wavelength and cycles (``2 sampling_coeff x spacing``,
 own output grid (``[T, Sx, Sy]``). Agreement: normalised cross-correlation of
 the front maximum projections (over depth, ``[H, W]``; y-tal's ``[Sx, Sy]``
 transposed onto ours), of magnitudes (our f-k's square root, as its images
-are made). y-tal's ``pf`` divides by the voxel's distance to each scan point,
-NaN on the wall plane (depth bin 0); those voxels are set to 0. The
+are made), over the depths at least one virtual wavelength from the wall
+(y-tal's ``pf`` divides by each voxel's distance to the scan points, so its
+voxels on and near the wall plane, NaN on it, outshine the scene). The
 algorithms differ where named: our FBP filters the backprojection with a
 Laplacian, y-tal's ``fbp`` with the phasor-field wavelet.
 """
@@ -39,6 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import pathlib
 import subprocess
 import sys
@@ -104,8 +106,10 @@ def ncc(a: np.ndarray, b: np.ndarray) -> float:
   return float((a * b).sum() / math.sqrt((a * a).sum() * (b * b).sum()))
 
 
-def front(volume: np.ndarray, depth_axis: int) -> np.ndarray:
-  return np.abs(volume).max(axis=depth_axis)
+def front(volume: np.ndarray, depth_axis: int, first: int) -> np.ndarray:
+  """The maximum projection over depth bins ``first`` onwards."""
+  kept = np.take(np.abs(volume), np.arange(first, volume.shape[depth_axis]), axis=depth_axis)
+  return kept.max(axis=depth_axis)
 
 
 def run_ours(transient, setup, method: str, repeats: int) -> tuple[np.ndarray, list[float], float]:
@@ -123,7 +127,8 @@ def run_ours(transient, setup, method: str, repeats: int) -> tuple[np.ndarray, l
 
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  parser.add_argument("--ytal-python", required=True, help="a Python with y-tal installed")
+  parser.add_argument("--ytal-python", default=os.environ.get("NLOSJAX_YTAL_PYTHON"),
+                      help="a Python with y-tal installed (default: $NLOSJAX_YTAL_PYTHON)")
   parser.add_argument("--grids", type=int, nargs="+", default=[32, 64],
                       help="scan points per side (default: %(default)s)")
   parser.add_argument("--repeats", type=int, default=1, help="warm runs per method (default: %(default)s)")
@@ -133,6 +138,8 @@ def main(argv=None) -> int:
                       help="largest grid y-tal's fbp runs on (default: %(default)s)")
   parser.add_argument("--out", default=str(DEFAULT_OUT), help="Markdown output (a .json beside it)")
   args = parser.parse_args(argv)
+  if not args.ytal_python:
+    raise SystemExit("peer_tal: name a Python with y-tal installed (--ytal-python or NLOSJAX_YTAL_PYTHON)")
   from nlosjax.data import io
   rows, record = [], {"grids": {}}
   with tempfile.TemporaryDirectory() as tmp:
@@ -163,22 +170,24 @@ def main(argv=None) -> int:
           rows.append((n, ours_name, tal_name, min(times), None, None, t["error"]))
           continue
         tal_warm = min(t["times_s"][1:]) if len(t["times_s"]) > 1 else t["times_s"][0]
-        ours_front = front(np.sqrt(np.maximum(vol, 0)) if ours_name == "fk" else vol, 0)       # [H, W]
+        first = math.ceil(spec["wavelength"] / setup.depth_bin_length)       # a wavelength from the wall
+        ours_front = front(np.sqrt(np.maximum(vol, 0)) if ours_name == "fk" else vol, 0, first)    # [H, W]
         tal_vol = tal_volumes[tal_name]
-        tal_front = (front(tal_vol, 0) if tal_name == "fk" else front(tal_vol, 2)).T           # [Sy, Sx] = [H, W]
+        tal_front = front(tal_vol, 0 if tal_name == "fk" else 2, first).T    # [Sx, Sy] -> [H, W]
         agreement = ncc(ours_front, tal_front)
         grid_record["ours"][ours_name]["ncc_front"] = agreement
         rows.append((n, ours_name, tal_name, min(times), tal_warm, agreement, ""))
         print(f"{n}x{n} {ours_name}: ours {min(times):.3f} s, y-tal {tal_name} {tal_warm:.3f} s,"
               f" NCC {agreement:.3f}", flush=True)
       record["grids"][str(n)] = grid_record
-  command = f"python -m benchmarks.peer_tal --ytal-python {args.ytal_python}" + "".join(
+  command = "python -m benchmarks.peer_tal" + "".join(
       f" --{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
       for k in ("grids", "repeats", "ytal_memory_gib", "ytal_fbp_max_grid")
       if (v := getattr(args, k)) != parser.get_default(k))
   lines = ["# Side by side with y-tal: phasor, f-k and FBP on the same TAL capture", ""]
   lines += _machine.provenance(command) + [""]
-  lines += [_method_text(), "",
+  lines += [f"y-tal {theirs.get('tal_version', '?')} (its Python named by --ytal-python or NLOSJAX_YTAL_PYTHON)."
+            f" {_method_text()}", "",
             "| scan points | ours | y-tal | ours, warm (s) | y-tal, warm (s) | y-tal / ours | NCC, front views |",
             "|---|---|---|---|---|---|---|"]
   for n, ours_name, tal_name, ours_t, tal_t, agreement, error in rows:
