@@ -1,6 +1,6 @@
 """Our phasor, f-k and FBP against y-tal's ``pf``, ``fk`` and ``fbp``: ``benchmarks/results/peer_tal.md``.
 
-    NLOSJAX_YTAL_PYTHON=/tmp/ytal-venv/bin/python python -m benchmarks.peer_tal [--grids 32 64]
+    NLOSJAX_YTAL_PYTHON=/tmp/ytal-venv/bin/python python -m benchmarks.peer_tal [--grids 16 32 64]
         [--repeats 1] [--ytal-fbp-max-grid 32]        # or --ytal-python PATH
 
 y-tal (PyPI ``y-tal``) lives in an environment of its own (it pins numpy < 2
@@ -129,7 +129,7 @@ def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--ytal-python", default=os.environ.get("NLOSJAX_YTAL_PYTHON"),
                       help="a Python with y-tal installed (default: $NLOSJAX_YTAL_PYTHON)")
-  parser.add_argument("--grids", type=int, nargs="+", default=[32, 64],
+  parser.add_argument("--grids", type=int, nargs="+", default=[16, 32, 64],
                       help="scan points per side (default: %(default)s)")
   parser.add_argument("--repeats", type=int, default=1, help="warm runs per method (default: %(default)s)")
   parser.add_argument("--ytal-memory-gib", type=float, default=6.0,
@@ -161,10 +161,10 @@ def main(argv=None) -> int:
       theirs = json.loads(proc.stdout.strip().splitlines()[-1])
       tal_volumes = dict(np.load(pathlib.Path(tmp) / f"tal_{n}.npz"))
       grid_record = {"shape": list(transient.shape), "wall_size": setup.wall_size, "bin_width": setup.bin_width,
-                     "ytal": theirs, "ours": {}}
+                     "ytal": theirs, "nlosjax": {}}
       for ours_name, tal_name in OURS_TO_TAL.items():
         vol, times, cold = run_ours(transient, setup, ours_name, args.repeats)
-        grid_record["ours"][ours_name] = {"times_s": times, "cold_s": cold}
+        grid_record["nlosjax"][ours_name] = {"times_s": times, "cold_s": cold}
         t = theirs.get(tal_name, {"error": f"not run (above --ytal-fbp-max-grid {args.ytal_fbp_max_grid})"})
         if "error" in t:
           rows.append((n, ours_name, tal_name, min(times), None, None, t["error"]))
@@ -175,7 +175,7 @@ def main(argv=None) -> int:
         tal_vol = tal_volumes[tal_name]
         tal_front = front(tal_vol, 0 if tal_name == "fk" else 2, first).T    # [Sx, Sy] -> [H, W]
         agreement = ncc(ours_front, tal_front)
-        grid_record["ours"][ours_name]["ncc_front"] = agreement
+        grid_record["nlosjax"][ours_name]["ncc_front"] = agreement
         rows.append((n, ours_name, tal_name, min(times), tal_warm, agreement, ""))
         print(f"{n}x{n} {ours_name}: ours {min(times):.3f} s, y-tal {tal_name} {tal_warm:.3f} s,"
               f" NCC {agreement:.3f}", flush=True)
