@@ -11,7 +11,8 @@
 FILE is any format ``nlosjax.data.io.load_measurement`` reads, detected from its
 content: O'Toole LCT ``rect_data``/``width`` (.mat v5), Stanford f-k ``meas``
 (.mat v7.3, aligned with its ``tofgrid`` found next to it or given by
-``--tofgrid``), NLOST ``data``, nlosjax HDF5 captures and datasets.
+``--tofgrid``), NLOST ``data``, nlosjax HDF5 captures and datasets, y-tal's TAL HDF5
+captures (confocal, regular planar grid).
 
 Methods: ``fbp``, ``lct``, ``fk``, ``phasor``, ``rsd`` (``nlosjax.physics``) and
 ``model`` (a network trained by ``python -m experiments.train``, ST-Mamba or a

@@ -27,6 +27,11 @@ Formats (the registry :data:`FORMATS`, name -> reader), one module each in
 ``"nlosjax_dataset"`` (:mod:`~nlosjax.data.formats.dataset_file`)
   One sequence of an nlosjax dynamic dataset (``nlosjax.data.dataset``;
   ``docs/dataset.md``).
+``"tal"`` (:mod:`~nlosjax.data.formats.tal`)
+  y-tal's HDF5 captures (``tal.io.read_capture``), confocal on a regular
+  planar grid: ``H`` ``[T, Sx, Sy]`` or ``[T, Si]``, ``delta_t`` and
+  ``t_start`` in metres of path, each scan point's histogram shifted to
+  ``t = 0`` at the wall; written by :func:`save_tal`.
 
 Where the pieces live: the registry (:class:`FormatSpec`,
 :func:`register_format`, :data:`FORMATS`) and detection
@@ -77,6 +82,7 @@ from nlosjax.data.formats.registry import (
 )
 from nlosjax.data.formats.registry import _container as _container  # re-exported: tests read io._container
 from nlosjax.data.formats.stanford_fk import FK_CROP, FK_NATIVE_BIN_WIDTH, FK_WALL_SIZE
+from nlosjax.data.formats.tal import save_tal
 from nlosjax.physics.setup import Setup
 
 __all__ = [
@@ -97,6 +103,7 @@ __all__ = [
     "load_measurement",
     "register_format",
     "save_capture",
+    "save_tal",
     "shipped_scan_path",
 ]
 
@@ -217,6 +224,13 @@ def load_measurement(path, *, format: str | None = None, zero_bins: int | None =
   * ``"nlosjax_capture"``: :func:`save_capture`'s HDF5 layout (option ``frame``).
   * ``"nlosjax_dataset"``: a sequence of an nlosjax dynamic dataset
     (options ``split``, ``sequence``, ``frame``, ``key``).
+  * ``"tal"``: a y-tal HDF5 capture (confocal, regular grid on a plane
+    ``z = const``); ``bin_width = delta_t / c``, ``wall_size`` the extent of
+    the scan points, rows along y and columns along x ascending, each point's
+    histogram shifted by ``round((t_start - d_laser - d_spad) / delta_t)``
+    bins (the legs only when ``t_accounts_first_and_last_bounces``);
+    exhaustive, single-laser, frequency-domain or irregular captures raise
+    ``ValueError``. :func:`save_tal` writes one.
 
   Args:
     path: file to read; never written to.

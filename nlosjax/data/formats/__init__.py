@@ -10,8 +10,9 @@ Each format module registers its format when imported:
 * :mod:`~nlosjax.data.formats.nlost_mat`: ``"nlost_mat"`` (Li et al. 2023, aligned f-k).
 * :mod:`~nlosjax.data.formats.capture`: ``"nlosjax_capture"`` and its writer ``save_capture``.
 * :mod:`~nlosjax.data.formats.dataset_file`: ``"nlosjax_dataset"`` (nlosjax dynamic dataset).
+* :mod:`~nlosjax.data.formats.tal`: ``"tal"`` (y-tal's HDF5 captures, confocal) and its writer ``save_tal``.
 
-Importing this package registers all five. Registration order is detection
+Importing this package registers all six. Registration order is detection
 order (the first format whose check passes wins), so the imports below keep
 it; a new format module is added to them.
 """
@@ -22,6 +23,7 @@ from nlosjax.data.formats import stanford_fk
 from nlosjax.data.formats import nlost_mat
 from nlosjax.data.formats import capture
 from nlosjax.data.formats import dataset_file
+from nlosjax.data.formats import tal
 # isort: on
 
-__all__ = ["capture", "dataset_file", "lct_mat", "nlost_mat", "stanford_fk"]
+__all__ = ["capture", "dataset_file", "lct_mat", "nlost_mat", "stanford_fk", "tal"]

@@ -176,7 +176,8 @@ def _listing_cached(key: tuple, container: str) -> dict:
                         f" format): {type(exc).__name__}: {exc}") from None
   try:
     with h5py.File(path, "r") as f:
-      out = {name: (tuple(reversed(obj.shape)) if isinstance(obj, h5py.Dataset) else None)
+      # An empty dataset (a null dataspace, as TAL writes an unset field) has no shape: listed as ().
+      out = {name: (tuple(reversed(obj.shape or ())) if isinstance(obj, h5py.Dataset) else None)
              for name, obj in f.items()}
       out["#attrs"] = {k: _attr_value(v) for k, v in f.attrs.items()
                        if k in ("format", "format_version", "MATLAB_class")}
@@ -194,8 +195,9 @@ def _listing_cached(key: tuple, container: str) -> dict:
 def _listing(path: Path, container: str) -> dict:
   """``variable name -> shape`` (MATLAB axis order) of a ``.mat``/HDF5 file's top level.
 
-  HDF5 groups map to ``None``; the key ``"#attrs"`` of an HDF5 listing holds
-  the root attributes ``format`` and ``format_version`` when present.
+  HDF5 groups map to ``None``, empty (null-dataspace) datasets to ``()``; the
+  key ``"#attrs"`` of an HDF5 listing holds the root attributes ``format`` and
+  ``format_version`` when present.
   Cached per (file, modification time, size).
 
   Raises:
