@@ -263,7 +263,7 @@ def resample_depth_gather(volume: jax.Array, source: Setup, target: Setup) -> ja
 
 
 def interpolation_matrix(source: Setup, target: Setup) -> np.ndarray:
-  """``[Zt, Zs]`` float64: the weights of :func:`depth_interpolation`, two non-zeros a row summing to 1."""
+  """``[Zt, Zs]`` float64: the weights of :func:`depth_interpolation`, at most two non-zeros a row, summing to 1."""
   lo, hi, frac = depth_interpolation(source, target)
   rows = np.arange(lo.size)
   m = np.zeros((lo.size, source.depths.size))
