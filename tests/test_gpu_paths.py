@@ -191,9 +191,18 @@ def _physics_case():
   return layer, (b - a), cpu, other
 
 
-def _accelerator_paths(monkeypatch) -> None:
-  """Make every switch of :mod:`nlosjax.platforms` take its accelerator branch, run here on the CPU."""
-  monkeypatch.setattr(platforms, "by_platform", lambda *args, cpu, other: other(*args))
+def _accelerator_paths(monkeypatch) -> list[str]:
+  """Make every switch of :mod:`nlosjax.platforms` take its accelerator branch, run here on the CPU.
+
+  Returns the list the switches taken append their CPU branch's ``__qualname__`` to.
+  """
+  taken = []
+
+  def other_branch(*args, cpu, other):
+    taken.append(cpu.__qualname__)
+    return other(*args)
+  monkeypatch.setattr(platforms, "by_platform", other_branch)
+  return taken
 
 
 def _physics_value_and_grad(layer, x, a):
@@ -273,3 +282,32 @@ def test_train_step_lowered_for_cuda(preset):
   assert max(max(_prime_factors(n)) for n in lengths) <= LARGEST_RADIX, sorted(lengths)
   looped = [(f["type"], f["length"], f["source"]) for f in c["ffts"] if f["in_loop"]]
   assert not looped, looped
+
+
+def test_tiny_network_gradients_equal_on_both_paths(monkeypatch):
+  """A tiny STMambaNet (the physics layer one channel at a time, its volume resampled in depth):
+  loss and parameter gradients with every switch on its accelerator branch equal the CPU path's."""
+  from nlosjax.models import ModelConfig, STMambaNet
+  setup = Setup(wall_size=0.5, grid=(8, 8), bin_width=64e-12, num_bins=32)
+  cfg = ModelConfig.cpu(setup, stride=2, width=8, d_state=4, extract_time_stride=2, extract_blocks=1,
+                        st_depth=1, cross_depth=1, volume_time_stride=2, volume_features=2, refine_width=4,
+                        spread_min_width=2, frames=1, physics_chunk=1)
+  model = STMambaNet(cfg)
+  x = jax.random.poisson(jax.random.key(0), 0.5, cfg.input_shape(2)).astype(jnp.float32)
+  variables = jax.jit(model.init)(jax.random.key(1, impl="rbg"), x)
+
+  def loss(params):
+    out = model.apply({**variables, "params": params}, x)
+    return sum(jnp.mean(jnp.square(leaf)) for leaf in jax.tree.leaves(out))
+
+  def run():
+    return jax.jit(jax.value_and_grad(loss))(variables["params"])
+  loss_cpu, grad_cpu = run()
+  taken = _accelerator_paths(monkeypatch)
+  loss_acc, grad_acc = run()
+  switches = {name.split(".")[0] for name in taken}
+  assert {"conv2d_kernel_grad_cpu", "resample_depth", "FeatureTransform"} <= switches, switches
+  np.testing.assert_allclose(loss_acc, loss_cpu, rtol=1e-5)
+  for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(grad_acc), jax.tree.leaves(grad_cpu)):
+    scale = max(float(np.abs(b).max()), 1e-12)
+    np.testing.assert_allclose(a, b, atol=2e-5 * scale, rtol=0, err_msg=jax.tree_util.keystr(path))
