@@ -470,6 +470,62 @@ CONV_FORMS = {
 }
 
 
+#: ``dim_labels`` of ``conv2d_kernel_grad_cpu``'s swapped weight gradient (``CONV_FORMS``).
+SWAPPED_LABELS = "f01b_i01o->b01f"
+#: Ops that pass an array through unchanged in value (followed back from a convolution's input).
+_PASS_THROUGH = ("convert", "copy", "bitcast")
+
+
+def _pads(text: str | None) -> list[tuple[int, int]]:
+  """``[(lo, hi), ...]`` per dimension of a ``padding=`` (``pad`` op) or ``pad=`` (window) value."""
+  return [tuple(int(v) for v in d.split("_")[:2]) for d in text.split("x")] if text else []
+
+
+def swapped_weight_grad(module: HloModule, ins: Instr) -> bool:
+  """Whether convolution ``ins`` is a weight gradient in the swapped layout.
+
+  A weight gradient (window larger than output) is in XLA's own layout when its window is the
+  cotangent and it slides over the activations; swapped, the roles are exchanged: the window
+  is the (padded) activations and it slides over the cotangent padded by ``output - 1`` on
+  both sides of every spatial dimension (a full correlation, whose output then runs
+  backwards). Read from the ``dim_labels`` of ``conv2d_kernel_grad``'s swapped form
+  (:data:`SWAPPED_LABELS`) or, whatever the labels, from that padding: the ``pad`` op feeding
+  the input (through converts, copies, transposes and calls) plus the window's own padding.
+  """
+  f = conv_facts(module, ins)
+  if not f["weight_grad"]:
+    return False
+  labels = f["dim_labels"]
+  if labels == SWAPPED_LABELS:
+    return True
+  lhs_labels, out_labels = labels.split("_")[0], labels.split("->")[-1]
+  out_dims = arrays(ins.shape)[0][1]
+  window = dict(enumerate(_pads(re.search(r"pad=([\d_x-]+)", f["window"]).group(1)
+                                if "pad=" in f["window"] else "")))
+  src = module.by_name.get(ins.operands[0])
+  dims = list(range(len(lhs_labels)))           # the input's dimensions as dimensions of ``src``
+  while src is not None and src.opcode in _PASS_THROUGH + ("transpose", "call") and src.operands:
+    if src.opcode == "call":                     # its value is its computation's root (a jitted jnp.pad)
+      src = next((i for i in module.computations.get(src.attr("to_apply") or "", []) if i.root), None)
+      continue
+    if src.opcode == "transpose":
+      perm = [int(v) for v in src.attr("dimensions").split(",")]
+      dims = [perm[d] for d in dims]
+    src = module.by_name.get(src.operands[0])
+  explicit = _pads(src.attr("padding")) if src is not None and src.opcode == "pad" else []
+  full = []
+  for d in range(len(f["window_size"])):
+    out = out_dims[out_labels.index(str(d))]
+    if out < 2:
+      continue
+    lo, hi = window.get(d, (0, 0))
+    if explicit:
+      e_lo, e_hi = explicit[dims[lhs_labels.index(str(d))]]
+      lo, hi = lo + e_lo, hi + e_hi
+    full.append(lo >= out - 1 and hi >= out - 1)
+  return bool(full) and all(full)
+
+
 def conv_facts(module: HloModule, ins: Instr) -> dict:
   """Shapes, layout, window, groups, FLOPs and whether a convolution is a weight gradient."""
   lhs, rhs = (module.by_name[o].shape if o in module.by_name else "" for o in ins.operands[:2])
@@ -547,7 +603,8 @@ def census(hlo_text: str, stablehlo_text: str | None = None, model: str = "STMam
   for i in code:
     if i.opcode == "convolution":
       f = conv_facts(module, i)
-      f.update(runs=run[i.name], part=where[i.name][0], source=where[i.name][1], in_loop=i.computation in g.in_loop)
+      f.update(runs=run[i.name], part=where[i.name][0], source=where[i.name][1], in_loop=i.computation in g.in_loop,
+               swapped=swapped_weight_grad(module, i))
       convs.append(f)
   out["convolutions"] = convs
 
@@ -779,9 +836,14 @@ def slow_list(c: dict, s: dict) -> list[str]:
         f"{fmt_bytes(max(per_trip))} per trip). Expected: trips that small in bytes are launch-bound, "
         f"larger ones bandwidth-bound, and in both cases no two trips overlap.")
   wg = [r for r in c["convolutions"] if r["weight_grad"]]
-  if wg:
+  swapped = [r for r in wg if r["swapped"]]
+  if wg and not swapped:
+    out.append(
+        f"**Weight-gradient convolutions.** {len(wg)} of {s['convs']} convolutions are weight gradients, all in "
+        f"XLA's own layout (the window is the cotangent; `benchmarks.hlo_gpu.swapped_weight_grad`), the form "
+        f"XLA:GPU rewrites into cuDNN backward-filter calls. Expected: no large-window forward convolutions.")
+  if swapped:
     big = max(wg, key=lambda r: math.prod(r["window_size"]))
-    swapped = [r for r in wg if r["dim_labels"] == "f01b_i01o->b01f"]
     out.append(
         f"**Weight-gradient convolutions with large windows.** {len(wg)} of {s['convs']} convolutions are "
         f"weight gradients, {s['wg_gflop']:.0f} of {s['conv_gflop']:.0f} conv GFLOP per step; windows up to "
@@ -882,10 +944,12 @@ def render(gpu: dict, here: dict | None, info_gpu: dict, info_here: dict | None,
             f"The census below is of the step as a GPU process traces it (`scan_method=\"{info_gpu['scan_method']}\"` "
             "pinned); the one as traced here follows it for comparison.",
             f"- `conv_impl` is `{info_gpu['conv_impl']}`: `nlosjax.models.conv.resolve_conv_impl` picks each "
-            "layer's implementation by its shape alone (no backend check), and `conv2d_kernel_grad` picks its "
-            "kernel-gradient layout by shape; both were tuned on XLA:CPU and apply unchanged on a GPU.",
-            f"- `lax.platform_dependent` (JAX's own, e.g. in its RNG or linear algebra): the lowered program holds "
-            f"{gpu['conditionals']} `conditional` ops, so no platform switch is left in it.", ""]
+            "layer's implementation by its shape alone (no backend check), tuned on XLA:CPU.",
+            "- `nlosjax.platforms.by_platform` (`lax.platform_dependent`) picks by the platform the program is "
+            "lowered for, so the census holds the GPU paths (`docs/gpu.md`): `conv2d_kernel_grad` as JAX's own "
+            "kernel gradient, `resample_depth` as a dense product, the physics layer's FFTs batched at 7-smooth "
+            f"lengths. The lowered program holds {gpu['conditionals']} `conditional` ops: a program lowered for "
+            "one platform keeps that platform's branch alone.", ""]
 
   lines += ["## Summary", "",
             "| | as a GPU process traces it | as traced on this machine |", "|---|---:|---:|"]

@@ -17,6 +17,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from nlosjax import platforms
+
 
 def leaky_relu(x: jax.Array) -> jax.Array:
   """LeakyReLU with slope 0.2 (USM's activation)."""
@@ -140,6 +142,34 @@ def _direct_kernel_grad(xp, g, kt: int, d: int) -> jax.Array:
 
 def conv2d_kernel_grad(lhs, g) -> jax.Array:
   """``dk[b, c, i, f] = sum_{p, y, x} lhs[p, y + b, x + c, i] g[p, y, x, f]``: a VALID 2-D kernel gradient.
+
+  ``lhs [P, H + kh - 1, W + kw - 1, C]`` (padded input), ``g [P, H, W, F]`` -> ``[kh, kw, C,
+  F]``. Chosen by the platform the program is lowered for (:mod:`nlosjax.platforms`): on the
+  CPU :func:`conv2d_kernel_grad_cpu` (small kernels as a forward convolution whose window is
+  the input), elsewhere :func:`conv2d_kernel_grad_xla` (JAX's own kernel gradient, which
+  XLA:GPU computes as a backward-filter convolution). The same sums.
+  """
+  return platforms.by_platform(lhs, g, cpu=conv2d_kernel_grad_cpu, other=conv2d_kernel_grad_xla)
+
+
+def conv2d_kernel_grad_xla(lhs, g) -> jax.Array:
+  """:func:`conv2d_kernel_grad` as JAX's VJP of the VALID convolution with respect to its kernel.
+
+  ``lhs [P, H + kh - 1, W + kw - 1, C]``, ``g [P, H, W, F]`` -> ``[kh, kw, C, F]``. Its window
+  is the cotangent ``[H, W]`` and its output the kernel: the form XLA:GPU rewrites into a cuDNN
+  backward-filter call.
+  """
+  p, h, w, feats = g.shape
+  kh, kw = lhs.shape[1] - h + 1, lhs.shape[2] - w + 1
+  dtype = jnp.result_type(lhs, g)
+  zero = jnp.zeros((kh, kw, lhs.shape[-1], feats), dtype)
+  _, vjp = jax.vjp(lambda k: jax.lax.conv_general_dilated(lhs.astype(dtype), k, (1, 1), "VALID",
+                                                          dimension_numbers=("NHWC", "HWIO", "NHWC")), zero)
+  return vjp(g.astype(dtype))[0]
+
+
+def conv2d_kernel_grad_cpu(lhs, g) -> jax.Array:
+  """:func:`conv2d_kernel_grad` as tuned on XLA:CPU.
 
   ``lhs [P, H + kh - 1, W + kw - 1, C]`` (padded input), ``g [P, H, W, F]`` -> ``[kh, kw, C,
   F]``. XLA's own kernel gradient is a 2-D convolution whose "batch" is ``C``; for kernels of at

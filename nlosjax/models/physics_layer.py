@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from nlosjax import platforms
 from nlosjax.physics import operator_args
 from nlosjax.physics.operators import (
   check_falloff,
@@ -125,7 +126,9 @@ class FeatureTransform(nn.Module):
     oversample: LCT v-bins per time bin (``oversample`` of
       ``nlosjax.physics.lct``/``phasor``; 1 is their default and the public grid).
     chunk: transform this many ``(b, c)`` slices at a time (``jax.lax.map``;
-      bounds the FFT memory); None transforms all at once (``vmap``).
+      bounds the FFT memory); None transforms all at once (``vmap``). Heeded in a
+      program lowered for the CPU only: for another platform (:mod:`nlosjax.platforms`)
+      every slice is transformed at once, the FFTs batched over them.
     variant: the operators, as ``variant`` of ``nlosjax.physics.phasor`` /
       ``lct``: ``"refined"`` (ours: gated, linear convolution, centred
       wavelet) or ``"public"`` (the public code's: its resampling matrix and
@@ -218,8 +221,9 @@ class FeatureTransform(nn.Module):
 
     if self.chunk is None:
       vol = jax.vmap(one)(xs)
-    else:
-      vol = jax.lax.map(one, xs, batch_size=self.chunk)
+    else:                              # off the CPU all slices at once: batched FFTs, no loop
+      vol = platforms.by_platform(xs, cpu=lambda v: jax.lax.map(one, v, batch_size=self.chunk),
+                                  other=jax.vmap(one))
     vol = vol.reshape((bsz, C) + vol.shape[1:])
     return jnp.moveaxis(vol, 1, -1)
 
@@ -228,17 +232,54 @@ def resample_depth(volume: jax.Array, source: Setup, target: Setup) -> jax.Array
   """Linear interpolation of ``[B, Zs, H, W]`` from ``source.depths`` to ``target.depths``.
 
   Depths outside the source grid take the nearest end value. Returns
-  ``[B, Zt, H, W]`` (the input unchanged when the depth grids are equal).
+  ``[B, Zt, H, W]`` (the input unchanged when the depth grids are equal). Chosen by the
+  platform the program is lowered for (:mod:`nlosjax.platforms`): on the CPU
+  :func:`resample_depth_gather` (two gathered rows per output depth, its gradient a
+  scatter-add), elsewhere :func:`resample_depth_dense` (one product with the ``[Zt, Zs]``
+  interpolation matrix, forward and backward, no gather or scatter). The same sums.
   """
   zs, zt = source.depths, target.depths
   if zs.shape == zt.shape and np.allclose(zs, zt):
     return volume
+  return platforms.by_platform(volume, cpu=lambda v: resample_depth_gather(v, source, target),
+                               other=lambda v: resample_depth_dense(v, source, target))
+
+
+def depth_interpolation(source: Setup, target: Setup) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """``(lo, hi, frac)`` ``[Zt]`` each: target depth ``k`` is ``(1 - frac) zs[lo] + frac zs[hi]``."""
+  zs, zt = source.depths, target.depths
   step = source.depth_bin_length
   pos = np.clip((zt - zs[0]) / step, 0.0, zs.size - 1.0)
   lo = np.minimum(np.floor(pos).astype(np.int64), zs.size - 1)
   hi = np.minimum(lo + 1, zs.size - 1)
-  frac = jnp.asarray(pos - lo, volume.dtype)[None, :, None, None]
+  return lo, hi, pos - lo
+
+
+def resample_depth_gather(volume: jax.Array, source: Setup, target: Setup) -> jax.Array:
+  """:func:`resample_depth` by gathering each target depth's two source rows: ``[B, Zs, H, W] -> [B, Zt, H, W]``."""
+  lo, hi, frac = depth_interpolation(source, target)
+  frac = jnp.asarray(frac, volume.dtype)[None, :, None, None]
   return volume[:, lo] * (1.0 - frac) + volume[:, hi] * frac
+
+
+def interpolation_matrix(source: Setup, target: Setup) -> np.ndarray:
+  """``[Zt, Zs]`` float64: the weights of :func:`depth_interpolation`, at most two non-zeros a row, summing to 1."""
+  lo, hi, frac = depth_interpolation(source, target)
+  rows = np.arange(lo.size)
+  m = np.zeros((lo.size, source.depths.size))
+  np.add.at(m, (rows, lo), 1.0 - frac)
+  np.add.at(m, (rows, hi), frac)
+  return m
+
+
+def resample_depth_dense(volume: jax.Array, source: Setup, target: Setup) -> jax.Array:
+  """:func:`resample_depth` as one product with :func:`interpolation_matrix`: ``[B, Zs, H, W] -> [B, Zt, H, W]``.
+
+  ``precision="highest"``: full float32 products where the platform would round them
+  (TF32 on recent NVIDIA GPUs).
+  """
+  m = jnp.asarray(interpolation_matrix(source, target), volume.dtype)
+  return jnp.einsum("tz,bzhw->bthw", m, volume, precision="highest")
 
 
 def soft_projection(volume: jax.Array, depths, *, temperature: float = 0.05,

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.fft
 
+from nlosjax import platforms
 from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
 
 
@@ -158,11 +159,53 @@ def convolve_time(x: jax.Array, wavelet: Wavelet, axis: int = -3) -> jax.Array:
   Returns:
     complex array of ``x``'s shape: ``y[t] = sum_k P(t_k) x[t - k + L // 2]``
     with zeros outside the window.
+
+  The linear convolution by FFTs of any length at least ``T + L - 1`` (no wrap-around);
+  the length is chosen by the platform the program is lowered for (:mod:`nlosjax.platforms`,
+  :func:`convolution_fft_lengths`): SciPy's fast length on the CPU, a length whose prime
+  factors are at most 7 elsewhere. Both are :func:`convolve_time_at`.
   """
+  n = x.shape[axis]
+  cpu, other = convolution_fft_lengths(n, wavelet.num_samples)
+  if cpu == other:
+    return convolve_time_at(x, wavelet, cpu, axis)
+  return platforms.by_platform(x, cpu=lambda v: convolve_time_at(v, wavelet, cpu, axis),
+                               other=lambda v: convolve_time_at(v, wavelet, other, axis))
+
+
+def convolution_fft_lengths(n: int, length: int) -> tuple[int, int]:
+  """``(cpu, other)`` FFT lengths of :func:`convolve_time` for ``n`` samples and a ``length``-tap kernel.
+
+  ``cpu``: ``scipy.fft.next_fast_len(n + length - 1)`` (prime factors up to 11, which
+  PocketFFT runs fast); ``other``: :func:`next_smooth_length` of the same, prime factors up
+  to 7 (the radices cuFFT documents as its fastest).
+  """
+  full = n + length - 1
+  return scipy.fft.next_fast_len(full), next_smooth_length(full)
+
+
+def next_smooth_length(n: int, primes: tuple[int, ...] = (2, 3, 5, 7)) -> int:
+  """The smallest integer ``>= n`` whose prime factors are all in ``primes``."""
+  if n < 1:
+    raise ValueError(f"n must be >= 1, got {n!r}")
+  m = n
+  while True:
+    r = m
+    for p in primes:
+      while r % p == 0:
+        r //= p
+    if r == 1:
+      return m
+    m += 1
+
+
+def convolve_time_at(x: jax.Array, wavelet: Wavelet, nfft: int, axis: int = -3) -> jax.Array:
+  """:func:`convolve_time` with FFTs of length ``nfft`` (at least ``T + L - 1``: the linear convolution)."""
   x = jnp.moveaxis(x, axis, -1)
   n = x.shape[-1]
   length = wavelet.num_samples
-  nfft = scipy.fft.next_fast_len(n + length - 1)
+  if nfft < n + length - 1:
+    raise ValueError(f"nfft {nfft} < {n} + {length} - 1: the circular convolution would wrap around")
   cdtype = jnp.complex128 if x.real.dtype == jnp.float64 else jnp.complex64
   kernel = jnp.asarray(np.fft.fft(wavelet.samples, nfft), cdtype)
   y = jnp.fft.ifft(jnp.fft.fft(x.astype(cdtype), nfft) * kernel)
