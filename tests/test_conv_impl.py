@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments.configs import cpu as cpu_preset
+from experiments import configs
 from nlosjax.models import ModelConfig, blocks, conv
 from nlosjax.physics import Setup
 from tests.conv_reference import loop_conv3d, same_conv3d
@@ -90,7 +90,7 @@ def test_fast_path_equals_the_fold_reference_at_the_cpu_preset():
   input) as the all-"fold" reference on a fixed batch. (The whole network at the preset's own
   shapes: ``python -m benchmarks.model --configs cpu --batch 4 --reference``.)"""
   setup = Setup(wall_size=2.0, grid=(8, 8), bin_width=132e-12, num_bins=64)
-  cfg = ModelConfig(setup=setup, stride=4, frames=3, **cpu_preset.get_config()["model"])
+  cfg = ModelConfig(setup=setup, stride=4, frames=3, **configs.get_config("cpu")["model"])
   assert cfg.conv_impl == "auto"
   assert conv.resolve_conv_impl("auto", (3, 3, 3), cfg.refine_width, cfg.refine_width, 1) == "direct"
   fast = blocks.VolumeReconstruction(**cfg.volume_kwargs())

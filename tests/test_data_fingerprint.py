@@ -171,18 +171,20 @@ def test_a_run_resumes_on_data_regenerated_with_another_vector_width(tmp_path_fa
   # Measured on AVX-512 and AVX2 machines: the noise-free transients differ in a few hundred
   # values by rounding (0 if this machine's XLA already emits SSE4.2-width code).
   assert same_bits or D.fingerprint_distance(fp_here, fp_there) > 0
-  cfg = tiny_config(here, steps=2)
+  cfg = tiny_config(here, steps=4)
   quiet = lambda s: None  # noqa: E731
-  export = T.StateExport(tmp_path / "state", data_digest=D.dataset_digest(here), data_fingerprint=fp_here)
-  T.train_model(RunConfig.from_dict(cfg), here, tmp_path / "a", "ours_s", log=quiet, export=export)
+  # An unfinished run (a finished one exports its chosen parameters alone): paused after step 1.
+  export = T.StateExport(tmp_path / "state", data_digest=D.dataset_digest(here), data_fingerprint=fp_here,
+                         deadline=0.0)
+  with pytest.raises(T.TrainingPaused):
+    T.train_model(RunConfig.from_dict(cfg), here, tmp_path / "a", "ours_s", log=quiet, export=export)
   assert run_state.read_fingerprint(tmp_path / "state/ours_s") == fp_here
   # A fresh clone on the other machine: the export copied, its data regenerated there.
   shutil.copytree(tmp_path / "state", tmp_path / "clone")
-  longer = tiny_config(there, steps=4)
   messages = []
   moved = T.StateExport(tmp_path / "clone", data_digest=D.dataset_digest(there), data_fingerprint=fp_there)
-  _, state = T.train_model(RunConfig.from_dict(longer), there, tmp_path / "b", "ours_s", log=messages.append,
-                           export=moved)
+  _, state = T.train_model(RunConfig.from_dict(tiny_config(there, steps=4)), there, tmp_path / "b", "ours_s",
+                           log=messages.append, export=moved)
   assert int(state.step) == 4
-  resumed = [m for m in messages if "resumed from step 2 of the exported state" in m]
+  resumed = [m for m in messages if "resumed from step 1 of the exported state" in m]
   assert resumed and (same_bits or "another rounding" in resumed[0])
