@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from nlosjax.data.scenes import mitransient as mt
+from nlosjax.physics import Setup
 from nlosjax.physics.noise import add_spad_noise
 from nlosjax.physics.transport import SurfaceSamples, render_surfaces
 from tests.data.make_mitransient_fixture import PATCH, SETUP
@@ -104,3 +105,25 @@ def test_render_matches_the_committed_conversion():
   ours = _ours(PATCH, SETUP)
   assert np.corrcoef(theirs.sum(0).ravel(), ours.sum(0).ravel())[0, 1] > 0.999
   assert np.abs(_onset(theirs) - _onset(ours)).max() <= 1
+
+
+def test_a_frame_of_our_scenes_becomes_tiles_at_its_depths():
+  from nlosjax.data.scenes import make_scene, rasterize
+
+  setup = Setup(wall_size=1.0, grid=(12, 12), bin_width=SETUP.bin_width, num_bins=320)   # 3.2 m of depth
+  scene = make_scene(3, num_frames=2, setup=setup)
+  raster = rasterize(scene, setup, frames=[1], supersample=2)
+  tiles = mt.patches_from_frame(raster, setup, 0)
+  hit = np.isfinite(raster.ray_depth[0]) & (raster.ray_albedo[0] >= 1e-3)
+  assert len(tiles) == int(hit.sum()) > 0
+  centres = np.array([t.centre for t in tiles])
+  np.testing.assert_allclose(np.sort(centres[:, 2]), np.sort(raster.ray_depth[0][hit]), rtol=1e-6)
+  # tiles cover the frame's intensity: their albedo-weighted area per scan pixel is the mean shaded albedo
+  dy, dx = setup.spacing
+  j = np.clip(np.rint((centres[:, 0] - setup.scan_x[0]) / dx).astype(int), 0, setup.grid[1] - 1)
+  i = np.clip(np.rint((centres[:, 1] - setup.scan_y[0]) / dy).astype(int), 0, setup.grid[0] - 1)
+  per_pixel = np.zeros(setup.grid)
+  np.add.at(per_pixel, (i, j), [t.albedo / 4 for t in tiles])
+  np.testing.assert_allclose(per_pixel, np.where(hit, raster.ray_albedo[0], 0).mean(0), atol=1e-6)
+  scene_dict = mt.scene_description(tiles, setup)
+  assert sum(k.startswith("patch_") for k in scene_dict) == len(tiles)

@@ -3,7 +3,8 @@
 mitransient (a transient path tracer on Mitsuba 3) is a renderer we did not
 write: many bounces, any material. This module turns planar rectangular
 patches in front of the relay wall (:class:`Patch`: centre, in-plane axes,
-half sizes, albedo; what a ``plate`` of :mod:`nlosjax.data.scenes` is) and a
+half sizes, albedo; :func:`patches_from_frame` tiles one frame of our scenes,
+objects at their depths with their albedo) and a
 :class:`~nlosjax.physics.Setup` into a mitransient confocal scene, renders it,
 and converts its output to our ``[T, H, W]`` convention; :func:`detect` then
 applies our detector model (:func:`nlosjax.physics.noise.add_spad_noise`:
@@ -111,6 +112,43 @@ class Patch:
     n = -n if n[2] > 0 else n
     area = 4 * self.half_size[0] * self.half_size[1] / (na * nb)
     return pts, n, area
+
+
+def patches_from_frame(raster, setup: Setup, frame: int = 0, *, min_albedo: float = 1e-3) -> list[Patch]:
+  """One frame of a rasterised scene of ours as fronto-parallel tiles at their depths.
+
+  Each ray hit of :func:`nlosjax.data.scenes.rasterize` (``s x s`` rays per
+  scan pixel) becomes a square tile of side ``spacing / s`` at the ray's
+  ``(x, y)`` and hit depth, with the ray's shaded albedo: the frame's visible
+  surfaces ("2.5-D", as our albedo volume) with their depths and albedo. A
+  planar object facing the wall is reproduced; a tilted one becomes a
+  staircase of tiles (its foreshortening is already in the shaded albedo).
+
+  Args:
+    raster: a :class:`~nlosjax.data.scenes.Rasterized` of ``setup``.
+    setup: the capture it was rasterised on.
+    frame: index into ``raster``'s frames.
+    min_albedo: hits with less shaded albedo are left out.
+  Returns:
+    a list of :class:`Patch` (empty for an empty frame).
+  """
+  depth = np.asarray(raster.ray_depth[frame], np.float64)           # [S, H, W]
+  albedo = np.asarray(raster.ray_albedo[frame], np.float64)
+  S, H, W = depth.shape
+  s = int(round(np.sqrt(S)))
+  if s * s != S or (H, W) != tuple(setup.grid):
+    raise ValueError(f"raster must hold s^2 rays per pixel on grid {setup.grid}, got {depth.shape}")
+  dy, dx = setup.spacing
+  sub = (np.arange(s) + 0.5) / s - 0.5
+  # ray r = a * s + b sits at (x_j + sub[b] dx, y_i + sub[a] dy), as rasterize casts them
+  a, b = np.divmod(np.arange(S), s)
+  x = setup.scan_x[None, None, :] + (sub[b] * dx)[:, None, None]
+  y = setup.scan_y[None, :, None] + (sub[a] * dy)[:, None, None]
+  hit = np.isfinite(depth) & (depth > 0) & (albedo >= min_albedo)
+  x, y = np.broadcast_to(x, depth.shape)[hit], np.broadcast_to(y, depth.shape)[hit]
+  half = (dx / s / 2, dy / s / 2)
+  return [Patch(centre=(float(px), float(py), float(pz)), half_size=half, albedo=float(min(pa, 1.0)))
+          for px, py, pz, pa in zip(x, y, depth[hit], albedo[hit])]
 
 
 def wall_half_extents(setup: Setup) -> tuple[float, float]:
