@@ -1417,7 +1417,7 @@ def render_compiled(runs: list[dict], command: str, variant: str, batch: int) ->
   for r in runs:
     s, cost = r["summary"], r["cost"]
     xla = (f"{cost['flops'] / 1e9:.0f} / {cost.get('bytes accessed', 0) / 1e9:.1f}" if "flops" in cost
-           else cost.get("error", "-"))
+           else cost.get("error", "none returned"))
     lines.append(f"| {r['config']} | {r['what']} | {r['target']['name']} | {r['compile_s']:.0f} | "
                  f"{s['kernels_per_step']:,} ({s['kernels_static']:,}) | {sum(s['cudnn_by_target'].values())} | "
                  f"{s['by_kind'].get('gemm', 0)} | {s['ffts_per_step']} | {s['loops']} / {s['loop_trips']:,} | "
