@@ -1314,7 +1314,8 @@ def compiled_summary(c: dict, target: dict | None = None) -> dict:
 
 
 def compile_for_target(config: dict, variant: str, batch: int, target: str, what: str = "train") -> dict:
-  """The run's train step (``what="train"``) compiled by XLA:GPU for ``target`` (a :data:`TARGETS` key)
+  """The run's train step (``what="train"``) or the network's forward pass (``"inference"``) compiled by
+  XLA:GPU for ``target`` (a :data:`TARGETS` key)
   on this machine, without a GPU: the optimised HLO text, cost analysis and times.
 
   Needs the CUDA plugin (``jax[cuda12]``) and ``JAX_PLATFORMS=cpu``; the step is built as
@@ -1322,6 +1323,7 @@ def compile_for_target(config: dict, variant: str, batch: int, target: str, what
   (``jax.experimental.topologies.get_topology_desc``), the physics operators as shapes.
   """
   import jax
+  import jax.numpy as jnp
   import numpy as np
   from jax.experimental import topologies
   from jax.sharding import Mesh, NamedSharding
@@ -1348,8 +1350,14 @@ def compile_for_target(config: dict, variant: str, batch: int, target: str, what
   key = jax.ShapeDtypeStruct(k.shape, k.dtype, sharding=rep)
   step = T.make_train_step(mcfg, weights, T.mesh_for(typed))        # the operators, built on this machine
   table = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=rep), step.table)
-  bound = operator_args.Bound(step.__wrapped__, table, donate_argnums=0, out_shardings=(rep, rep))
-  lowered = bound.jitted.trace(state, batch_shapes, key, table).lower()
+  if what == "train":
+    bound = operator_args.Bound(step.__wrapped__, table, donate_argnums=0, out_shardings=(rep, rep))
+    lowered = bound.jitted.trace(state, batch_shapes, key, table).lower()
+  else:                                                              # the network's forward pass alone
+    model = T.network(mcfg)
+    bound = operator_args.Bound(lambda p, x: model.apply({"params": p}, x), table)
+    x = jax.ShapeDtypeStruct(tuple(mcfg.input_shape(batch)), jnp.float32, sharding=rep)
+    lowered = bound.jitted.trace(state.params, x, table).lower()
   lower_s = time.perf_counter() - t
   t = time.perf_counter()
   compiled = lowered.compile()
@@ -1369,11 +1377,13 @@ def _verdict(ok: bool) -> str:
   return "**met**" if ok else "**not met**"
 
 
-def render_compiled(runs: list[dict], command: str, variant: str, batch: int) -> str:
+def render_compiled(runs: list[dict], command: str, variant: str, batch: int, failed: list[str] = ()) -> str:
   """The Markdown report of ``--compile``: one section per (preset, target), the goals on the paper step."""
   lines = ["# The train step compiled by XLA:GPU for an H100 and an H200 on a CPU-only machine", ""]
   lines += _machine.provenance(command) + [""]
-  lines += [f"Variant `{variant}`, batch {batch}. Each step is built as the run builds it (the preset's model, "
+  lines += [f"**Failed to compile: {f}.**" for f in failed] + ([""] if failed else [])
+  lines += [f"Variant `{variant}`, train steps at batch {batch}, inference (the network's forward pass) at "
+            "batch 1. Each step is built as the run builds it (the preset's model, "
             "optimiser and loss), its state, batch, key and physics operators as `jax.ShapeDtypeStruct`s on a "
             "one-device mesh of the target's topology (`jax.experimental.topologies.get_topology_desc(target, "
             "\"cuda\", target_config=benchmarks/gpu_targets/<target>.txtpb, topology=\"1x1x1\")`), then "
@@ -1418,7 +1428,7 @@ def render_compiled(runs: list[dict], command: str, variant: str, batch: int) ->
     s, cost = r["summary"], r["cost"]
     xla = (f"{cost['flops'] / 1e9:.0f} / {cost.get('bytes accessed', 0) / 1e9:.1f}" if "flops" in cost
            else cost.get("error", "none returned"))
-    lines.append(f"| {r['config']} | {r['what']} | {r['target']['name']} | {r['compile_s']:.0f} | "
+    lines.append(f"| {r['config']} | {r['what']} (batch {r['batch']}) | {r['target']['name']} | {r['compile_s']:.0f} | "
                  f"{s['kernels_per_step']:,} ({s['kernels_static']:,}) | {sum(s['cudnn_by_target'].values())} | "
                  f"{s['by_kind'].get('gemm', 0)} | {s['ffts_per_step']} | {s['loops']} / {s['loop_trips']:,} | "
                  f"{s['float_atomics']} | {s['flops'] / 1e9:.0f} | {s['bytes'] / 1e9:.2f} | "
@@ -1426,7 +1436,7 @@ def render_compiled(runs: list[dict], command: str, variant: str, batch: int) ->
                  f"{s['roofline_s']:.4f} | {xla} |")
   for r in runs:
     s, c = r["summary"], r["census"]
-    lines += ["", f"## `{r['config']}` {r['what']}, {r['target']['name']}", "",
+    lines += ["", f"## `{r['config']}` {r['what']} (batch {r['batch']}), {r['target']['name']}", "",
               f"Input {' x '.join(map(str, r['input']))}, model {r['model']}, scan `{r['scan_method']}`; lowered in "
               f"{r['lower_s']:.0f} s, compiled in {r['compile_s']:.0f} s.", "",
               "Kernels a step by kind: " + ", ".join(f"{k} {v:,}" for k, v in sorted(
@@ -1468,25 +1478,34 @@ def main_compile(args) -> int:
     print("--compile needs JAX_PLATFORMS=cpu (and jax[cuda12] installed)", file=sys.stderr)
     return 2
   from experiments.cli import load_config
-  runs = []
+  runs, failed = [], []
   for name in args.configs.split(","):
     config = load_config(name)
     for target in args.targets.split(","):
       print(f"compiling the {name} train step for {target} ...", flush=True)
-      r = compile_for_target(config, args.variant, args.batch, target)
-      census = compiled_census(r.pop("hlo"))
-      runs.append({**r, "config": name, "what": "train", "census": census,
-                   "summary": compiled_summary(census, r["target"])})
-      print(f"  compiled in {r['compile_s']:.0f} s; {runs[-1]['summary']['kernels_per_step']:,} kernels a step, "
-            f"roofline {runs[-1]['summary']['roofline_s']:.3f} s", flush=True)
+      jobs = [("train", args.batch)] + ([("inference", 1)] if name in args.inference.split(",") else [])
+      for what, batch in jobs:
+        print(f"compiling the {name} {what} step (batch {batch}) for {target} ...", flush=True)
+        try:
+          r = compile_for_target(config, args.variant, batch, target, what)
+        except Exception as e:                                   # noqa: BLE001 - reported in the file
+          failed.append(f"`{name}` {what}, {target}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+          print(f"  failed: {failed[-1]}", flush=True)
+          continue
+        census = compiled_census(r.pop("hlo"))
+        runs.append({**r, "config": name, "what": what, "batch": batch, "census": census,
+                     "summary": compiled_summary(census, r["target"])})
+        print(f"  compiled in {r['compile_s']:.0f} s; {runs[-1]['summary']['kernels_per_step']:,} kernels, "
+              f"roofline {runs[-1]['summary']['roofline_s']:.4f} s", flush=True)
   command = "python -m benchmarks.hlo_gpu --compile" + "".join(
       f" {flag} {value}" for flag, value, default in (
           ("--configs", args.configs, "cpu,paper"), ("--targets", args.targets, "h100,h200"),
-          ("--batch", args.batch, "4"), ("--variant", args.variant, OURS)) if str(value) != default)
+          ("--batch", args.batch, "4"), ("--variant", args.variant, OURS), ("--inference", args.inference, "paper"))
+      if str(value) != default)
   out = pathlib.Path(args.out) if args.out else COMPILED_OUT
   if out.resolve() != COMPILED_OUT:
     command += f" --out {args.out}"
-  text = render_compiled(runs, command, args.variant, args.batch)
+  text = render_compiled(runs, command, args.variant, args.batch, failed)
   print(text)
   out.write_text(text)
   print(f"wrote {out}")
@@ -1504,6 +1523,8 @@ def main(argv=None) -> int:
                       help="compile the train steps with XLA:GPU for --targets without a GPU (needs jax[cuda12] and "
                            "JAX_PLATFORMS=cpu) and read the optimised program")
   parser.add_argument("--configs", default="cpu,paper", help="with --compile: presets (default: %(default)s)")
+  parser.add_argument("--inference", default="paper", help="with --compile: presets whose batch-1 inference is "
+                      "compiled too ('' for none; default: %(default)s)")
   parser.add_argument("--targets", default="h100,h200", help=f"with --compile: of {', '.join(TARGETS)} "
                       "(default: %(default)s)")
   args = parser.parse_args(argv)
