@@ -1482,7 +1482,6 @@ def main_compile(args) -> int:
   for name in args.configs.split(","):
     config = load_config(name)
     for target in args.targets.split(","):
-      print(f"compiling the {name} train step for {target} ...", flush=True)
       jobs = [("train", args.batch)] + ([("inference", 1)] if name in args.inference.split(",") else [])
       for what, batch in jobs:
         print(f"compiling the {name} {what} step (batch {batch}) for {target} ...", flush=True)
