@@ -2,12 +2,14 @@
 
     python -m benchmarks.hlo_gpu [--config paper] [--batch 4] [--variant ours]
                                  [--out benchmarks/results/hlo_gpu.md]
+    JAX_PLATFORMS=cpu python -m benchmarks.hlo_gpu --compile [--configs cpu,paper]
+                                 [--targets h100,h200] [--inference paper]   # needs jax[cuda12]
 
 On a CPU-only machine, the run's own train step (``nlosjax.train.make_train_step``, with the
 state, batch and key as ``nlosjax.plan.compile_train_step`` builds them, all abstract
 ``jax.ShapeDtypeStruct``: nothing of the paper's size is allocated but the physics operators
 the step is bound to) is traced and lowered with ``lowering_platforms=("cuda",)``. Nothing is
-compiled: XLA:GPU's compiler needs a GPU. The census reads the lowered program's HLO text
+compiled by default; ``--compile`` (below) has XLA:GPU compile it for a target description. The census reads the lowered program's HLO text
 (``Lowered.as_text(dialect="hlo", debug_info=True)``, the StableHLO converted, before any XLA
 pass) and counts, per kind of op, the instructions in the text ("static") and how often each
 runs in one step ("per step": the static count times the trip counts of the ``while`` loops
@@ -27,6 +29,13 @@ around it, read from each loop's condition and initial value where they are cons
 
 The closing list of what is likely slow on a GPU gives expectations to check on a device,
 each with its evidence from the census; nothing here is a measurement of a GPU.
+
+``--compile`` (with the CUDA plugin installed and ``JAX_PLATFORMS=cpu``) compiles the train steps,
+and the batch-1 forward pass of the presets in ``--inference``, with XLA:GPU for the H100 and H200
+descriptions in ``benchmarks/gpu_targets/`` (:func:`compile_for_target`), reads the optimised
+program (:func:`compiled_census`: kernels, cuDNN calls, FFTs, loops, float atomics, bytes and
+FLOPs) and writes ``results/hlo_gpu_compiled.md`` with a roofline per target and the GPU step's
+structural goals.
 """
 
 from __future__ import annotations
