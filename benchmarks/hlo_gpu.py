@@ -9,7 +9,8 @@ On a CPU-only machine, the run's own train step (``nlosjax.train.make_train_step
 state, batch and key as ``nlosjax.plan.compile_train_step`` builds them, all abstract
 ``jax.ShapeDtypeStruct``: nothing of the paper's size is allocated but the physics operators
 the step is bound to) is traced and lowered with ``lowering_platforms=("cuda",)``. Nothing is
-compiled by default; ``--compile`` (below) has XLA:GPU compile it for a target description. The census reads the lowered program's HLO text
+compiled by default; ``--compile`` (below) has XLA:GPU compile it for a target description.
+The census reads the lowered program's HLO text
 (``Lowered.as_text(dialect="hlo", debug_info=True)``, the StableHLO converted, before any XLA
 pass) and counts, per kind of op, the instructions in the text ("static") and how often each
 runs in one step ("per step": the static count times the trip counts of the ``while`` loops
