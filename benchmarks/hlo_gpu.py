@@ -1431,7 +1431,7 @@ def render_compiled(runs: list[dict], command: str, variant: str, batch: int, fa
     lines.append("")
   lines += ["## Summary", "",
             "| preset | program | target | compile s | kernels a step (static) | cuDNN a step | GEMMs | FFTs | "
-            "loops / trips | float atomics | GFLOP | GB moved | FLOP/B | compute s | memory s | roofline s | "
+            "loops / trips | float atomics | GFLOP | GB moved | FLOP/B | compute ms | memory ms | roofline ms | "
             "XLA cost_analysis GFLOP / GB |",
             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
   for r in runs:
@@ -1442,8 +1442,8 @@ def render_compiled(runs: list[dict], command: str, variant: str, batch: int, fa
                  f"{s['kernels_per_step']:,} ({s['kernels_static']:,}) | {sum(s['cudnn_by_target'].values())} | "
                  f"{s['by_kind'].get('gemm', 0)} | {s['ffts_per_step']} | {s['loops']} / {s['loop_trips']:,} | "
                  f"{s['float_atomics']} | {s['flops'] / 1e9:.0f} | {s['bytes'] / 1e9:.2f} | "
-                 f"{s['flops'] / max(s['bytes'], 1):.1f} | {s['compute_s']:.4f} | {s['memory_s']:.4f} | "
-                 f"{s['roofline_s']:.4f} | {xla} |")
+                 f"{s['flops'] / max(s['bytes'], 1):.1f} | {s['compute_s'] * 1e3:.2f} | {s['memory_s'] * 1e3:.2f} | "
+                 f"{s['roofline_s'] * 1e3:.2f} | {xla} |")
   for r in runs:
     s, c = r["summary"], r["census"]
     lines += ["", f"## `{r['config']}` {r['what']} (batch {r['batch']}), {r['target']['name']}", "",
@@ -1461,7 +1461,8 @@ def render_compiled(runs: list[dict], command: str, variant: str, batch: int, fa
     lines += ["", "| FFT | length | prime factors | output | in a loop | static | a step |",
               "|---|---|---|---|---|---:|---:|"]
     for k, rows in _group(c["ffts"], ("type", "length", "shape", "in_loop")):
-      lines.append(f"| {k[0]} | {k[1]} | {' x '.join(str(p) for n in k[1] for p in prime_factors(n))} | {k[2]} | "
+      lines.append(f"| {k[0]} | {' x '.join(map(str, k[1]))} | "
+                   f"{' x '.join(str(p) for n in k[1] for p in prime_factors(n))} | {k[2]} | "
                    f"{'yes' if k[3] else 'no'} | {len(rows)} | {sum(x['runs'] for x in rows)} |")
     lines += ["", "| while loops | trips | runs a step | nested | kernels a trip |", "|---:|---:|---:|---|---:|"]
     for k, rows in sorted(_group(c["loops"], ("trips", "runs", "nested", "kernels_per_trip")),
