@@ -2,12 +2,15 @@
 
     python -m benchmarks.hlo_gpu [--config paper] [--batch 4] [--variant ours]
                                  [--out benchmarks/results/hlo_gpu.md]
+    JAX_PLATFORMS=cpu python -m benchmarks.hlo_gpu --compile [--configs cpu,paper]
+                                 [--targets h100,h200] [--inference paper]   # needs jax[cuda12]
 
 On a CPU-only machine, the run's own train step (``nlosjax.train.make_train_step``, with the
 state, batch and key as ``nlosjax.plan.compile_train_step`` builds them, all abstract
 ``jax.ShapeDtypeStruct``: nothing of the paper's size is allocated but the physics operators
 the step is bound to) is traced and lowered with ``lowering_platforms=("cuda",)``. Nothing is
-compiled: XLA:GPU's compiler needs a GPU. The census reads the lowered program's HLO text
+compiled by default; ``--compile`` (below) has XLA:GPU compile it for a target description.
+The census reads the lowered program's HLO text
 (``Lowered.as_text(dialect="hlo", debug_info=True)``, the StableHLO converted, before any XLA
 pass) and counts, per kind of op, the instructions in the text ("static") and how often each
 runs in one step ("per step": the static count times the trip counts of the ``while`` loops
@@ -27,6 +30,13 @@ around it, read from each loop's condition and initial value where they are cons
 
 The closing list of what is likely slow on a GPU gives expectations to check on a device,
 each with its evidence from the census; nothing here is a measurement of a GPU.
+
+``--compile`` (with the CUDA plugin installed and ``JAX_PLATFORMS=cpu``) compiles the train steps,
+and the batch-1 forward pass of the presets in ``--inference``, with XLA:GPU for the H100 and H200
+descriptions in ``benchmarks/gpu_targets/`` (:func:`compile_for_target`), reads the optimised
+program (:func:`compiled_census`: kernels, cuDNN calls, FFTs, loops, float atomics, bytes and
+FLOPs) and writes ``results/hlo_gpu_compiled.md`` with a roofline per target and the GPU step's
+structural goals.
 """
 
 from __future__ import annotations
@@ -70,12 +80,12 @@ class Instr:
   attrs: str
   computation: str
   root: bool = False
-  literal: str = ""          # a constant's value
+  literal: str = ""          # a constant's value, a parameter's number
   op_name: str = ""          # metadata: the JAX code it came from
   frame: int = 0             # metadata: innermost stack frame id (0: none)
 
   def attr(self, key: str) -> str | None:
-    """The value of ``key=...`` in the attributes (a ``{...}`` group whole), or None."""
+    """The value of ``key=...`` in the attributes (a ``{...}`` group whole; a name without its ``%``), or None."""
     m = re.search(rf"(?:^|[ ,]){re.escape(key)}=", self.attrs)
     if m is None:
       return None
@@ -83,7 +93,7 @@ class Instr:
     if i < len(self.attrs) and self.attrs[i] == "{":
       j = _close(self.attrs, i, "{", "}")
       return self.attrs[i + 1:j]
-    return re.match(r'"[^"]*"|[^,\s]+', self.attrs[i:]).group(0).strip('"')
+    return re.match(r'"[^"]*"|[^,\s]+', self.attrs[i:]).group(0).strip('"').lstrip("%")
 
 
 @dataclasses.dataclass
@@ -161,7 +171,7 @@ def _parse_instr(line: str, computation: str) -> Instr | None:
   opcode = op.group(1)
   j = _close(rest, op.end() - 1, "(", ")")
   inner, attrs = rest[op.end():j], rest[j + 1:].lstrip(", ")
-  literal = inner if opcode == "constant" else ""
+  literal = inner if opcode in ("constant", "parameter") else ""
   operands = () if opcode in ("constant", "parameter", "iota") else tuple(
       o.split()[-1].lstrip("%") for o in _split_top(inner) if o.split())
   meta = re.search(r"metadata=\{([^}]*)\}", attrs)
@@ -297,8 +307,12 @@ def trip_count(module: HloModule, loop: Instr) -> int | None:
 
   The element's initial value (in the loop's operand tuple) must be a constant and the body must
   add a constant to it; ``LT``/``LE``/``GT``/``GE``/``NE`` comparisons. None where any of these is
-  not static (a ``while_loop`` with a traced bound).
+  not static (a ``while_loop`` with a traced bound). A compiled program's loops state it
+  (``backend_config={"known_trip_count":{"n":"16"}}``), which is read first.
   """
+  known = re.search(r'"known_trip_count":\{"n":"(\d+)"', loop.attrs)
+  if known:
+    return int(known.group(1))
   cond = module.computations.get(loop.attr("condition"), [])
   root = next((i for i in cond if i.root), None)
   if root is None or root.opcode != "compare" or len(root.operands) != 2:
@@ -1069,15 +1083,466 @@ def render(gpu: dict, here: dict | None, info_gpu: dict, info_here: dict | None,
   return "\n".join(lines) + "\n"
 
 
+# ------------------------------------------------------------ the compiled program
+TARGETS_DIR = pathlib.Path(__file__).resolve().parent / "gpu_targets"
+#: The GPU targets ``--compile`` builds for: ``xla.GpuTargetConfigProto`` texts in :data:`TARGETS_DIR`.
+TARGETS = {"h100": "h100.txtpb", "h200": "h200.txtpb"}
+COMPILED_OUT = pathlib.Path(__file__).resolve().parent / "results" / "hlo_gpu_compiled.md"
+#: Compiled-HLO opcodes that launch no kernel of their own (control flow, views, bookkeeping).
+NOT_KERNELS = ("parameter", "constant", "get-tuple-element", "tuple", "bitcast", "while", "conditional", "call",
+               "after-all", "partition-id", "replica-id", "opt-barrier", "add-dependency", "domain",
+               "async-start", "async-update", "async-done", "copy-start", "copy-done")
+CUDNN_PREFIX = "__cudnn$conv"
+GEMM_TARGETS = ("__cublas$gemm", "__cublas$lt$matmul")
+FLOAT_DTYPES = ("f16", "bf16", "f32", "f64", "c64", "c128")
+#: The largest prime factor an FFT length may have (cuFFT's fast radices: 2, 3, 5, 7).
+FFT_SMOOTH = 7
+
+
+def target_facts(text: str) -> dict:
+  """Peak float32 FLOP/s (SMs x FP32 lanes per SM x 2 x clock) and memory bandwidth from a target text."""
+  def num(key):
+    m = re.search(rf"\b{key}:\s*([\d.]+)", text)
+    return float(m.group(1)) if m else 0.0
+  name = re.search(r'device_description_str:\s*"([^"]*)"', text)
+  return {"name": name.group(1) if name else "?", "peak_flops": num("core_count") * num("fpus_per_core") * 2 *
+          num("clock_rate_ghz") * 1e9, "bandwidth": num("memory_bandwidth"),
+          "memory": num("device_memory_size"), "sms": int(num("core_count"))}
+
+
+def _control(module: HloModule) -> set[str]:
+  """Computations run as code (entry, loop bodies, branches, calls, async wrappers), not fused computations or
+  scalar reducers: their instructions are the program's kernels and control. Loop conditions are left out
+  (a loop whose trip count is known runs its body that many times without them)."""
+  out, todo = set(), [module.entry]
+  while todo:
+    c = todo.pop()
+    if c in out:
+      continue
+    out.add(c)
+    for ins in module.computations.get(c, ()):
+      if ins.opcode == "fusion":
+        continue
+      todo += [callee for callee, role in callees(ins) if role not in ("apply", "condition")]
+  return out
+
+
+def _fused_root(module: HloModule, ins: Instr) -> Instr | None:
+  return next((i for i in module.computations.get(ins.attr("calls") or "", []) if i.root), None)
+
+
+def _kernel_bytes(module: HloModule, ins: Instr) -> int:
+  """Bytes a kernel reads and writes: its operands and outputs, where a fusion reads an operand only
+  through dynamic slices the slices alone, and an in-place dynamic-update-slice root its update alone."""
+  ops = [module.by_name[o] for o in ins.operands if o in module.by_name]
+  if ins.opcode != "fusion":
+    return sum(nbytes(o.shape) for o in ops) + nbytes(ins.shape)
+  body = module.computations.get(ins.attr("calls") or "", [])
+  params = {int(i.literal): i.name for i in body if i.opcode == "parameter" and i.literal.strip().isdigit()}
+  users = collections.defaultdict(list)
+  for i in body:
+    for o in i.operands:
+      users[o].append(i)
+  root = next((i for i in body if i.root), None)
+  total = 0
+  for k, o in enumerate(ops):
+    p = params.get(k)
+    us = users.get(p, [])
+    if us and all(u.opcode == "dynamic-slice" and u.operands[0] == p for u in us):
+      total += sum(nbytes(u.shape) for u in us)
+    elif us and root is not None and all(u is root and root.opcode == "dynamic-update-slice" and
+                                         root.operands[0] == p for u in us):
+      total += 0                                   # updated in place: the update is counted as the output
+    else:
+      total += nbytes(o.shape)
+  if root is not None and root.opcode == "dynamic-update-slice" and len(root.operands) > 1 and \
+     root.operands[1] in module.by_name:
+    return total + nbytes(module.by_name[root.operands[1]].shape)
+  return total + nbytes(ins.shape)
+
+
+def _gemm_flops(module: HloModule, ins: Instr) -> float:
+  """2 x output elements x contracted length of a cuBLAS call or the ``dot`` inside a GEMM fusion."""
+  dot = ins
+  if ins.opcode == "fusion":
+    dot = next((i for i in closure(module, ins.attr("calls") or "") if i.opcode == "dot"), None)
+    if dot is None:
+      return 0.0
+    lhs_dims = [int(v) for v in (dot.attr("lhs_contracting_dims") or "").split(",") if v]
+  else:
+    m = re.search(r'"lhs_contracting_dimensions":\[([^\]]*)\]', ins.attrs)
+    lhs_dims = [int(v.strip('" ')) for v in m.group(1).split(",") if v.strip('" ')] if m else []
+  lhs = module.by_name.get(dot.operands[0]) if dot.operands else None
+  shape = arrays(lhs.shape)[0][1] if lhs is not None and arrays(lhs.shape) else ()
+  k = math.prod(shape[d] for d in lhs_dims if d < len(shape)) if lhs_dims else 1
+  return 2.0 * math.prod(arrays(dot.shape)[0][1]) * k
+
+
+def _fft_flops(ins: Instr) -> float:
+  """5 N log2 N per complex transform of N points (half for a real one), times the batch."""
+  lengths = [int(v) for v in (ins.attr("fft_length") or "").split(",") if v]
+  n = math.prod(lengths) if lengths else 1
+  out = arrays(ins.shape)[0][1] if arrays(ins.shape) else ()
+  batch = math.prod(out[:len(out) - len(lengths)]) if out else 1
+  real = (ins.attr("fft_type") or "FFT") in ("RFFT", "IRFFT")
+  return batch * 5 * n * math.log2(max(n, 2)) * (0.5 if real else 1.0)
+
+
+def cudnn_facts(module: HloModule, ins: Instr) -> dict:
+  """A cuDNN convolution call's forward convolution: input, filter and output shapes, window and FLOPs.
+
+  ``convForward(input, filter) -> output``, ``convBackwardInput(output grad, filter) -> input grad``,
+  ``convBackwardFilter(input, output grad) -> filter grad``; the window and ``dim_labels`` are the
+  forward convolution's. FLOPs: 2 x forward output elements x window x filter input channels.
+  """
+  target = ins.attr("custom_call_target") or ""
+  shapes = [module.by_name[o].shape if o in module.by_name else "" for o in ins.operands[:2]]
+  result = arrays(ins.shape)[0] if arrays(ins.shape) else ("f32", ())
+  result_text = f"{result[0]}[{','.join(map(str, result[1]))}]"
+  if target.endswith("BackwardFilter"):
+    x, w, y = shapes[0], result_text, shapes[1]
+  elif target.endswith("BackwardInput"):
+    x, w, y = result_text, shapes[1], shapes[0]
+  else:
+    x, w, y = shapes[0], shapes[1], result_text
+  labels = ins.attr("dim_labels") or ""
+  size = re.search(r"size=([\dx]+)", ins.attr("window") or "")
+  window = tuple(int(v) for v in size.group(1).split("x")) if size else ()
+  w_labels = labels.split("_")[1].split("->")[0] if "_" in labels else ""
+  w_dims = arrays(w)[0][1] if arrays(w) else ()
+  cin = w_dims[w_labels.index("i")] if "i" in w_labels and len(w_dims) == len(w_labels) else 1
+  y_dims = arrays(y)[0][1] if arrays(y) else ()
+  out_labels = labels.split("->")[-1] if "->" in labels else ""
+  spatial = [y_dims[out_labels.index(str(d))] for d in range(len(window))
+             if str(d) in out_labels and out_labels.index(str(d)) < len(y_dims)]
+  return {"target": target, "input": dims_text(x), "filter": dims_text(w), "output": dims_text(y),
+          "window": window, "flops": 2.0 * math.prod(y_dims) * math.prod(window or (1,)) * cin,
+          "weight_grad_as_forward": target.endswith("Forward") and any(a > b for a, b in zip(window, spatial))}
+
+
+def kernel_kind(module: HloModule, ins: Instr) -> str:
+  """``cudnn``, ``gemm``, ``fft``, ``scatter``, ``fusion`` or the opcode of one kernel."""
+  target = ins.attr("custom_call_target") or ""
+  if ins.opcode == "custom-call":
+    return "cudnn" if target.startswith(CUDNN_PREFIX) else ("gemm" if target.startswith(GEMM_TARGETS) else
+                                                             f"custom-call {target}")
+  if ins.opcode == "fusion":
+    if re.search(r'"kind":"__triton_gemm"|"kind":"__cublas', ins.attrs) or (
+        ins.attr("kind") == "kCustom" and any(i.opcode == "dot" for i in closure(module, ins.attr("calls") or ""))):
+      return "gemm"
+    root = _fused_root(module, ins)
+    if root is not None and root.opcode == "scatter":
+      return "scatter"
+    return "fusion"
+  return ins.opcode
+
+
+def compiled_census(text: str) -> dict:
+  """What XLA:GPU's optimised program (``Compiled.as_text()``) runs per step; JSON-friendly.
+
+  Kernels are the instructions of the computations run as code (:func:`_control`) that launch
+  work (not :data:`NOT_KERNELS`); each is counted once per run (loop trips multiplied in). FLOPs
+  are those of cuDNN convolutions, GEMMs and FFTs (elementwise work not counted); bytes are each
+  kernel's operands and outputs (:func:`_kernel_bytes`). A float atomic: a scatter on floats
+  whose indices are not declared unique (``unique_indices=true``), which XLA:GPU emits as atomic
+  read-modify-writes.
+  """
+  module = parse_hlo(text)
+  g = call_graph(module)
+  control = _control(module)
+  run = lambda i: g.runs.get(i.computation, 0)          # noqa: E731
+  kernels = []
+  for c in control:
+    for i in module.computations.get(c, ()):
+      if i.opcode in NOT_KERNELS:
+        continue
+      kind = kernel_kind(module, i)
+      flops = 0.0
+      if kind == "cudnn":
+        flops = cudnn_facts(module, i)["flops"]
+      elif kind == "gemm":
+        flops = _gemm_flops(module, i)
+      elif i.opcode == "fft":
+        flops = _fft_flops(i)
+      kernels.append({"name": i.name, "kind": kind, "opcode": i.opcode, "runs": run(i), "in_loop": c in g.in_loop,
+                      "flops": flops, "bytes": _kernel_bytes(module, i)})
+  cudnn = []
+  for c in control:
+    for i in module.computations.get(c, ()):
+      if i.opcode == "custom-call" and (i.attr("custom_call_target") or "").startswith(CUDNN_PREFIX):
+        f = cudnn_facts(module, i)
+        cudnn.append({**f, "runs": run(i), "gflop": f.pop("flops") / 1e9})
+  ffts = [{"type": i.attr("fft_type") or "FFT", "length": tuple(int(v) for v in (i.attr("fft_length") or "").split(",")
+                                                                 if v),
+           "shape": dims_text(i.shape), "runs": run(i), "in_loop": i.computation in g.in_loop}
+          for c in control for i in module.computations.get(c, ()) if i.opcode == "fft"]
+  loops = [{"name": i.name, "trips": g.trips.get(i.name), "runs": run(i), "nested": i.computation in g.in_loop,
+            "kernels_per_trip": sum(1 for x in closure(module, i.attr("body")) if x.computation in control and
+                                    x.opcode not in NOT_KERNELS)}
+           for c in control for i in module.computations.get(c, ()) if i.opcode == "while"]
+  scatters = []
+  for comp, instrs in module.computations.items():
+    for i in instrs:
+      if i.opcode != "scatter":
+        continue
+      dtype = arrays(i.shape)[0][0] if arrays(i.shape) else ""
+      unique = (i.attr("unique_indices") or "false") == "true"
+      scatters.append({"shape": dims_text(i.shape), "runs": g.runs.get(comp, 0), "unique_indices": unique,
+                       "float_atomic": dtype in FLOAT_DTYPES and not unique,
+                       "indices": dims_text(module.by_name[i.operands[1]].shape)
+                       if len(i.operands) > 1 and i.operands[1] in module.by_name else ""})
+  return {"kernels": kernels, "cudnn": cudnn, "ffts": ffts, "loops": loops, "scatters": scatters,
+          "unknown_trips": g.unknown_trips}
+
+
+def compiled_summary(c: dict, target: dict | None = None) -> dict:
+  """Per-step totals of :func:`compiled_census` and, given :func:`target_facts`, the roofline (seconds):
+  the sum over kernels of the larger of FLOPs / peak and bytes / bandwidth."""
+  k = c["kernels"]
+  s = {"kernels_static": len(k), "kernels_per_step": sum(r["runs"] for r in k),
+       "by_kind": dict(collections.Counter({r["kind"]: 0 for r in k}) + collections.Counter(
+           {kind: sum(r["runs"] for r in k if r["kind"] == kind) for kind in {r["kind"] for r in k}})),
+       "flops": sum(r["flops"] * r["runs"] for r in k), "bytes": sum(r["bytes"] * r["runs"] for r in k),
+       "cudnn_by_target": dict(collections.Counter({r["target"]: 0 for r in c["cudnn"]}) + collections.Counter(
+           {t: sum(r["runs"] for r in c["cudnn"] if r["target"] == t) for t in {r["target"] for r in c["cudnn"]}})),
+       "cudnn_over_3x3": sum(r["runs"] for r in c["cudnn"] if any(w > 3 for w in r["window"])),
+       "largest_window": max((r["window"] for r in c["cudnn"]), key=math.prod, default=[]),
+       "weight_grad_as_forward": sum(r["runs"] for r in c["cudnn"] if r["weight_grad_as_forward"]),
+       "ffts_per_step": sum(r["runs"] for r in c["ffts"]),
+       "fft_lengths": sorted({n for r in c["ffts"] for n in r["length"]}),
+       "fft_rough": sorted({n for r in c["ffts"] for n in r["length"] if max(prime_factors(n) or [1]) > FFT_SMOOTH}),
+       "ffts_in_loops": sum(r["runs"] for r in c["ffts"] if r["in_loop"]),
+       "loops": len(c["loops"]), "loop_trips": sum(r["runs"] * (r["trips"] or 1) for r in c["loops"]),
+       "float_atomics": sum(r["runs"] for r in c["scatters"] if r["float_atomic"]),
+       "scatters": sum(r["runs"] for r in c["scatters"]), "unknown_trips": c["unknown_trips"]}
+  if target is not None:
+    s["roofline_s"] = sum(max(r["flops"] / target["peak_flops"], r["bytes"] / target["bandwidth"]) * r["runs"]
+                          for r in k)
+    s["compute_s"] = s["flops"] / target["peak_flops"]
+    s["memory_s"] = s["bytes"] / target["bandwidth"]
+  return s
+
+
+def compile_for_target(config: dict, variant: str, batch: int, target: str, what: str = "train") -> dict:
+  """The run's train step (``what="train"``) or the network's forward pass (``"inference"``) compiled by
+  XLA:GPU for ``target`` (a :data:`TARGETS` key)
+  on this machine, without a GPU: the optimised HLO text, cost analysis and times.
+
+  Needs the CUDA plugin (``jax[cuda12]``) and ``JAX_PLATFORMS=cpu``; the step is built as
+  :func:`lower_step` builds it, its shardings on a one-device mesh of the target's topology
+  (``jax.experimental.topologies.get_topology_desc``), the physics operators as shapes.
+  """
+  import jax
+  import jax.numpy as jnp
+  import numpy as np
+  from jax.experimental import topologies
+  from jax.sharding import Mesh, NamedSharding
+  from jax.sharding import PartitionSpec as P
+
+  from nlosjax import inference, plan
+  from nlosjax import train as T
+  from nlosjax.physics import operator_args
+  from nlosjax.ssm import resolve_method
+  text = (TARGETS_DIR / TARGETS[target]).read_text()
+  topo = topologies.get_topology_desc(target, "cuda", target_config=text, topology="1x1x1")
+  mesh = Mesh(np.asarray(topo.devices).reshape(-1), ("data",))
+  rep = NamedSharding(mesh, P())
+  config = {**config, "train": {**config["train"], "batch_size": int(batch)}}
+  typed = T.RunConfig.from_dict(config)
+  mcfg = T.model_config_for(typed, inference.training_setup(typed), variant)
+  mcfg = dataclasses.replace(mcfg, scan_method=resolve_method("auto", backend="gpu"))
+  optim, weights = T.training_recipe(typed, variant)
+  tx = T.make_optimizer(optim, int(config["train"]["steps"]))
+  t = time.perf_counter()
+  state = T.abstract_train_state(T.network(mcfg), tuple(mcfg.input_shape(batch)), tx, mesh)
+  batch_shapes = plan._abstract_batch(mcfg, batch, mesh)
+  k = jax.eval_shape(lambda: jax.random.key(0))
+  key = jax.ShapeDtypeStruct(k.shape, k.dtype, sharding=rep)
+  step = T.make_train_step(mcfg, weights, T.mesh_for(typed))        # the operators, built on this machine
+  table = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=rep), step.table)
+  if what == "train":
+    bound = operator_args.Bound(step.__wrapped__, table, donate_argnums=0, out_shardings=(rep, rep))
+    lowered = bound.jitted.trace(state, batch_shapes, key, table).lower()
+  else:                                                              # the network's forward pass alone
+    model = T.network(mcfg)
+    bound = operator_args.Bound(lambda p, x: model.apply({"params": p}, x), table)
+    x = jax.ShapeDtypeStruct(tuple(mcfg.input_shape(batch)), jnp.float32, sharding=rep)
+    lowered = bound.jitted.trace(state.params, x, table).lower()
+  lower_s = time.perf_counter() - t
+  t = time.perf_counter()
+  compiled = lowered.compile()
+  compile_s = time.perf_counter() - t
+  try:
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    cost = {k: float(v) for k, v in (cost or {}).items() if k in ("flops", "bytes accessed", "transcendentals")}
+  except Exception as e:                                        # noqa: BLE001 - reported
+    cost = {"error": f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"}
+  return {"hlo": compiled.as_text(), "cost": cost, "lower_s": lower_s, "compile_s": compile_s,
+          "target": target_facts(text), "input": list(mcfg.input_shape(batch)),
+          "scan_method": mcfg.scan_method, "model": type(T.network(mcfg)).__name__}
+
+
+def _verdict(ok: bool) -> str:
+  return "**met**" if ok else "**not met**"
+
+
+def render_compiled(runs: list[dict], command: str, variant: str, batch: int, failed: list[str] = ()) -> str:
+  """The Markdown report of ``--compile``: one section per (preset, target), the goals on the paper step."""
+  lines = ["# The train step compiled by XLA:GPU for an H100 and an H200 on a CPU-only machine", ""]
+  lines += _machine.provenance(command) + [""]
+  lines += [f"**Failed to compile: {f}.**" for f in failed] + ([""] if failed else [])
+  lines += [f"Variant `{variant}`, train steps at batch {batch}, inference (the network's forward pass) at "
+            "batch 1. Each step is built as the run builds it (the preset's model, "
+            "optimiser and loss), its state, batch, key and physics operators as `jax.ShapeDtypeStruct`s on a "
+            "one-device mesh of the target's topology (`jax.experimental.topologies.get_topology_desc(target, "
+            "\"cuda\", target_config=benchmarks/gpu_targets/<target>.txtpb, topology=\"1x1x1\")`), then "
+            "`.trace(...).lower().compile()` with the CUDA plugin installed and `JAX_PLATFORMS=cpu`. Nothing runs "
+            "on a GPU: no autotuning happens, so cuDNN and GEMM algorithms are XLA's defaults. The optimised "
+            "program (`compiled.as_text()`) is read by `benchmarks.hlo_gpu.compiled_census`.", "",
+            "Kernels: the launching instructions (fusions, custom calls, FFTs, copies) of the computations "
+            "run as code, counted per step with loop trips multiplied in. FLOPs: cuDNN convolutions, GEMMs and "
+            "FFTs (5 N log2 N per complex transform); elementwise work is not counted. Bytes: each kernel's "
+            "operands and outputs (a fusion reading an operand through dynamic slices counts the slices; an "
+            "in-place update counts the update). Roofline: the sum over kernels of the larger of FLOPs / peak "
+            "and bytes / bandwidth; launch overhead is not in it. Peak float32 FLOP/s is SMs x FP32 lanes per "
+            "SM x 2 x clock from the target file (132 x 128 x 2 x 1.98 GHz = 66.9 TFLOP/s, NVIDIA's 67 TFLOP/s "
+            "for H100 SXM and H200, without tensor cores); bandwidth is the target file's (NVIDIA's data "
+            "sheets: H100 SXM 3.35 TB/s, H200 4.8 TB/s). `cost_analysis` is XLA's own count (loop bodies "
+            "counted once, not per trip).", ""]
+  paper = [r for r in runs if r["config"] == "paper" and r["what"] == "train"]
+  if paper:
+    lines += ["## Goals (the `paper` train step)", "",
+              "| goal | " + " | ".join(r["target"]["name"] for r in paper) + " |",
+              "|---|" + "---|" * len(paper)]
+    def row(name, fn):
+      lines.append(f"| {name} | " + " | ".join(fn(r["summary"]) for r in paper) + " |")
+    row("no cuDNN convolution with a window larger than 3 x 3; every weight gradient backward-filter",
+        lambda s: f"{_verdict(s['cudnn_over_3x3'] == 0 and s['weight_grad_as_forward'] == 0)}: "
+                  f"{s['cudnn_over_3x3']} over 3 x 3, {s['weight_grad_as_forward']} weight gradients as forward "
+                  f"convolutions; {s['cudnn_by_target'].get('__cudnn$convBackwardFilter', 0)} backward-filter")
+    row("no float atomics", lambda s: f"{_verdict(s['float_atomics'] == 0)}: {s['float_atomics']} float scatters "
+                                      f"without unique indices a step ({s['scatters']} scatters)")
+    row(f"no FFT length with a prime factor above {FFT_SMOOTH}",
+        lambda s: f"{_verdict(not s['fft_rough'])}: lengths {', '.join(map(str, s['fft_lengths'])) or 'none'}")
+    row("no FFT inside a loop", lambda s: f"{_verdict(s['ffts_in_loops'] == 0)}: {s['ffts_in_loops']} of "
+                                          f"{s['ffts_per_step']} FFTs a step in loops")
+    row("roofline under 0.5 s a step", lambda s: f"{_verdict(s['roofline_s'] < 0.5)}: {s['roofline_s']:.3f} s")
+    lines.append("")
+  lines += ["## Summary", "",
+            "| preset | program | target | compile s | kernels a step (static) | cuDNN a step | GEMMs | FFTs | "
+            "loops / trips | float atomics | GFLOP | GB moved | FLOP/B | compute ms | memory ms | roofline ms | "
+            "XLA cost_analysis GFLOP / GB |",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+  for r in runs:
+    s, cost = r["summary"], r["cost"]
+    xla = (f"{cost['flops'] / 1e9:.0f} / {cost.get('bytes accessed', 0) / 1e9:.1f}" if "flops" in cost
+           else cost.get("error", "none returned"))
+    lines.append(f"| {r['config']} | {r['what']} (batch {r['batch']}) | {r['target']['name']} | {r['compile_s']:.0f} | "
+                 f"{s['kernels_per_step']:,} ({s['kernels_static']:,}) | {sum(s['cudnn_by_target'].values())} | "
+                 f"{s['by_kind'].get('gemm', 0)} | {s['ffts_per_step']} | {s['loops']} / {s['loop_trips']:,} | "
+                 f"{s['float_atomics']} | {s['flops'] / 1e9:.0f} | {s['bytes'] / 1e9:.2f} | "
+                 f"{s['flops'] / max(s['bytes'], 1):.1f} | {s['compute_s'] * 1e3:.2f} | {s['memory_s'] * 1e3:.2f} | "
+                 f"{s['roofline_s'] * 1e3:.2f} | {xla} |")
+  for r in runs:
+    s, c = r["summary"], r["census"]
+    lines += ["", f"## `{r['config']}` {r['what']} (batch {r['batch']}), {r['target']['name']}", "",
+              f"Input {' x '.join(map(str, r['input']))}, model {r['model']}, scan `{r['scan_method']}`; lowered in "
+              f"{r['lower_s']:.0f} s, compiled in {r['compile_s']:.0f} s.", "",
+              "Kernels a step by kind: " + ", ".join(f"{k} {v:,}" for k, v in sorted(
+                  s["by_kind"].items(), key=lambda kv: -kv[1])) + ".", "",
+              "| cuDNN call | input | filter | output (of the forward convolution) | window | static | a step | "
+              "GFLOP a step |",
+              "|---|---|---|---|---|---:|---:|---:|"]
+    for k, rows in sorted(_group(c["cudnn"], ("target", "input", "filter", "output")),
+                          key=lambda kv: -sum(x["gflop"] * x["runs"] for x in kv[1])):
+      lines.append(f"| `{k[0]}` | {k[1]} | {k[2]} | {k[3]} | {'x'.join(map(str, rows[0]['window']))} | {len(rows)} | "
+                   f"{sum(x['runs'] for x in rows)} | {sum(x['gflop'] * x['runs'] for x in rows):.1f} |")
+    lines += ["", "| FFT | length | prime factors | output | in a loop | static | a step |",
+              "|---|---|---|---|---|---:|---:|"]
+    for k, rows in _group(c["ffts"], ("type", "length", "shape", "in_loop")):
+      lines.append(f"| {k[0]} | {' x '.join(map(str, k[1]))} | "
+                   f"{' x '.join(str(p) for n in k[1] for p in prime_factors(n))} | {k[2]} | "
+                   f"{'yes' if k[3] else 'no'} | {len(rows)} | {sum(x['runs'] for x in rows)} |")
+    lines += ["", "| while loops | trips | runs a step | nested | kernels a trip |", "|---:|---:|---:|---|---:|"]
+    for k, rows in sorted(_group(c["loops"], ("trips", "runs", "nested", "kernels_per_trip")),
+                          key=lambda kv: -len(kv[1]) * (kv[0][0] or 1) * kv[0][1]):
+      lines.append(f"| {len(rows)} | {_n(k[0])} | {k[1]} | {'yes' if k[2] else 'no'} | {k[3]} |")
+    if c["scatters"]:
+      lines += ["", "| scatter | indices | unique indices | float atomic | static | a step |",
+                "|---|---|---|---|---:|---:|"]
+      for k, rows in _group(c["scatters"], ("shape", "indices", "unique_indices", "float_atomic")):
+        lines.append(f"| {k[0]} | {k[1]} | {'yes' if k[2] else 'no'} | {'yes' if k[3] else 'no'} | {len(rows)} | "
+                     f"{sum(x['runs'] for x in rows)} |")
+    else:
+      lines += ["", "No scatters."]
+  lines += ["", "How to read it: counts are of XLA:GPU's optimised program for the target, compiled without a "
+            "GPU; the roofline is a lower bound from bytes and FLOPs, not a time measured on a device "
+            "(`python -m benchmarks.device` measures one)."]
+  return "\n".join(lines) + "\n"
+
+
+def main_compile(args) -> int:
+  """``--compile``: every (preset, target) compiled and read; the report written whole."""
+  import os
+  if os.environ.get("JAX_PLATFORMS", "") != "cpu":
+    print("--compile needs JAX_PLATFORMS=cpu (and jax[cuda12] installed)", file=sys.stderr)
+    return 2
+  from experiments.cli import load_config
+  runs, failed = [], []
+  for name in args.configs.split(","):
+    config = load_config(name)
+    for target in args.targets.split(","):
+      jobs = [("train", args.batch)] + ([("inference", 1)] if name in args.inference.split(",") else [])
+      for what, batch in jobs:
+        print(f"compiling the {name} {what} step (batch {batch}) for {target} ...", flush=True)
+        try:
+          r = compile_for_target(config, args.variant, batch, target, what)
+        except Exception as e:                                   # noqa: BLE001 - reported in the file
+          failed.append(f"`{name}` {what}, {target}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+          print(f"  failed: {failed[-1]}", flush=True)
+          continue
+        census = compiled_census(r.pop("hlo"))
+        runs.append({**r, "config": name, "what": what, "batch": batch, "census": census,
+                     "summary": compiled_summary(census, r["target"])})
+        print(f"  compiled in {r['compile_s']:.0f} s; {runs[-1]['summary']['kernels_per_step']:,} kernels, "
+              f"roofline {runs[-1]['summary']['roofline_s']:.4f} s", flush=True)
+  command = "python -m benchmarks.hlo_gpu --compile" + "".join(
+      f" {flag} {value}" for flag, value, default in (
+          ("--configs", args.configs, "cpu,paper"), ("--targets", args.targets, "h100,h200"),
+          ("--batch", args.batch, "4"), ("--variant", args.variant, OURS), ("--inference", args.inference, "paper"))
+      if str(value) != default)
+  out = pathlib.Path(args.out) if args.out else COMPILED_OUT
+  if out.resolve() != COMPILED_OUT:
+    command += f" --out {args.out}"
+  text = render_compiled(runs, command, args.variant, args.batch, failed)
+  print(text)
+  out.write_text(text)
+  print(f"wrote {out}")
+  return 0
+
+
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--config", default="paper", help="preset name or .py file (default: %(default)s)")
   parser.add_argument("--batch", type=int, default=4, help="global batch (default: %(default)s)")
   parser.add_argument("--variant", default=OURS, help="model variant (default: %(default)s)")
-  parser.add_argument("--out", default=str(DEFAULT_OUT), help="Markdown output")
+  parser.add_argument("--out", default=None, help="Markdown output (default: results/hlo_gpu.md, with --compile "
+                      "results/hlo_gpu_compiled.md)")
+  parser.add_argument("--compile", action="store_true",
+                      help="compile the train steps with XLA:GPU for --targets without a GPU (needs jax[cuda12] and "
+                           "JAX_PLATFORMS=cpu) and read the optimised program")
+  parser.add_argument("--configs", default="cpu,paper", help="with --compile: presets (default: %(default)s)")
+  parser.add_argument("--inference", default="paper", help="with --compile: presets whose batch-1 inference is "
+                      "compiled too ('' for none; default: %(default)s)")
+  parser.add_argument("--targets", default="h100,h200", help=f"with --compile: of {', '.join(TARGETS)} "
+                      "(default: %(default)s)")
   args = parser.parse_args(argv)
   if args.batch < 1:
     parser.error("--batch must be at least 1")
+  if args.compile:
+    return main_compile(args)
+  args.out = args.out or str(DEFAULT_OUT)
   from experiments.cli import load_config
   from nlosjax.ssm import resolve_method
   config = load_config(args.config)

@@ -46,6 +46,9 @@ GOALS = {
                 "supports (the truth at its scan points; the reference classic method fed noise-free and full-scan "
                 "inputs), by object size, depth, photons and motion, on the test split, the independent set and the "
                 "held-out renderer",
+    "hlo_gpu_compiled": "on the `paper` train step compiled for an H200 without a GPU: no cuDNN convolution with a "
+                        "window larger than 3 x 3 (every weight gradient backward-filter), no float atomics, no FFT "
+                        "length with a prime factor above 7, no FFT inside a loop, roofline under 0.5 s a step",
     "main_job": "the main job within 1200 s (20 min on 2 cores)",
     "mechanisms": "full - no-SSM and full - Ours-S with intervals at both photon budgets, every run "
                   "trained to its validation plateau; the SSM probe of a trained Ours",
