@@ -24,6 +24,15 @@ from nlosjax.physics.setup import Setup
 
 # -------------------------------------------------------------- arguments
 
+def _open_hdf5(path: Path) -> h5py.File:
+  """``path`` opened read-only as HDF5; a file HDF5 cannot open is one ValueError naming it."""
+  try:
+    return h5py.File(path, "r")
+  except OSError as exc:
+    raise ValueError(f"{path}: cannot be read as an HDF5 file (corrupt or truncated):"
+                     f" {' '.join(str(exc).split())}; {DAMAGED_INPUT}") from None
+
+
 def _int_arg(path: Path, name: str, value, minimum: int) -> int:
   if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
     raise ValueError(f"{path}: {name} must be an integer >= {minimum}, got {value!r}")

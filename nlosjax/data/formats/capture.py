@@ -20,7 +20,7 @@ import h5py
 import numpy as np
 
 from nlosjax import files
-from nlosjax.data.formats._common import _bin_time, _check_counts, _frame_selection, _make_setup, _time_plan
+from nlosjax.data.formats._common import _bin_time, _check_counts, _frame_selection, _make_setup, _open_hdf5, _time_plan
 from nlosjax.data.formats.registry import DAMAGED_INPUT, _attr_value, _root_format, register_format
 from nlosjax.physics.setup import Setup
 
@@ -122,11 +122,7 @@ def save_capture(path, transient, setup: Setup, *, overwrite: bool = False,
 
 def _read_capture(path: Path, *, zero_bins=None, bin_factor=None, num_bins=None, frame=0):
   """Read nlosjax's single-capture layout (:func:`save_capture`)."""
-  try:
-    f = h5py.File(path, "r")
-  except OSError as exc:
-    raise ValueError(f"{path}: cannot be read as an HDF5 file (corrupt or truncated):"
-                     f" {' '.join(str(exc).split())}; {DAMAGED_INPUT}") from None
+  f = _open_hdf5(path)
   try:
     with f:
       list(f)                          # HDF5 checks its checksums here: a damaged file raises

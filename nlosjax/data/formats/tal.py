@@ -69,7 +69,7 @@ import h5py
 import numpy as np
 
 from nlosjax import __version__, files
-from nlosjax.data.formats._common import _bin_time, _check_counts, _make_setup, _time_plan
+from nlosjax.data.formats._common import _bin_time, _check_counts, _make_setup, _open_hdf5, _time_plan
 from nlosjax.data.formats.registry import DAMAGED_INPUT, _variables, register_format
 from nlosjax.physics.setup import SPEED_OF_LIGHT, Setup
 
@@ -198,11 +198,7 @@ def _scan_grid(path: Path, points: np.ndarray):
 
 def _read_tal(path: Path, *, zero_bins=None, bin_factor=None, num_bins=None):
   """Read a confocal TAL capture as ``(counts [T, H, W] float64, Setup)`` (see the module docstring)."""
-  try:
-    f = h5py.File(path, "r")
-  except OSError as exc:
-    raise ValueError(f"{path}: cannot be read as an HDF5 file (corrupt or truncated):"
-                     f" {' '.join(str(exc).split())}; {DAMAGED_INPUT}") from None
+  f = _open_hdf5(path)
   try:
     with f:
       h_format = _enum(path, f, "H_format", TAL_H_FORMATS)
