@@ -47,23 +47,33 @@ Parts, in this order (``benchmarks/device_parts.py``):
 * **classic**: ms per frame of FBP, LCT, f-k, phasor and RSD at 128 x 128 x 512 against each
   method's FFT floor (``benchmarks.physics.fft_floor``), timed alternately.
 * **paper scale** (last: the longest): the paper preset's Ours (``ModelConfig.paper()``, 128 x 128
-  x 512): inference at batch 1 first, then one train step at the preset's batch (or the largest
-  the plan fits): time, and the device's ``peak_bytes_in_use`` (less what was held before the
-  step besides its arguments) against the dry run's plan for this device (``nlosjax.plan``:
-  ``compile_train_step`` and its ``memory_analysis()``); one more step under ``jax.profiler``: each HLO op's device time
-  and share by category (``benchmarks/op_profile.py``), and the step's achieved FLOP/s
-  against the device's float32 and TF32 peaks; then inference at batch 2, 4, ... until a
+  x 512): inference at batch 1 first, then the train step at the preset's batch (or the largest
+  the plan fits) as two programs side by side (``device_parts.train_paths``): the **GPU path**
+  (every ``nlosjax.platforms`` switch on its accelerator branch) first, then the **CPU-tuned
+  path** (every switch on its CPU branch, forced with ``nlosjax.platforms.cpu_paths``) at the
+  same batch where its estimate (``device_parts.cpu_tuned_estimate``: a second compile of the
+  step and a step of unknown length) fits the time left, else skipped with a note. Each row:
+  compile, one step for the device's ``peak_bytes_in_use`` (less what was held before the step
+  besides its arguments; the second program's peak is hidden where the first's was higher)
+  against the dry run's plan for this device (``nlosjax.plan``: ``compile_train_step`` and its
+  ``memory_analysis()``), timed steps (the two programs alternated once both are compiled),
+  seconds per step and the achieved FLOP/s (the program's FLOPs as the dry run counts them)
+  against the device's float32 and TF32 peaks; one more step under ``jax.profiler``: each HLO
+  op's device time and share by category (``benchmarks/op_profile.py``), the GPU path's always,
+  the CPU-tuned path's where the time allows; then inference at batch 2, 4, ... until a
   failure, the budget or 1024.
 * then a log note where a future mechanism study's rows would go (not implemented).
 
 Goals, judged by ``--collect``: paper-scale inference >= 30 frames/s at batch 1 on one
-H100; the dry run's planned peak within +-20 % of the measured one; the best scan method's
+H100; the paper train step at batch 4 <= 1 s on the GPU path; the dry run's planned peak
+within +-20 % of the measured one (the GPU path's step); the best scan method's
 forward+backward <= 6x the exp floor at every shape; the measured ``auto`` row within 10 % of the
 best method, forward and forward+backward; every correctness check passes.
 
 ``--tiny`` runs the same functions on tiny shapes on CPU (``device_parts.TINY``: the cpu preset's
-model cut down at 16 x 16 x 64, classic methods at 32 x 32 x 128, inference up to batch 2) in
-about 30-60 s on 2 cores; ``tests/test_device.py`` runs it and ``--collect`` on its folder.
+model cut down at 16 x 16 x 64, classic methods at 32 x 32 x 128, inference up to batch 2, both
+train-step paths, the GPU path forced with ``nlosjax.platforms.accelerator_paths``) in
+about 30-90 s on 2 cores; ``tests/test_device.py`` runs it and ``--collect`` on its folder.
 The correctness reference holds both sizes; ``--make-reference`` rebuilds it on CPU.
 """
 
@@ -92,6 +102,8 @@ PARTS = (("environment", 0.03, 5, 2), ("correctness", 0.20, 60, 10), ("scan_kern
          ("classic", 0.17, 30, 5), ("paper_scale", 0.38, 120, 15))
 MARGIN_S = 5.0
 GOAL_FPS, GOAL_MEMORY = 30.0, 0.20
+#: The paper train step's goal, judged on the GPU path: seconds per step at this batch.
+GOAL_STEP_S, GOAL_STEP_BATCH = 1.0, 4
 
 
 def _jsonable(v):
@@ -301,6 +313,7 @@ def goals(data: dict) -> list[tuple[str, bool | None, str]]:
   else:
     out.append((f"paper-scale inference >= {GOAL_FPS:g} frames/s on one H100 (batch 1)", None, "no batch-1 row"))
   tr = paper.get("train") or {}
+  out.append(_step_goal(tr, paper.get("train_cpu_tuned") or {}, paper.get("train_paths") or {}, kind))
   meas, planned = tr.get("measured_peak_bytes"), tr.get("planned_peak_bytes")
   name = f"dry-run memory within +-{GOAL_MEMORY:.0%} of the measured peak (train step)"
   if meas and planned and tr.get("attributable", True):
@@ -335,6 +348,23 @@ def goals(data: dict) -> list[tuple[str, bool | None, str]]:
               f"{sum(c['ok'] for c in checks)} of {len(checks)} passed" + ("" if done else
                                                                             f"; part {corr.get('status', 'absent')}")))
   return out
+
+
+def _step_goal(gpu: dict, cpu: dict, paths: dict, kind: str) -> tuple[str, bool | None, str]:
+  """The paper train step's goal on the GPU path's row; the CPU-tuned path's time beside it."""
+  name = f"paper train step at batch {GOAL_STEP_BATCH} <= {GOAL_STEP_S:g} s (GPU path)"
+  if "step_s" not in gpu:
+    return name, None, gpu.get("error") or "no GPU-path step"
+  beside = ""
+  if "step_s" in cpu:
+    ratio = paths.get("ratio", cpu["step_s"] / gpu["step_s"])
+    beside = f"; CPU-tuned path {cpu['step_s']:.3f} s ({ratio:.2f}x)"
+  took = f"{gpu['step_s']:.3f} s at batch {gpu['batch']} on {kind}{beside}"
+  if gpu["batch"] == GOAL_STEP_BATCH:
+    return name, gpu["step_s"] <= GOAL_STEP_S, took
+  if gpu.get("batch_reduced_from") == GOAL_STEP_BATCH:
+    return name, False, f"batch {GOAL_STEP_BATCH} does not fit the plan; {took}"
+  return name, None, f"not run at batch {GOAL_STEP_BATCH}: {took}"
 
 
 def render(folder: pathlib.Path, collect_command: str) -> str:
@@ -423,26 +453,8 @@ def _paper_md(d) -> list[str]:
     return ["## Paper scale", "", "Not run.", ""]
   out = ["## Paper scale", "", f"The `{d.get('preset')}` preset's `{d.get('variant')}`, Setup {d.get('setup')}"
          f" (grid and bins), input {d.get('input')} per sample; synthetic fixed parameters.", ""]
-  t = d.get("train")
-  if t:
-    out += [f"- Train step: batch {t.get('batch')}"
-            + (f" (the preset's {t['batch_reduced_from']} does not fit the plan)" if t.get("batch_reduced_from")
-               else "")
-            + f"; {_f(t.get('step_s'), '.3f')} s per step (first {_f(t.get('first_step_s'), '.2f')} s, compile "
-            f"{_f(t.get('compile_s'), '.0f')} s); planned peak {_gib(t.get('planned_peak_bytes'))} GiB (the dry run's"
-            f" `memory_analysis()` on this device), measured {_gib(t.get('measured_peak_bytes'))} GiB"
-            f" (`peak_bytes_in_use` less memory held before the step by anything but its arguments; raw peak "
-            f"{_gib(t.get('peak_after'))} GiB); plan's device memory {_gib(t.get('device_memory'))} GiB"
-            f" ({t.get('device_memory_source')})" + (f"; error: {t['error']}" if t.get("error") else ""), ""]
-    prof = t.get("profile")
-    if prof and "error" in prof:
-      out += [f"Per-op profile of the train step: failed ({prof['error']}).", ""]
-    elif prof:
-      out += ["### Where the train step's time goes", "",
-              "One step under `jax.profiler` (`benchmarks/op_profile.py`): each HLO op's device time, "
-              "its category from the compiled HLO (a fusion by its heaviest op, a custom call by its target).",
-              ""] + op_profile.format_profile(prof, t.get("flops"), t.get("peak_flops"))
-  out += ["| batch | ms per step | ms per frame | frames/s | compile s | planned peak GiB |",
+  out += _train_md(d)
+  out += ["### Inference", "", "| batch | ms per step | ms per frame | frames/s | compile s | planned peak GiB |",
           "|---|---|---|---|---|---|"]
   for r in d.get("inference", []):
     if "error" in r:
@@ -451,6 +463,77 @@ def _paper_md(d) -> list[str]:
       out.append(f"| {r['batch']} | {r['step_s'] * 1e3:.2f} | {r['ms_per_frame']:.2f} | {r['fps']:.1f} | "
                  f"{r['compile_s']:.1f} | {_gib(r['planned_peak_bytes'])} |")
   return out + ["", f"Largest batch that ran: {d.get('largest_batch')}.", ""]
+
+
+#: The train step's rows in ``paper_scale.json``: (key, label where the row has none).
+TRAIN_ROWS = (("train", "GPU path"), ("train_cpu_tuned", "CPU-tuned path"))
+
+
+def _fraction(achieved, peak) -> str:
+  return "-" if not achieved or not peak else f"{achieved / peak:.1%}"
+
+
+def _train_md(d: dict) -> list[str]:
+  """The train step's two programs side by side, then each one's per-op profile."""
+  rows = [(d.get(key) or {}, label) for key, label in TRAIN_ROWS]
+  if not any(r for r, _ in rows):
+    return []
+  out = ["### The train step: GPU path and CPU-tuned path", "",
+         "The same step compiled twice on this device: every `nlosjax.platforms` switch on its accelerator branch"
+         " (GPU path, what the library runs on a GPU) or on its CPU branch (CPU-tuned path, what it runs on a"
+         " CPU); a path that is not the device's own is forced (`nlosjax.platforms.cpu_paths()` or"
+         " `accelerator_paths()`) and marked so. The same batch, synthetic state and data. Seconds per step: median of"
+         " the timed steps (the two programs alternated once both were compiled); FLOP/s: the program's FLOPs as"
+         " the dry run counts them (XLA's count plus FFT and scan estimates) over that time. Planned peak: the dry"
+         " run's `memory_analysis()` on this device; measured: `peak_bytes_in_use` less memory held before the"
+         " step by anything but its arguments (hidden, `-`, where an earlier peak was higher).", "",
+         "| path | batch | s per step | steps timed | first step s | compile s | GFLOP a step | TFLOP/s |"
+         " of float32 peak | of TF32 peak | planned peak GiB | measured peak GiB |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+  for r, label in rows:
+    name = r.get("label", label) + (" (forced)" if r.get("forced") else "")
+    if "step_s" not in r:
+      why = f"failed: {r['error']}" if r.get("error") else "not run (see the notes)"
+      out.append(f"| {name} | {r.get('batch', '-')} | {why} | | | | | | | | {_gib(r.get('planned_peak_bytes'))} | |")
+      continue
+    f32, tf32 = r.get("peak_flops") or (None, None)
+    meas = r.get("measured_peak_bytes") if r.get("attributable", True) else None
+    batch = f"{r['batch']}" + (f" (of {r['batch_reduced_from']})" if r.get("batch_reduced_from") else "")
+    out.append(f"| {name} | {batch} | {r['step_s']:.3f} | {r.get('steps_timed', 0)} | {_f(r.get('first_step_s'))} | "
+               f"{_f(r.get('compile_s'), '.0f')}{' (reused)' if r.get('compile_reused') else ''} | "
+               f"{_f(r.get('flops') and r['flops'] / 1e9, '.4g')} | "
+               f"{_f(r.get('flop_per_s') and r['flop_per_s'] / 1e12, '.3g')} | {_fraction(r.get('flop_per_s'), f32)} | "
+               f"{_fraction(r.get('flop_per_s'), tf32)} | {_gib(r.get('planned_peak_bytes'))} | {_gib(meas)} |")
+  gpu, cpu = rows[0][0], rows[1][0]
+  paths = d.get("train_paths") or {}
+  if paths.get("ratio"):
+    out += ["", f"CPU-tuned path / GPU path: {paths['ratio']:.2f}x the time a step (medians of {paths['pairs']} "
+            f"pair(s) timed alternately: {paths['cpu_tuned_s']:.3f} s and {paths['gpu_s']:.3f} s)."]
+  elif "step_s" in gpu and "step_s" in cpu:
+    out += ["", f"CPU-tuned path / GPU path: {cpu['step_s'] / gpu['step_s']:.2f}x the time a step (not alternated)."]
+  else:
+    out += ["", "CPU-tuned path / GPU path: not measured (one of the rows did not run)."]
+  notes = [f"{r.get('label', label)}: the preset's batch {r['batch_reduced_from']} does not fit the plan"
+           for r, label in rows if r.get("batch_reduced_from")]
+  memory_notes = {}                                  # note -> the rows that carry it
+  for r, label in rows:
+    if r.get("memory_note"):
+      memory_notes.setdefault(r["memory_note"], []).append(r.get("label", label))
+  notes += [f"{' and '.join(labels)}: {note}" for note, labels in memory_notes.items()]
+  if gpu.get("device_memory"):
+    notes.append(f"plan's device memory {_gib(gpu['device_memory'])} GiB ({gpu.get('device_memory_source')})")
+  out += ["", "; ".join(notes) + "." if notes else "", ""]
+  for r, label in rows:
+    prof = r.get("profile")
+    name = r.get("label", label)
+    if prof and "error" in prof:
+      out += [f"Per-op profile of the train step, {name}: failed ({prof['error']}).", ""]
+    elif prof:
+      out += [f"### Where the train step's time goes: {name}", "",
+              "One step under `jax.profiler` (`benchmarks/op_profile.py`): each HLO op's device time, "
+              "its category from the compiled HLO (a fusion by its heaviest op, a custom call by its target).",
+              ""] + op_profile.format_profile(prof, r.get("flops"), r.get("peak_flops"))
+  return out
 
 
 def _classic_md(d) -> list[str]:

@@ -28,7 +28,7 @@ from benchmarks import physics as physics_bench
 from benchmarks import scan as scan_bench
 from experiments import configs, provenance
 from experiments.demo import OPTIONS as CLASSIC_OPTIONS
-from nlosjax import physics, plan, train
+from nlosjax import physics, plan, platforms, train
 from nlosjax.data import io
 from nlosjax.physics import Setup
 from nlosjax.ssm import resolve_method, selective_scan
@@ -51,16 +51,21 @@ SEED = 0
 #: overrides); ``paper``: the paper-scale part's model; ``classic``: scan size and bins of
 #: the classic methods' timing; ``scan_shapes``: benchmarks.scan's shapes (the paper's own are
 #: added from the paper part's model; tiny: those alone, one shape); ``spatial_factor``: of the
-#: shipped scan.
+#: shipped scan; ``cpu_tuned_prior``: the least seconds assumed for compiling the paper step's
+#: CPU-tuned program and for running one step of it on the device, before its estimate is
+#: scaled from the GPU path's own (conservative: the first H200 run, docs/gpu.md).
 FULL = {"train": ("cpu", OURS, 2, {}, {}), "paper": ("paper", OURS, None, {}, {}),
         "classic": (128, 512), "scan_shapes": scan_bench.DEFAULT_SHAPES, "scan_repeats": 5,
-        "spatial_factor": 1, "max_batch": 1024, "repeats": 5}
+        "spatial_factor": 1, "max_batch": 1024, "repeats": 5, "cpu_tuned_prior": (120.0, 20.0)}
 _TINY_DATA = {"grid": 16, "num_bins": 64, "bin_width": 264e-12}
 _TINY_MODEL = {"dilations": (1,), "volume_features": 1, "refine_width": 1}
 TINY = {"train": ("cpu", OURS_S, 2, _TINY_DATA, _TINY_MODEL),
         "paper": ("cpu", OURS_S, 2, _TINY_DATA, _TINY_MODEL),
         "classic": (32, 128), "scan_shapes": (), "scan_repeats": 2,
-        "spatial_factor": 2, "max_batch": 2, "repeats": 2}
+        "spatial_factor": 2, "max_batch": 2, "repeats": 2, "cpu_tuned_prior": (0.0, 0.0)}
+#: The paper-scale train step's two programs, in the order they are measured:
+#: (key in ``paper_scale.json``, the path every ``nlosjax.platforms`` switch takes, label).
+TRAIN_PATHS = (("train", platforms.ACCELERATOR, "GPU path"), ("train_cpu_tuned", platforms.CPU, "CPU-tuned path"))
 
 
 def sizes(tiny: bool) -> dict:
@@ -298,29 +303,64 @@ def matmul_precision(precision: str | None):
 
 
 _COMPILED: dict = {}
+#: How many compiled train steps :func:`compiled_train_step` keeps (the paper part alternates two).
+KEEP_COMPILED = 2
 
 
-def compiled_train_step(config: dict, variant: str, precision: str | None) -> dict:
+def native_path() -> str:
+  """The path ``nlosjax.platforms.by_platform`` takes without an override on this process's default device."""
+  return platforms.CPU if jax.default_backend() == "cpu" else platforms.ACCELERATOR
+
+
+@contextlib.contextmanager
+def forced_path(path: str | None):
+  """Trace under ``path``'s override (``nlosjax.platforms``) where it is not the device's own; else nothing.
+
+  So each program is traced as the library traces it where its path is the device's own
+  (the GPU path on a GPU, the CPU-tuned path on a CPU), and forced only where it is not.
+  """
+  if path is None or path == native_path():
+    yield
+    return
+  with platforms.cpu_paths() if path == platforms.CPU else platforms.accelerator_paths():
+    yield
+
+
+def _step_key(config: dict, variant: str, precision: str | None, path: str | None) -> tuple:
+  return repr(sorted(config.items())), variant, precision, path or native_path()
+
+
+def is_compiled(config: dict, variant: str, precision: str | None = None, path: str | None = None) -> bool:
+  """Whether :func:`compiled_train_step` holds this step already (a call costs no compile)."""
+  return _step_key(config, variant, precision, path) in _COMPILED
+
+
+def compiled_train_step(config: dict, variant: str, precision: str | None, path: str | None = None) -> dict:
   """The run's real train step (``plan.compile_train_step``) and the dry run's plan of it for this device.
 
-  Kept for the next call with the same arguments (``--tiny`` reuses the correctness step).
+  ``path``: :data:`nlosjax.platforms.CPU` or ``ACCELERATOR`` to trace every platform switch on
+  that branch (:func:`forced_path`); None for the device's own. The last :data:`KEEP_COMPILED`
+  steps are kept for the next call with the same arguments (``--tiny``'s paper part reuses the
+  correctness step, the same program on a CPU).
   """
-  key = (repr(sorted(config.items())), variant, precision)
+  key = _step_key(config, variant, precision, path)
   if key in _COMPILED:
     return _COMPILED[key]
   typed = train.RunConfig.from_dict(config)
   setup, mesh = setup_of(config), train.mesh_for(typed)
   mcfg = train.model_config_for(typed, setup, variant)
   t = time.perf_counter()
-  with matmul_precision(precision):
+  with matmul_precision(precision), forced_path(path):
     compiled, abstract_state, abstract_batch = plan.compile_train_step(typed, mcfg, variant, mesh)
   compile_s = time.perf_counter() - t
   batch = int(config["train"]["batch_size"])
   # The dry run's own numbers (nlosjax.plan.dry_run builds them with this function).
   step_plan = plan._step_plan("train", compiled, mcfg, batch, mesh.devices.size, compile_s, backward=True)
-  _COMPILED.clear()
+  while len(_COMPILED) >= KEEP_COMPILED:
+    _COMPILED.pop(next(iter(_COMPILED)))
   _COMPILED[key] = out = dict(compiled=compiled, state=abstract_state, mcfg=mcfg, mesh=mesh, batch=batch,
-                              plan=step_plan, compile_s=compile_s)
+                              plan=step_plan, compile_s=compile_s, path=key[-1],
+                              forced=key[-1] != native_path())
   return out
 
 
@@ -494,18 +534,31 @@ def step_peak(before: dict, after: dict, argument_bytes: int) -> dict:
           "attributable": after["peak_bytes_in_use"] > before.get("peak_bytes_in_use", 0)}
 
 
-def _train_step_measure(ctx, cfg: dict, variant: str) -> dict:
-  """Compile (planned peak), one measured step (device peak), then timed steps.
+def _run_step(run: dict) -> float:
+  """One call of ``run``'s compiled step, waited for; its new state kept (the step donates it). Seconds."""
+  t = time.perf_counter()
+  run["state"], m = run["step"]["compiled"](run["state"], run["data"], run["key"])
+  jax.block_until_ready(m)
+  run["loss"] = m["loss"]
+  return time.perf_counter() - t
 
-  Where the dry run says the preset's batch does not fit, the largest batch its linear estimate
-  fits (``plan``'s first fix) is compiled instead, once.
+
+def _step_row(ctx, key: str, cfg: dict, variant: str, path: str, reduce: bool) -> tuple[dict, dict]:
+  """Compile ``path``'s train step (planned peak), run one step (device peak): ``(row, run)``.
+
+  ``row`` is ``ctx.data[key]``, saved as it fills; ``run`` holds the compiled step, its state
+  and batch for :func:`_run_step`. With ``reduce``, where the dry run says the preset's batch
+  does not fit, the largest batch its linear estimate fits (``plan``'s first fix) is compiled
+  instead, once.
   """
-  step = compiled_train_step(cfg, variant, None)
+  label = dict((k, lab) for k, _, lab in TRAIN_PATHS)[key]
+  reused = is_compiled(cfg, variant, None, path)
+  step = compiled_train_step(cfg, variant, None, path)
   p = step["plan"]
   memory, source = plan.device_memory()
   reduced_from = None
   typed = train.RunConfig.from_dict(cfg)          # the config as the dry run reads it; rebuilt below
-  if plan.verdict(typed, p, memory, variant) is not None:
+  if reduce and plan.verdict(typed, p, memory, variant) is not None:
     fits = fitting_batch(p, memory)
     if fits is not None and ctx.fits(1.2 * step["compile_s"], f"a train step at batch {fits}"):
       reduced_from = step["batch"]
@@ -513,56 +566,127 @@ def _train_step_measure(ctx, cfg: dict, variant: str) -> dict:
               f"{plan.MEMORY_FRACTION:.0%} of {memory / GIB:.1f} GiB: batch {fits} instead")
       cfg = {**cfg, "train": {**cfg["train"], "batch_size": fits}}
       typed = train.RunConfig.from_dict(cfg)
-      step = compiled_train_step(cfg, variant, None)
+      reused = is_compiled(cfg, variant, None, path)
+      step = compiled_train_step(cfg, variant, None, path)
       p = step["plan"]
-  row = {"batch": step["batch"], "batch_reduced_from": reduced_from, "compile_s": step["compile_s"],
+  row = {"path": step["path"], "label": label, "forced": step["forced"], "compile_reused": reused,
+         "batch": step["batch"], "batch_reduced_from": reduced_from, "compile_s": step["compile_s"],
          "planned_peak_bytes": p.peak_bytes,
          "planned": {"argument": p.argument_bytes, "output": p.output_bytes, "temp": p.temp_bytes,
                      "alias": p.alias_bytes}, "flops": p.flops, "device_memory": memory,
-         "device_memory_source": source,
-         "fits": plan.verdict(typed, p, memory, variant) is None}
-  ctx.data["train"] = row
+         "device_memory_source": source, "peak_flops": op_profile.peak_flops(jax.devices()[0].device_kind),
+         "fits": plan.verdict(typed, p, memory, variant) is None, "times_s": []}
+  ctx.data[key] = row
   ctx.save()
-  state = train_state_for(step)
-  data = train.shard_batch(synthetic_batch(step["mcfg"], step["batch"]), step["mesh"])
-  jax.block_until_ready((state, data))
+  run = {"step": step, "state": train_state_for(step), "key": jax.random.key(1),
+         "data": train.shard_batch(synthetic_batch(step["mcfg"], step["batch"]), step["mesh"]), "cfg": cfg}
+  jax.block_until_ready((run["state"], run["data"]))
   before = memory_stats() or {}
-  key = jax.random.key(1)
-  t = time.perf_counter()
-  state, m = step["compiled"](state, data, key)
-  jax.block_until_ready(m)
-  row["first_step_s"] = time.perf_counter() - t
+  row["first_step_s"] = _run_step(run)
   after = memory_stats() or {}
-  row["loss"] = float(m["loss"])
+  row["loss"] = float(run["loss"])
   row.update(step_peak(before, after, p.argument_bytes))
+  _step_time(row)
   ctx.save()
-  times = []
-  for _ in range(3 if not ctx.tiny else 2):
-    if not ctx.fits(1.5 * row["first_step_s"], "another timed train step"):
-      break
-    t = time.perf_counter()
-    state, m = step["compiled"](state, data, key)
-    jax.block_until_ready(m)
-    times.append(time.perf_counter() - t)
-  row["step_s"] = statistics.median(times) if times else row["first_step_s"]
-  row["steps_timed"] = len(times)
-  ctx.save()
-  if ctx.fits(3.0 * row["step_s"] + 10.0, "the train step's per-op profile"):
-    held = {"state": state}
+  return row, run
 
-    def one_step():                                  # the step donates its state: keep the new one
-      held["state"], metrics = step["compiled"](held["state"], data, key)
-      return metrics
-    try:
-      row["profile"] = op_profile.op_profile(one_step, step["compiled"].as_text(), steps=1, top=15)
-      row["peak_flops"] = op_profile.peak_flops(jax.devices()[0].device_kind)
-    except Exception as e:                           # noqa: BLE001 - recorded, the step's numbers stand
-      row["profile"] = {"error": _error(e)}
+
+def _step_time(row: dict) -> None:
+  """``step_s`` (median of the timed steps, else the first step) and the FLOP/s it achieves."""
+  row["step_s"] = statistics.median(row["times_s"]) if row["times_s"] else row["first_step_s"]
+  row["steps_timed"] = len(row["times_s"])
+  row["flop_per_s"] = row["flops"] / row["step_s"] if row["flops"] and row["step_s"] > 0 else None
+
+
+def _step_profile(ctx, row: dict, run: dict) -> None:
+  """One more step of ``run`` under ``jax.profiler``: each HLO op's device time (``benchmarks/op_profile.py``)."""
+  if not ctx.fits(3.0 * row["step_s"] + 10.0, f"the {row['label']}'s per-op profile"):
+    return
+  try:
+    row["profile"] = op_profile.op_profile(lambda: (_run_step(run), run["loss"])[1],
+                                           run["step"]["compiled"].as_text(), steps=1, top=15)
+  except Exception as e:                             # noqa: BLE001 - recorded, the step's numbers stand
+    row["profile"] = {"error": _error(e)}
+  ctx.save()
+
+
+def _log_row(ctx, row: dict) -> None:
+  measured = row.get("measured_peak_bytes")
+  ctx.log(f"train step, {row['label']}, batch {row['batch']}: {row['step_s']:.3f} s ({row['steps_timed']} timed); "
+          f"planned {row['planned_peak_bytes'] / GIB:.2f} GiB, measured "
+          f"{'n/a' if measured is None else f'{measured / GIB:.2f} GiB'}")
+
+
+def cpu_tuned_estimate(ctx, gpu: dict | None, cfg: dict, variant: str) -> float:
+  """Seconds to compile the CPU-tuned step and run its first step, from the GPU path's row and the priors.
+
+  A compile not already held costs at least ``cpu_tuned_prior[0]`` and 1.2x the GPU path's; a
+  step at least ``cpu_tuned_prior[1]`` and 3x the GPU path's step (its time on the device is not
+  known before it runs).
+  """
+  prior_compile, prior_step = sizes(ctx.tiny)["cpu_tuned_prior"]
+  compile_s = 0.0 if is_compiled(cfg, variant, None, platforms.CPU) else \
+      max(prior_compile, 1.2 * (gpu or {}).get("compile_s", prior_compile))
+  step_s = max(prior_step, 3.0 * (gpu or {}).get("step_s", prior_step))
+  return compile_s + step_s + (2.0 if ctx.tiny else 10.0)
+
+
+def train_paths(ctx, cfg: dict, variant: str) -> None:
+  """The train step's two programs on this device, side by side (``paper_scale.json``'s ``train`` rows).
+
+  The GPU path first (every ``nlosjax.platforms`` switch on its accelerator branch, the program
+  the library runs on a GPU): compile, one step for the peak memory, timed steps, its per-op
+  profile. Then, where :func:`cpu_tuned_estimate` fits the time left, the CPU-tuned path at the
+  same batch (every switch on its CPU branch, forced with ``nlosjax.platforms.cpu_paths`` off a
+  CPU): compile, one step, then steps of the two programs alternated, and its per-op profile
+  where the time allows. ``train_paths`` in the part's data: the pairs timed alternately and the
+  CPU-tuned path's median time over the GPU path's from them.
+  """
+  repeats = 3 if not ctx.tiny else 2
+  (gpu_key, gpu_path, _), (cpu_key, cpu_path, cpu_label) = TRAIN_PATHS
+  gpu = run_gpu = None
+  try:
+    gpu, run_gpu = _step_row(ctx, gpu_key, cfg, variant, gpu_path, reduce=True)
+    for _ in range(repeats):
+      if not ctx.fits(1.5 * gpu["first_step_s"], "another timed train step (GPU path)"):
+        break
+      gpu["times_s"].append(_run_step(run_gpu))
+    _step_time(gpu)
     ctx.save()
-  measured = row["measured_peak_bytes"]
-  ctx.log(f"train step batch {row['batch']}: {row['step_s']:.3f} s; planned {p.peak_bytes / GIB:.2f} GiB, "
-          f"measured {'n/a' if measured is None else f'{measured / GIB:.2f} GiB'}")
-  return row
+    _step_profile(ctx, gpu, run_gpu)
+    _log_row(ctx, gpu)
+  except Exception as e:                             # noqa: BLE001 - recorded; the CPU-tuned path still runs
+    ctx.data[gpu_key] = {**ctx.data.get(gpu_key, {}), "error": _error(e)}
+    ctx.save()
+    ctx.log(f"train step (GPU path) failed: {_error(e)}")
+  if run_gpu is not None:                            # the same batch for both programs
+    cfg = run_gpu["cfg"]
+  if not ctx.fits(cpu_tuned_estimate(ctx, gpu, cfg, variant), f"the {cpu_label}'s train step"):
+    return
+  try:
+    cpu, run_cpu = _step_row(ctx, cpu_key, cfg, variant, cpu_path, reduce=False)
+    pairs = {gpu_key: [], cpu_key: []}
+    if gpu is not None and "error" not in gpu:
+      for _ in range(repeats):
+        if not ctx.fits(1.5 * (gpu["step_s"] + cpu["first_step_s"]), "another alternated pair of train steps"):
+          break
+        for key, row, run in ((gpu_key, gpu, run_gpu), (cpu_key, cpu, run_cpu)):
+          t = _run_step(run)
+          row["times_s"].append(t)
+          pairs[key].append(t)
+          _step_time(row)
+        ctx.data["train_paths"] = {"pairs": len(pairs[cpu_key]), "gpu_s": statistics.median(pairs[gpu_key]),
+                                   "cpu_tuned_s": statistics.median(pairs[cpu_key])}
+        ctx.data["train_paths"]["ratio"] = ctx.data["train_paths"]["cpu_tuned_s"] / ctx.data["train_paths"]["gpu_s"]
+        ctx.save()
+    _step_time(cpu)
+    ctx.save()
+    _step_profile(ctx, cpu, run_cpu)
+    _log_row(ctx, cpu)
+  except Exception as e:                             # noqa: BLE001 - recorded
+    ctx.data[cpu_key] = {**ctx.data.get(cpu_key, {}), "error": _error(e)}
+    ctx.save()
+    ctx.log(f"train step ({cpu_label}) failed: {_error(e)}")
 
 
 def _inference(ctx, mcfg, batch: int, params) -> dict:
@@ -608,10 +732,11 @@ def _inference_search(ctx, mcfg, params, batch: int, estimate: float, last: int)
 
 
 def paper_scale(ctx) -> None:
-  """The paper preset's Ours at 128 x 128 x 512: inference at batch 1, a train step, larger batches.
+  """The paper preset's Ours at 128 x 128 x 512: inference at batch 1, the train step's two paths, larger batches.
 
   Inference at batch 1 (the frames/s goal) runs first, so the train step's compile cannot
-  take its share of the budget; the batch search continues after the step.
+  take its share of the budget; then the train step on the GPU path and, where the time
+  allows, on the CPU-tuned path (:func:`train_paths`); the batch search continues after them.
   """
   case = sizes(ctx.tiny)["paper"]
   cfg = config_for(case)
@@ -626,12 +751,7 @@ def paper_scale(ctx) -> None:
   params = jax.device_put(synthetic_params(abstract["params"]))
   batch, estimate = _inference_search(ctx, mcfg, params, 1, 15.0 if ctx.tiny else 60.0, last=1)
   if ctx.fits(20.0 if ctx.tiny else 120.0, "the train step"):
-    try:
-      _train_step_measure(ctx, cfg, variant)
-    except Exception as e:                           # noqa: BLE001 - recorded
-      ctx.data["train"] = {**ctx.data.get("train", {}), "error": _error(e)}
-      ctx.save()
-      ctx.log(f"train step failed: {_error(e)}")
+    train_paths(ctx, cfg, variant)
   _COMPILED.clear()
   gc.collect()
   if batch is not None:

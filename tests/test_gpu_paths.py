@@ -44,6 +44,85 @@ def test_switch_follows_the_lowering_platform_not_the_process():
   np.testing.assert_array_equal(jax.jit(fn)(jnp.ones(3)), jnp.sin(jnp.ones(3)))
 
 
+
+def test_override_forces_a_path_whatever_the_lowering_platform():
+  """Inside ``cpu_paths()`` a program lowered for CUDA holds the CPU branch; inside ``accelerator_paths()``
+  one lowered for the CPU holds the other; outside, the platform chooses again (the same ``jit`` object)."""
+  jitted = jax.jit(lambda x: platforms.by_platform(x, cpu=jnp.sin, other=jnp.cos))
+  x = jax.ShapeDtypeStruct((3,), jnp.float32)
+
+  def holds(platform):
+    m = H.parse_hlo(jitted.trace(x).lower(lowering_platforms=(platform,)).as_text(dialect="hlo"))
+    return {op for op in ("sine", "cosine", "conditional") if _ops(m, op)}
+  assert platforms.forced() is None
+  assert holds("cuda") == {"cosine"} and holds("cpu") == {"sine"}
+  with platforms.cpu_paths():
+    assert platforms.forced() == platforms.CPU
+    assert holds("cuda") == {"sine"} and holds("cpu") == {"sine"}
+    with platforms.accelerator_paths():                  # nested: the innermost wins
+      assert holds("cpu") == {"cosine"}
+    assert holds("cuda") == {"sine"}
+    np.testing.assert_array_equal(jitted(jnp.ones(3)), jnp.sin(jnp.ones(3)))
+  assert platforms.forced() is None
+  assert holds("cuda") == {"cosine"}                    # traced again: no override left in the cache
+  with platforms.accelerator_paths():
+    np.testing.assert_array_equal(jitted(jnp.ones(3)), jnp.cos(jnp.ones(3)))   # run here, on the CPU
+  np.testing.assert_array_equal(jitted(jnp.ones(3)), jnp.sin(jnp.ones(3)))
+
+
+def test_override_reaches_nested_jit_traced_before_it():
+  """An inner ``jit`` function already traced without the override is traced again inside it."""
+  inner = jax.jit(lambda x: platforms.by_platform(x, cpu=jnp.sin, other=jnp.cos))
+  outer = lambda x: inner(x) * 2                                                  # noqa: E731
+  x = jax.ShapeDtypeStruct((3,), jnp.float32)
+  assert _ops(_lowered(outer, x, platform="cuda"), "cosine")
+  with platforms.cpu_paths():
+    m = _lowered(outer, x, platform="cuda")
+  assert _ops(m, "sine") and not _ops(m, "cosine")
+
+
+def test_override_holds_for_its_own_thread_only():
+  """A thread inside ``cpu_paths()`` does not change what another thread traces meanwhile."""
+  import threading
+  fn = lambda x: platforms.by_platform(x, cpu=jnp.sin, other=jnp.cos)           # noqa: E731
+  x = jax.ShapeDtypeStruct((3,), jnp.float32)
+  entered, done, seen = threading.Event(), threading.Event(), {}
+
+  def worker():
+    with platforms.cpu_paths():
+      entered.set()
+      done.wait(60)
+      seen["worker"] = bool(_ops(_lowered(fn, x, platform="cuda"), "sine"))
+  t = threading.Thread(target=worker)
+  t.start()
+  assert entered.wait(60)
+  seen["main"] = bool(_ops(_lowered(fn, x, platform="cuda"), "sine"))          # the worker is inside it now
+  done.set()
+  t.join(60)
+  assert seen == {"worker": True, "main": False}
+
+
+def test_override_holds_the_cpu_constructs_lowered_for_cuda():
+  """The real switches under ``cpu_paths()``, lowered for CUDA: the swapped weight-gradient layout,
+  the depth resampling's gather and scatter; without it, the accelerator constructs."""
+  lhs, g = jax.ShapeDtypeStruct((2, 10, 10, 4), jnp.float32), jax.ShapeDtypeStruct((2, 8, 8, 3), jnp.float32)
+  source, target = _depth_pair()
+  vol = jax.ShapeDtypeStruct((2, source.depths.size, 4, 4), jnp.float32)
+
+  def resample_grad(v):
+    return jax.grad(lambda u: (PL.resample_depth(u, source, target) ** 2).sum())(v)
+
+  def constructs():
+    m = _lowered(C.conv2d_kernel_grad, lhs, g, platform="cuda")
+    (conv,) = _ops(m, "convolution")
+    r = _lowered(resample_grad, vol, platform="cuda")
+    return H.swapped_weight_grad(m, conv), bool(_ops(r, "gather") and _ops(r, "scatter"))
+  assert constructs() == (False, False)
+  with platforms.cpu_paths():
+    assert constructs() == (True, True)
+  assert constructs() == (False, False)
+
+
 # -------------------------------------------------------------- weight gradients
 def _kernel_grad_brute(lhs: np.ndarray, g: np.ndarray) -> np.ndarray:
   """``dk[b, c, i, f] = sum_{p, y, x} lhs[p, y + b, x + c, i] g[p, y, x, f]`` in float64 loops over taps."""
