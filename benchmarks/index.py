@@ -52,6 +52,9 @@ GOALS = {
     "main_job": "the main job within 1200 s (20 min on 2 cores)",
     "mechanisms": "full - no-SSM and full - Ours-S with intervals at both photon budgets, every run "
                   "trained to its validation plateau; the SSM probe of a trained Ours",
+    "mitransient": "the shipped `cpu` networks and the five classic methods on the preset's test scenes "
+                   "rendered by a path tracer we did not write, the object scores first, every choice on "
+                   "validation; what the path tracer adds and what the scenes still leave out named",
     "objects": "on the cpu test split, the independent set and the held-out renderer: Ours' object intensity "
                "error below every classic method's, object recall at least the best classic's and surface F1 "
                "above it (95 % intervals over sequences and 3 seeds excluding 0); intensity PSNR >= 3 dB above "

@@ -160,7 +160,7 @@ def wall_half_extents(setup: Setup) -> tuple[float, float]:
 
 
 def scene_description(patches, setup: Setup, *, samples_per_point: int = 1024, max_depth: int = 4,
-                      laser_origin=DEFAULT_LASER_ORIGIN) -> dict:
+                      laser_origin=DEFAULT_LASER_ORIGIN, roulette: bool = False) -> dict:
   """The mitransient scene as plain data (4 x 4 matrices as NumPy arrays; no mitsuba).
 
   Args:
@@ -168,8 +168,15 @@ def scene_description(patches, setup: Setup, *, samples_per_point: int = 1024, m
     setup: the capture (wall size, grid, bin width, number of bins).
     samples_per_point: path samples per scan point.
     max_depth: longest path in bounces counted by Mitsuba (4: laser -> wall
-      -> patch -> wall -> sensor, the third bounce; more adds inter-reflection).
+      -> patch -> wall -> sensor, the third bounce; more adds inter-reflection
+      only with ``roulette``).
     laser_origin: ``[3]`` position of laser and sensor, metres.
+    roulette: at each path vertex choose hidden-geometry sampling or the
+      material's at random (mitransient's ``do_rroulette``). Without it every
+      direction is sampled toward a patch, so no path returns to the wall
+      between patches and ``max_depth`` above 4 adds nothing; with it, paths
+      past the third bounce are rendered, and the third bounce's scale differs
+      from the default's (mitransient's two configurations do not agree on it).
   Returns:
     A nested dict in :func:`mitsuba.load_dict`'s form, with ``"to_world"``
     entries as ``[4, 4]`` arrays and ``"sensor_origin"`` a 3-tuple.
@@ -187,7 +194,7 @@ def scene_description(patches, setup: Setup, *, samples_per_point: int = 1024, m
       "type": "scene",
       "integrator": {"type": "transient_nlos_path", "max_depth": int(max_depth),
                      "nlos_laser_sampling": True, "nlos_hidden_geometry_sampling": True,
-                     "nlos_hidden_geometry_sampling_do_rroulette": False,
+                     "nlos_hidden_geometry_sampling_do_rroulette": bool(roulette),
                      "account_first_and_last_bounces": False,
                      "capture_type": 2,              # confocal
                      "temporal_filter": "box"},
