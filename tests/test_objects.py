@@ -60,3 +60,18 @@ def test_the_report_reads_the_score_files_the_main_job_writes(tmp_path):
   assert "Chosen: **balanced**." in text
   assert "## paper: test set" in text and "## balanced: test set" in text
   assert text.index("object intensity error") < text.index("intensity PSNR (dB)")   # objects first
+
+
+def test_the_shipped_section_names_the_best_seed_and_whether_it_beats_the_shipped_weights():
+  row = {"ours": {"psnr_balanced": np.array([[14.0, 14.2], [15.0, 15.4], [13.0, 13.0]]),
+                  "intensity_mae_object": np.array([[0.2, 0.2], [0.1, 0.1], [0.3, 0.3]])},
+         "ours_s": {"psnr_balanced": np.array([[12.0, 12.0], [12.5, 12.5], [11.0, 11.0]]),
+                    "intensity_mae_object": np.full((3, 2), 0.25)}}
+  shipped = {"ours": {"psnr_balanced": np.array([[14.5, 14.5]]), "intensity_mae_object": np.array([[0.2, 0.2]])},
+             "ours_s": {"psnr_balanced": np.array([13.0, 13.0]), "intensity_mae_object": np.array([0.2, 0.2])}}
+  assert study.per_seed(row, "ours") == pytest.approx([14.1, 15.2, 13.0])
+  lines = study.shipped_section(shipped, row, "wide")
+  ours = next(line for line in lines if line.startswith("| Ours |"))
+  ours_s = next(line for line in lines if line.startswith("| Ours-S |"))
+  assert ours.endswith("| 14.500 / 0.200 | 14.100, 15.200, 13.000 | 0.200, 0.100, 0.300 | 1 | yes |")
+  assert ours_s.endswith("| 1 | no |")            # its best seed (12.5 dB) stays below the shipped 13.0

@@ -63,4 +63,6 @@ NOT_ELIGIBLE = ("long",)
 #: Object scores of the report and of the goals: metric -> whether higher is better.
 OBJECT_SCORES = ("intensity_mae_object", "psnr_balanced", "recall", "precision", "f1", "rmse_object")
 #: The sets every row is scored on: label -> the main job's per-frame scores file.
+#: The pseudo-row of the weights shipped now (``nlosjax/weights/cpu-*``), scored on validation only.
+SHIPPED = "shipped"
 SETS = {"validation": "val_scores.npz", "test": "scores.npz", "independent": "table1_independent_scores.npz"}

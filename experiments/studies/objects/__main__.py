@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from experiments.studies.objects import NOT_ELIGIBLE, OBJECT_SCORES, RESULTS, ROWS, SETS, STATE
+from experiments.studies.objects import NOT_ELIGIBLE, OBJECT_SCORES, RESULTS, ROWS, SETS, SHIPPED, STATE
 from nlosjax.variants import OURS, OURS_S
 
 COMMAND = "python -m experiments.studies.objects"
@@ -74,6 +74,34 @@ def score_validation(workdir: pathlib.Path, log=print) -> pathlib.Path:
   arrays = {f"{m}/{k}": np.asarray(v) for m, s in ev["scores"].items() for k, v in s.items()}
   np.savez_compressed(out, sequence=np.asarray(ev["sequence"]), frame=np.asarray(ev["frame"]), **arrays)
   return out
+
+
+def score_shipped_validation(root: pathlib.Path, row: str, name: str = "cpu", log=print) -> pathlib.Path:
+  """The shipped ``name`` weights (Ours and Ours-S, :func:`nlosjax.inference.load_pretrained`) on the
+  validation split of ``row``'s data, per frame, into ``<root>/shipped/results/val_scores.npz``: what a
+  new recipe must beat on validation before its model replaces them. Their surface thresholds are
+  tuned on the same split, as the main job tunes its models'; no classic method is rerun."""
+  from nlosjax import inference, train
+  from nlosjax.evaluation import protocol
+  out = root / SHIPPED / "results" / SETS["validation"]
+  if out.exists():
+    return out
+  config, _ = inference.load_run(root / row, seeds=True, log=log)
+  cfg = train.RunConfig.from_dict(config)
+  models = {v: [inference.load_pretrained(name, v)[:2]] for v in (OURS_S, OURS)}
+  tuned = protocol.tune_model_thresholds(cfg, cfg.data.path, models, log=log)
+  ev = protocol.evaluate(cfg, cfg.data.path, models, split="val", methods=(),
+                         model_thresholds={v: t["threshold"] for v, t in tuned.items()}, log=log)
+  out.parent.mkdir(parents=True, exist_ok=True)
+  arrays = {f"{m}/{k}": np.asarray(v) for m, s in ev["scores"].items() for k, v in s.items()}
+  np.savez_compressed(out, sequence=np.asarray(ev["sequence"]), frame=np.asarray(ev["frame"]), **arrays)
+  return out
+
+
+def per_seed(scores: dict, variant: str, metric: str = "psnr_balanced") -> list[float]:
+  """Mean of ``metric`` per training seed of ``variant`` (scores ``[K, N]`` or ``[N]``)."""
+  a = np.asarray(scores[variant][metric], dtype=float)
+  return [float(np.nanmean(r)) for r in (a if a.ndim == 2 else a[None])]
 
 
 def read_scores(path: pathlib.Path) -> tuple[dict, np.ndarray]:
@@ -171,6 +199,29 @@ def goals(test: dict, verdicts: dict) -> list[str]:
   return out
 
 
+def shipped_section(shipped: dict, row: dict, chosen: str) -> list[str]:
+  """Markdown: the chosen row's seeds against the shipped weights on the validation object-balanced
+  PSNR, and which seed would replace them (the best on validation, where it beats them)."""
+  from nlosjax.evaluation import report
+  lines = ["### Against the weights shipped now, on validation", "",
+           f"The shipped `cpu` weights (`nlosjax/weights/`) and each training seed of **{chosen}**, mean "
+           "validation object-balanced PSNR (dB) and object intensity error; a seed replaces the shipped "
+           "model only where it is ahead on the balanced PSNR.", "",
+           "| model | shipped: balanced PSNR / intensity error | " + chosen + " seeds: balanced PSNR | "
+           "intensity error | best seed | replaces the shipped |", "|---|---|---|---|---|---|"]
+  for v in (OURS, OURS_S):
+    if v not in shipped or v not in row:
+      continue
+    ship = per_seed(shipped, v)[0]
+    ship_mae = per_seed(shipped, v, "intensity_mae_object")[0]
+    seeds, maes = per_seed(row, v), per_seed(row, v, "intensity_mae_object")
+    best = int(np.argmax(seeds))
+    lines.append(f"| {report.label(v)} | {ship:.3f} / {ship_mae:.3f} | " + ", ".join(f"{x:.3f}" for x in seeds)
+                 + " | " + ", ".join(f"{x:.3f}" for x in maes)
+                 + f" | {best} | {'yes' if seeds[best] > ship else 'no'} |")
+  return lines + [""]
+
+
 def write_report(root: pathlib.Path, rows, out: pathlib.Path, command: str) -> str:
   """The report from every row's score files under ``root`` (see the package docstring)."""
   from experiments.provenance import provenance
@@ -205,6 +256,9 @@ def write_report(root: pathlib.Path, rows, out: pathlib.Path, command: str) -> s
       lines.append(f"| (classic) | {report.label(m)} | " + " | ".join(
           f"{float(np.nanmean(first[m][k])):.3f}" for k in OBJECT_SCORES + ("psnr",)) + " |")
     lines += ["", f"Chosen: **{chosen}**.", ""]
+    shipped = root / SHIPPED / "results" / SETS["validation"]
+    if chosen is not None and shipped.exists():
+      lines += shipped_section(read_scores(shipped)[0], validation[chosen], chosen)
   else:
     lines += ["No row has been scored on validation yet.", ""]
   for row in dict.fromkeys(r for r in ("paper", chosen) if r in found):
@@ -248,6 +302,10 @@ def main(argv=None) -> int:
       if not run_row(row, root / row, args.variants, args.seeds, state=args.state / row, hours=hours):
         return EXIT_PAUSED
       score_validation(root / row)
+    validation = {row: read_scores(root / row / "results" / SETS["validation"])[0] for row in args.rows}
+    chosen = choose(validation)
+    if chosen is not None:
+      score_shipped_validation(root, chosen)
   command = " ".join([COMMAND, *(argv if argv is not None else sys.argv[1:])])
   write_report(root, args.rows, args.out, command)
   print(f"wrote {args.out}")
