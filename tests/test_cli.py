@@ -142,12 +142,13 @@ def test_keys_the_preset_leaves_unset_can_be_set_and_reach_the_typed_config():
   assert config["usm"]["optim"] == {"learning_rate": 3e-4}
   typed = RunConfig.from_dict(config)
   assert typed.train.devices == 2 and typed.model["remat"] is True
-  assert typed.train.stop == T.StopRule(rule="plateau")                    # the rest of the rule at its defaults
+  # the rule set, the preset's metric kept, the rest at the defaults
+  assert typed.train.stop == T.StopRule(rule="plateau", metric="psnr_balanced")
   assert D.DatasetSpec.from_config(config["data"]).falloff == "retroreflective"
   assert T.training_recipe(typed, "usm")[0] == T.OptimConfig(**{**config["train"]["optim"], "learning_rate": 3e-4})
   assert T.model_config_for(typed, typed.data.setup(), "lfe").extract_width == 2
   # Unset keys are absent from the dict a run records: the library's defaults apply.
-  assert "lfe" not in cli.load_config("cpu") and "stop" not in cli.load_config("cpu")["train"]
+  assert "lfe" not in cli.load_config("cpu") and cli.load_config("cpu")["train"]["stop"] == {"metric": "psnr_balanced"}
 
 
 def test_none_is_a_value_where_the_library_reads_it_as_one():

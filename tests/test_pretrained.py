@@ -169,12 +169,15 @@ def _tamper_config(folder):
   prov = json.loads((folder / "provenance.json").read_text())
   prov["config"]["model"]["width"] = 2 * prov["config"]["model"]["width"]
   (folder / "provenance.json").write_text(json.dumps(prov))
-  return ["provenance.json", "differs from the one", "width: 8 recorded, 16 now"]
+  return ["provenance.json", "differs from the one", "width: 16 recorded, 32 now"]
 
 
 def _tamper_recorded_config(folder):
   prov = json.loads((folder / "provenance.json").read_text())
-  prov["model_config"] = prov["model_config"].replace("d_state=4", "d_state=8")
+  if isinstance(prov["model_config"], dict):         # the structured record exports write now
+    prov["model_config"]["d_state"] = 8
+  else:                                               # a repr, as older exports recorded
+    prov["model_config"] = prov["model_config"].replace("d_state=4", "d_state=8")
   (folder / "provenance.json").write_text(json.dumps(prov))
   return ["provenance.json", "recorded", "d_state: 8 recorded, 4 now"]
 
