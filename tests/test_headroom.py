@@ -311,3 +311,17 @@ def test_tiny_study_resumes_from_its_records_and_rebuilds_its_report(tmp_path):
     clean = np.stack([f["sequences"][names[s]]["clean"][m] for s, m in zip(data["sequence"], data["frame"])])
   np.testing.assert_allclose(inputs["clean_full"][0], clean)
   np.testing.assert_allclose(inputs["clean"][0], clean[..., 2::4, 2::4])
+
+
+def test_records_of_shipped_weights_name_the_weights_so_replaced_ones_are_scored_again(tmp_path, monkeypatch):
+  from experiments.studies.headroom import study
+  from nlosjax import pretrained
+  folder = tmp_path / "cpu-ours"
+  folder.mkdir()
+  monkeypatch.setattr(pretrained, "weights_folder", lambda name, variant, root=None: tmp_path / f"{name}-{variant}")
+  (folder / "params.npz").write_bytes(b"old weights")
+  old = study.weights_identity("pretrained:cpu/ours")
+  assert old.startswith("pretrained:cpu/ours@sha256:") and old.endswith(study.weights_identity("pretrained:cpu")[-12:])
+  (folder / "params.npz").write_bytes(b"new weights")
+  assert study.weights_identity("pretrained:cpu/ours") != old
+  assert study.weights_identity("runs/mechanisms/full/full-seed0") == "runs/mechanisms/full/full-seed0"

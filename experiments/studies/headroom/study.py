@@ -153,6 +153,19 @@ def reference_classic(means: dict) -> dict:
   return out
 
 
+def weights_identity(spec: str) -> str:
+  """``spec`` as records store it: ``pretrained:NAME/VARIANT`` gets ``@sha256:<first 12>`` of the
+  shipped ``params.npz`` (weights replaced under the same name are other weights); a run folder is
+  itself."""
+  if not spec.startswith("pretrained:"):
+    return spec
+  from nlosjax import pretrained
+  from nlosjax.variants import OURS
+  name, _, variant = spec[len("pretrained:"):].partition("/")
+  sha = pretrained.sha256_file(pretrained.weights_folder(name, variant or OURS) / "params.npz")
+  return f"{spec}@sha256:{sha[:12]}"
+
+
 class Study:
   """Scores every method on every set into ``results/headroom/``, each record once.
 
@@ -170,6 +183,9 @@ class Study:
     self.cfg, self.typed = cfg, T.RunConfig.from_dict(cfg)
     self.root = pathlib.Path(results) / "headroom"
     self.models, self.methods, self.log = dict(models), tuple(methods), log
+    # What a record was made with: the spec, and for shipped weights their sha256 too, so records of
+    # weights that have since been replaced are scored again.
+    self.specs = {label: weights_identity(spec) for label, spec in self.models.items()}
     self._write_json = write_json
     self._loaded = {}
 
@@ -210,7 +226,7 @@ class Study:
       ch["classic"] = {**ch.get("classic", {}), **{m: tuned[m] for m in self.methods if m in tuned}}
       changed = True
     models = ch.setdefault("models", {})
-    for label, spec in self.models.items():
+    for label, spec in self.specs.items():
       if models.get(label, {}).get("spec") != spec:
         tuned = protocol.tune_model_thresholds(self.typed, val_path, {label: [self.model(label)]}, log=self.log)
         models[label] = {"spec": spec, **tuned[label]}
@@ -312,7 +328,7 @@ class Study:
       a = _read(attrs_path)
       frames = {"sequence": a["sequence"], "frame": a["frame"]}
     todo = [m for m in self.methods if not self._path(set_name, m).exists()]
-    todo += [label for label, spec in (self.models.items() if learned else ())
+    todo += [label for label, spec in (self.specs.items() if learned else ())
              if not self._path(set_name, label).exists()
              or _read(self._path(set_name, label)).get("spec") != spec]
     fixed = [m for m in (ZERO, *TRUTH) if not self._path(set_name, m).exists()]
@@ -370,6 +386,6 @@ class Study:
         th = choices["models"][m]["threshold"]
         ev = protocol.evaluate(self.typed, path, {m: [self.model(m)]}, split=split, methods=(),
                                model_thresholds={m: th}, log=self.log)
-        extra = {"spec": self.models[m], "threshold": th}
+        extra = {"spec": self.specs[m], "threshold": th}
       s = {k: np.asarray(v, np.float64).reshape(-1) for k, v in ev["scores"][m].items() if k in metrics}
       self._write(self._path(set_name, m), {**base, "method": m, **extra, "scores": s})
