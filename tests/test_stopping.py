@@ -78,7 +78,7 @@ def test_stop_rules_are_checked_and_reach_the_cli():
       T.StopRule.from_config(bad)
   from experiments.cli import load_config
   cfg = load_config("cpu", ["--config.train.stop.rule=plateau", "--config.train.stop.patience=6"])
-  assert T.StopRule.from_config(cfg["train"]["stop"]) == T.StopRule(rule="plateau", patience=6)
+  assert T.StopRule.from_config(cfg["train"]["stop"]) == T.StopRule(rule="plateau", patience=6, metric="psnr_balanced")
   with pytest.raises(SystemExit, match="config.train.stop has no key 'patients' .did you mean 'patience'"):
     load_config("cpu", ["--config.train.stop.patients=6"])
 
