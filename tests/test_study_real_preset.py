@@ -175,3 +175,21 @@ def test_alignment_folds_accumulate_across_stretches_and_machines(tmp_path, monk
   assert study.alignment_workdir(b) != study.alignment_workdir(a)
   with pytest.raises(ValueError, match="unknown alignment"):
     study.run_alignments(files, ["nope"])
+
+
+def test_the_objects_recipe_takes_the_cpu_presets_four_keys_and_leaves_the_rest():
+  from experiments import configs
+  base = next(r for r in study.RUNS if r.name == "v5-ours_s")
+  probe = next(r for r in study.RUNS if r.name == "v5-ours_s-objects")
+  a, b = study.run_config(base), study.run_config(probe)
+  cpu = configs.get_config("cpu")
+  assert b["model"]["width"] == cpu["model"]["width"] == 16
+  assert b["train"]["loss"]["balance"] == 1.0 and b["train"]["loss"]["object_intensity"] == 0.0
+  assert b["train"]["stop"] == {**a["train"]["stop"], "metric": "psnr_balanced"}      # the plateau rule kept
+  assert a["model"]["width"] == 8 and a["train"]["loss"]["object_intensity"] == 3.0
+  for d in (a, b):                                  # everything else equal
+    del d["model"]["width"], d["train"]["loss"], d["train"]["stop"]
+  assert a == b
+  assert probe.probe and not base.probe
+  with pytest.raises(ValueError, match="unknown recipe"):
+    study.apply_recipe(a, "bright")

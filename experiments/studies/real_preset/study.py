@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import pathlib
@@ -31,10 +32,43 @@ class Run:
   seed: int = 0
   learning_rate: float | None = None
   max_steps: int | None = None
+  recipe: str | None = None
 
   @property
   def schedule_probe(self) -> bool:
     return self.learning_rate is not None or self.max_steps is not None
+
+  @property
+  def probe(self) -> bool:
+    """A run of another schedule or recipe than its candidate's: never a candidate's model itself."""
+    return self.schedule_probe or self.recipe is not None
+
+
+#: ``Run.recipe`` -> the keys it takes from the ``cpu`` preset: ``"objects"`` is the recipe the
+#: ``cpu`` preset trains for the hidden objects (experiments/studies/objects/results/objects.md):
+#: object-balanced losses, no object term, the plateau rule and checkpoint on the validation
+#: object-balanced PSNR, width 16.
+RECIPES = {"objects": (("model", "width"), ("train", "loss", "balance"), ("train", "loss", "object_intensity"),
+                       ("train", "stop", "metric"))}
+
+
+def apply_recipe(config: dict, recipe: str) -> dict:
+  """``config`` (a run's config dict) with the :data:`RECIPES` keys of ``recipe`` set to the ``cpu``
+  preset's values; every other key as it was. Raises ValueError for an unknown recipe."""
+  from experiments import configs
+  if recipe not in RECIPES:
+    raise ValueError(f"unknown recipe {recipe!r}; choose one of {sorted(RECIPES)}")
+  source = configs.get_config("cpu")
+  out = copy.deepcopy(config)
+  for path in RECIPES[recipe]:
+    value = source
+    for key in path:
+      value = value[key]
+    node = out
+    for key in path[:-1]:
+      node = node.setdefault(key, {})
+    node[path[-1]] = value
+  return out
 
 
 #: The runs, in the order they are trained. ``real_v5``: the candidate whose simulated inputs
@@ -50,6 +84,11 @@ RUNS = (
     # over 400 steps), unchanged, on the v5 candidate: does it reach the plateau sooner here too?
     Run("v5-ours_s-short", "experiments/configs/real_v5.py", OURS_S, learning_rate=3e-3, max_steps=400),
     Run("v5-ours-short", "experiments/configs/real_v5.py", OURS, learning_rate=3e-3, max_steps=400),
+    # The cpu preset's recipe for the hidden objects (RECIPES["objects"]) on the v5 candidate, under the
+    # preset's own plateau rule: does it win on validation here too, and does it stop costing on the
+    # measured scans?
+    Run("v5-ours_s-objects", "experiments/configs/real_v5.py", OURS_S, recipe="objects"),
+    Run("v5-ours-objects", "experiments/configs/real_v5.py", OURS, recipe="objects"),
 )
 
 
@@ -63,6 +102,8 @@ def run_config(run: Run) -> dict:
     config["train"]["optim"] = {**config["train"]["optim"], "learning_rate": run.learning_rate}
   if run.max_steps is not None:
     config["train"]["stop"] = {**config["train"]["stop"], "max_steps": run.max_steps}
+  if run.recipe is not None:
+    config = apply_recipe(config, run.recipe)
   return config
 
 
@@ -204,7 +245,7 @@ def candidate_workdir(config: str) -> pathlib.Path:
   """
   import json
   # seed 0 and the preset's schedule: one model a variant
-  runs = [r for r in RUNS if r.config == config and r.seed == 0 and not r.schedule_probe]
+  runs = [r for r in RUNS if r.config == config and r.seed == 0 and not r.probe]
   if not runs:
     raise ValueError(f"no run of {config!r}; the runs: {[r.name for r in RUNS]}")
   for r in runs:

@@ -172,7 +172,7 @@ def real_preset_pairs() -> list[tuple[dict, dict]]:
 
   pairs = []
   for probe in (r for r in real_study.RUNS if r.schedule_probe):
-    base = next((r for r in real_study.RUNS if not r.schedule_probe and (r.config, r.variant, r.seed)
+    base = next((r for r in real_study.RUNS if not r.probe and (r.config, r.variant, r.seed)
                  == (probe.config, probe.variant, probe.seed)), None)
     a, b = (curve(base) if base else None), curve(probe)
     if a and b:
