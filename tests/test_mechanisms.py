@@ -351,3 +351,18 @@ def test_csa_volume_places_the_sparse_scan_on_its_points_of_the_full_grid():
   got = np.asarray(csa_volume(full[..., 1::3, 1::3], setup, 3, {"tau_rel": 0.1, "falloff": "diffuse"}))
   want = np.asarray(csa.csa(full * mask, setup, mask=mask, tau_rel=0.1, falloff="diffuse"))
   np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6 * float(np.max(want)))
+
+
+def test_the_study_keeps_training_the_recipe_its_committed_runs_were_trained_with():
+  import json
+  from experiments.studies.mechanisms.records import RESULTS
+  record = json.loads((RESULTS / "mechanisms" / "full" / "full-seed0.json").read_text())["config"]
+  base = M.study_recipe(configs.get_config("cpu"))          # the cpu preset trains the objects' recipe now
+  cfg = M.essentials(M.run_config(base, "full", "full", 0, M.study_stop(base)))
+  assert cfg["model"]["width"] == record["model"]["width"] == 8
+  assert cfg["train"]["loss"] == record["train"]["loss"] == {"object_intensity": 3.0}
+  assert cfg["train"]["stop"] == record["train"]["stop"] == M.STUDY_STOP
+  kept = M.study_recipe(configs.get_config("cpu"), ["--config.model.width=16"])   # set on the command line
+  assert kept["model"]["width"] == 16 and kept["train"]["loss"] == {"object_intensity": 3.0}
+  for preset in ("real", "paper"):                            # presets with their own recipe: unchanged
+    assert M.study_recipe(configs.get_config(preset)) == configs.get_config(preset)

@@ -8,7 +8,7 @@ from tests.test_mechanisms import fake_record
 
 
 def test_the_short_schedule_differs_from_the_study_in_two_numbers_only():
-  base = configs.get_config("cpu")
+  base = M.study_recipe(configs.get_config("cpu"))
   base["train"]["optim"] = M.study_optim(base)          # as the CLIs build the study's base
   assert base["train"]["optim"]["learning_rate"] == 1e-3
   for row in ("full", "ours_s"):

@@ -98,6 +98,7 @@ from experiments.studies.mechanisms.design import (
     run_json,
     state_dir,
     study_optim,
+    study_recipe,
     study_stop,
 )
 from experiments.studies.mechanisms.records import code_at_start, load_runs, machine, write_json
@@ -115,8 +116,8 @@ __all__ = [
     "BUDGETS", "BUDGET_LOSS", "COLUMNS", "EXTRA_ROWS", "FIGURE", "LOSS_POINTS", "MAIN_ROWS",
     "TABLE1_ROWS", "PAIRS", "PROBE", "REPORT", "ROWS", "SEEDS", "STUDY_OPTIM", "STUDY_STOP", "TINY_DESIGN",
     "TINY_STOP", "VERDICTS", "budget_config", "check_consistent", "check_same_data", "essentials",
-    "run_config", "run_dir", "run_json", "state_dir", "study_optim", "study_stop", "code_at_start", "load_runs",
-    "machine",
+    "run_config", "run_dir", "run_json", "state_dir", "study_optim", "study_recipe", "study_stop", "code_at_start",
+    "load_runs", "machine",
     "write_json", "probe_model", "probe_run_dir", "run_one", "run_record", "test_frames",
     "train_and_score", "barely_trained", "empty_output", "plot_curves", "summarise", "write_report",
     "main", "tiny_base"

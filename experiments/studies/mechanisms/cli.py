@@ -21,6 +21,7 @@ from experiments.studies.mechanisms.design import (
   run_config,
   run_json,
   study_optim,
+  study_recipe,
   study_stop,
 )
 from experiments.studies.mechanisms.records import RESULTS, _array, code_at_start
@@ -78,6 +79,7 @@ def main(argv=None) -> int:
                       help="with --state: pause the run in progress after this many hours, its state exported")
   argv = sys.argv[1:] if argv is None else list(argv)
   args, base, overrides = parse_config(parser, argv)
+  base = study_recipe(base, overrides)     # the recipe the study's runs were trained with
   if args.hours is not None and not args.state:
     parser.error("--hours needs --state DIR (where the paused state goes)")
   from experiments.cli import override_key

@@ -13,7 +13,7 @@ from experiments.studies.physics_shift import heldout, report, study
 def main(argv=None) -> int:
   from experiments.cli import config_parser, parse_config
   from experiments.provenance import provenance
-  from experiments.studies.mechanisms import STUDY_STOP, code_at_start, study_optim
+  from experiments.studies.mechanisms import STUDY_STOP, code_at_start, study_optim, study_recipe
   code_at_start()
   parser = config_parser(physics_shift.__doc__.split("\n\n")[0])
   parser.add_argument("--designs", nargs="+", choices=list(study.DESIGNS), default=list(study.DESIGNS))
@@ -34,6 +34,7 @@ def main(argv=None) -> int:
                       help="with --state: pause the run in progress after this many hours, its state exported")
   argv = sys.argv[1:] if argv is None else list(argv)
   args, base, overrides = parse_config(parser, argv)
+  base = study_recipe(base, overrides)      # the mechanism study's runs' model and loss
   base.setdefault("train", {})["optim"] = study_optim(base, overrides)   # the mechanism study's runs' schedule
   if args.hours is not None and args.state is None:
     parser.error("--hours needs --state DIR (where the paused state goes)")

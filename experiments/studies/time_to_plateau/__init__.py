@@ -43,6 +43,7 @@ from experiments.studies.mechanisms.design import (
   run_config,
   run_dir,
   study_optim,
+  study_recipe,
 )
 from experiments.studies.mechanisms.records import RESULTS as STUDY_RESULTS
 from experiments.studies.mechanisms.records import _array, load_runs, write_json
@@ -235,6 +236,7 @@ def main(argv=None) -> int:
   args, base, overrides = parse_config(parser, argv)
   from experiments.studies.mechanisms.records import code_at_start
   code_at_start()                          # the commit and code this process loads, for the records
+  base = study_recipe(base, overrides)     # the study side's model and loss, as experiments.studies.mechanisms runs it
   base["train"]["optim"] = study_optim(base, overrides)   # the study side's, as experiments.studies.mechanisms runs it
   results = pathlib.Path(args.results)
   if not args.report_only:
