@@ -355,6 +355,7 @@ def test_csa_volume_places_the_sparse_scan_on_its_points_of_the_full_grid():
 
 def test_the_study_keeps_training_the_recipe_its_committed_runs_were_trained_with():
   import json
+
   from experiments.studies.mechanisms.records import RESULTS
   record = json.loads((RESULTS / "mechanisms" / "full" / "full-seed0.json").read_text())["config"]
   base = M.study_recipe(configs.get_config("cpu"))          # the cpu preset trains the objects' recipe now
