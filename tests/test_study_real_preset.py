@@ -30,6 +30,16 @@ def tiny_study(tmp_path, monkeypatch):
 
 
 @pytest.mark.full
+def test_a_run_that_stops_on_the_balanced_psnr_trains_to_its_plateau(tiny_study, monkeypatch):
+  config = study.run_config
+  monkeypatch.setattr(study, "run_config", lambda run: {
+      **config(run), "train": {**config(run)["train"],
+                               "stop": {**config(run)["train"]["stop"], "metric": "psnr_balanced"}}})
+  rows = study.run_study(log=lambda s: None)
+  assert rows[0]["done"] and rows[0]["step"] == 4
+
+
+@pytest.mark.full
 def test_a_study_pauses_reports_hours_left_and_resumes_to_the_plateau(tiny_study, capsys):
   assert study.status(TINY)["step"] == 0
   # A stretch that ends at once: data made in the store, one step, paused and exported.
