@@ -309,11 +309,13 @@ def project(volume, setup, *, threshold: float = 0.1, background_depth: float = 
   return np.clip(intensity, 0.0, 1.0), depth.astype(np.float32)
 
 
-def trained_model(args):
+def trained_model(args, *, check_tree: bool = True):
   """``(model_config, params, info)`` of ``--checkpoint``, else of the shipped ``--pretrained`` weights.
 
   ``info`` holds ``variant``, ``checkpoint`` (where the parameters came from)
   and ``step``, and for shipped weights ``pretrained`` and ``params_sha256``.
+  ``check_tree=False``: shipped weights' parameter tree is left for the caller to check
+  (:func:`nlosjax.inference.check_params`) on the config it runs.
 
   Raises:
     ValueError: both options given, or shipped weights that do not exist
@@ -330,7 +332,7 @@ def trained_model(args):
     have = ", ".join(f"{n} ({v})" for n, v in shipped) or "none"
     raise ValueError(f"no shipped weights {name!r} of variant {variant!r} (shipped: {have}); pass"
                      " --checkpoint WORKDIR (a run of python -m experiments.train) or --pretrained cpu")
-  mcfg, params, prov = cio.load_pretrained(name, variant)
+  mcfg, params, prov = cio.load_pretrained(name, variant, check_tree=check_tree)
   return mcfg, params, {"variant": variant, "checkpoint": f"nlosjax/weights/{name}-{variant}",
                         "step": prov.get("best_step"), "pretrained": name,
                         "params_sha256": prov["params_sha256"]}
@@ -340,11 +342,14 @@ def reconstruct_model(transient, setup, args, log):
   """``(volume, intensity, depth, model Setup, info)`` of the trained network on the capture."""
   from nlosjax import inference as cio
   from nlosjax.models.network import underscan
-  mcfg, params, info = trained_model(args)
+  mcfg, params, info = trained_model(args, check_tree=False)
   if args.scan_stride is not None and args.scan_stride != mcfg.stride:
     raise ValueError(f"--scan-stride {args.scan_stride}: the network at {info['checkpoint']} was"
                      f" trained on stride {mcfg.stride}")
   adapted = cio.for_capture(mcfg, setup, bin_factor=args.model_bin_factor)
+  # The tree is checked on the moved config: one trace of the network's init, shared with its
+  # physics operators (a model that moves has the same tree at every Setup).
+  cio.check_params(adapted.model_config, params, info["checkpoint"])
   log(f"model: {info['variant']} step {info['step']} from {info['checkpoint']}; capture bins x"
       f" {adapted.bin_factor} -> {adapted.setup.num_bins} bins of"
       f" {adapted.setup.bin_width * 1e12:.0f} ps; input {adapted.model_config.input_grid} ->"

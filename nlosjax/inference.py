@@ -231,9 +231,9 @@ DAMAGED_CHECKPOINT = ("restore the run folder from a copy, or train the model ag
 
 
 def _expected_tree(model_config):
-  """The parameter tree's shapes ``model_config`` initialises (``jax.eval_shape``: traced, not compiled)."""
-  return jax.eval_shape(model_config.module().init, jax.random.key(0),
-                        jax.ShapeDtypeStruct(model_config.input_shape(), jnp.float32))["params"]
+  """The parameter tree's shapes ``model_config`` initialises (``jax.eval_shape``: traced, not
+  compiled; the trace is kept per config and shared with its physics operators')."""
+  return model_config.param_shapes()
 
 
 def pretrained_names(root=None) -> list[tuple[str, str]]:
@@ -242,7 +242,7 @@ def pretrained_names(root=None) -> list[tuple[str, str]]:
 
 
 def load_pretrained(name: str = "cpu", variant: str = OURS, *, setup: Setup | None = None,
-                    root=None):
+                    root=None, check_tree: bool = True):
   """Weights shipped inside the package: ``(model_config, params, provenance)``; compiles nothing.
 
   Reads ``nlosjax/weights/<name>-<variant>/`` (:mod:`nlosjax.pretrained`:
@@ -266,6 +266,12 @@ def load_pretrained(name: str = "cpu", variant: str = OURS, *, setup: Setup | No
       bin width must be the trained one (ValueError otherwise); for a measured
       capture with other bins use :func:`for_capture`, which rebins it.
     root: the folder holding the weights folders (default: the package's; tests).
+    check_tree: check the parameter tree against the one the rebuilt config initialises (a
+      trace of the network's ``init``). ``False`` leaves that check to the caller, who then
+      runs :func:`check_params` on the config it moves the model to (for a model that moves,
+      :func:`setup_dependent_params` is empty, so the tree is the same there), sharing that
+      trace with the moved config's physics operators; the sha256 and fingerprint checks
+      still run.
   Returns:
     ``(ModelConfig, params, provenance)``: params a nested dict of float32
     ``jax.Array`` (the Flax ``params`` collection); provenance the dict of
@@ -302,7 +308,8 @@ def load_pretrained(name: str = "cpu", variant: str = OURS, *, setup: Setup | No
                      " recorded (another version of nlosjax, or an edited file):\n  "
                      + "\n  ".join(differ))
   params = jax.tree.map(jnp.asarray, params)
-  _check_tree(folder / pretrained.PARAMS_FILE, params, _expected_tree(mcfg), what="weights")
+  if check_tree:
+    _check_tree(folder / pretrained.PARAMS_FILE, params, _expected_tree(mcfg), what="weights")
   fingerprint = train.param_fingerprint(params)
   if prov["param_fingerprint"] != fingerprint:
     raise ValueError(f"{where}: parameter-tree fingerprint {prov['param_fingerprint']} recorded, the"
@@ -383,6 +390,16 @@ def _signature(signature) -> dict:
   return out if isinstance(out, dict) else {}
 
 
+def check_params(model_config, params, where) -> None:
+  """ValueError naming ``where`` unless ``params`` has the paths and shapes ``model_config`` initialises.
+
+  The trace of ``init`` this takes is kept per config and shared with
+  ``model_config.physics_operators()``, so checking the config a forward pass then runs costs no
+  second trace.
+  """
+  _check_tree(where, params, _expected_tree(model_config), what="weights")
+
+
 def _check_tree(where, params, expected, *, what: str = "checkpoint") -> None:
   """ValueError naming ``where`` unless ``params`` has ``expected``'s paths and shapes."""
   got = {jax.tree_util.keystr(k): tuple(v.shape) for k, v in jax.tree_util.tree_leaves_with_path(params)}
@@ -438,10 +455,22 @@ def setup_dependent_params(model_config) -> list[str]:
   (:mod:`nlosjax.models.ik`), whose learned kernel is a Fourier volume of its coarse grid and
   bins: it runs on its training Setup only.
 
+  The model family declares the answer (``params_depend_on_setup``), so a model that moves
+  costs no trace here; only a family that declares a dependence is traced, to name the
+  parameters. :func:`traced_setup_dependent_params` is the traced answer for every family,
+  which the tests hold each declaration to.
+
   Returns:
     ``"path: shape -> shape"`` for each parameter that changes, sorted. The answer is kept per
     model config (they are frozen), so a caller checking every scan traces each model once.
   """
+  if not type(model_config).params_depend_on_setup:
+    return []
+  return list(_setup_dependent(model_config))
+
+
+def traced_setup_dependent_params(model_config) -> list[str]:
+  """:func:`setup_dependent_params` traced whatever the family declares (the reference it is tested against)."""
   return list(_setup_dependent(model_config))
 
 
@@ -451,7 +480,9 @@ def _setup_dependent(model_config) -> tuple[str, ...]:
   other = Setup(wall_size=2 * s.wall_size, grid=(2 * s.grid[0], 2 * s.grid[1]), bin_width=s.bin_width,
                 num_bins=2 * s.num_bins)
   here = _expected_tree(model_config)
-  there = _expected_tree(dataclasses.replace(model_config, setup=other))
+  moved_config = dataclasses.replace(model_config, setup=other)     # traced once, not kept
+  there = jax.eval_shape(moved_config.module().init, jax.random.key(0),
+                         jax.ShapeDtypeStruct(moved_config.input_shape(), jnp.float32))["params"]
   flat = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(here)[0]}
   moved = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(there)[0]}
   return tuple(sorted(f"{k}: {flat.get(k)} -> {moved.get(k)}" for k in set(flat) | set(moved)

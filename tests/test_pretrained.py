@@ -383,6 +383,29 @@ def test_export_reads_a_committed_run_state(tmp_path):
     export_weights.state_params(run, mcfg)
 
 
+def test_params_checked_on_the_config_a_capture_moves_them_to():
+  """``load_pretrained(check_tree=False)`` then ``check_params`` on the moved config (what the
+  reconstruct CLI does): the same parameters as the checked load, and a tree that lost a leaf or
+  changed a shape is refused there, naming it."""
+  from nlosjax.physics.setup import Setup
+  capture = Setup(wall_size=0.8, grid=(64, 64), bin_width=64e-12, num_bins=256)
+  checked = inference.load_pretrained("cpu", "ours_s")
+  mcfg, params, _ = inference.load_pretrained("cpu", "ours_s", check_tree=False)
+  assert jax.tree.all(jax.tree.map(lambda a, b: bool((a == b).all()), params, checked[1]))
+  moved = inference.for_capture(mcfg, capture).model_config
+  inference.check_params(moved, params, "shipped")
+  lost = copy.deepcopy(jax.tree.map(np.asarray, params))
+  top = sorted(lost)[0]
+  lost[top].pop(sorted(lost[top])[0])
+  with pytest.raises(ValueError, match="shipped: parameters do not fit the model .missing"):
+    inference.check_params(moved, lost, "shipped")
+  bent = jax.tree.map(np.asarray, params)
+  leaf = jax.tree_util.tree_leaves_with_path(bent)[0]
+  bent = jax.tree_util.tree_map_with_path(lambda k, v: v[..., :1] if k == leaf[0] else v, bent)
+  with pytest.raises(ValueError, match="shape mismatches"):
+    inference.check_params(moved, bent, "shipped")
+
+
 def test_only_i_k_is_tied_to_its_training_setup():
   """Every shipped network moves to another Setup but I-K, whose kernel volume is its grid's.
 
@@ -394,6 +417,9 @@ def test_only_i_k_is_tied_to_its_training_setup():
   for name, variant in inference.pretrained_names():
     mcfg, _, _ = inference.load_pretrained(name, variant)
     tied = inference.setup_dependent_params(mcfg)
+    # The family's declaration (what moving a model reads, untraced) is the traced answer.
+    assert tied == inference.traced_setup_dependent_params(mcfg), (name, variant)
+    assert type(mcfg).params_depend_on_setup == bool(tied), (name, variant)
     if variant != "ik":
       assert tied == [], (name, variant, tied)
       continue

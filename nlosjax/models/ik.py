@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import ClassVar
 
 import flax.linen as nn
 import jax
@@ -69,6 +70,9 @@ class IKConfig(LFEConfig):
 
   bands: int = 4
   attention_width: int = 8
+
+  #: The learned kernel is a Fourier volume of the coarse grid and bins (:meth:`kernel_shape`).
+  params_depend_on_setup: ClassVar[bool] = True
 
   def __post_init__(self):
     super().__post_init__()

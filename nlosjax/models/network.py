@@ -33,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from typing import ClassVar
 
 import flax.linen as nn
 import jax
@@ -65,9 +66,11 @@ def _power_of_two(value, name: str) -> int:
 
 
 @functools.lru_cache(maxsize=16)
-def _physics_operators(config):
+def _traced_init(config):
+  """``(parameter shapes, OperatorTable)`` of ``config``'s module, from one shape-only trace of its init."""
   x = jax.ShapeDtypeStruct(tuple(config.input_shape(1)), jnp.float32)
-  return operator_args.operators_of(config.module().init, jax.random.key(0), x)
+  variables, table = operator_args.traced_with_operators(config.module().init, jax.random.key(0), x)
+  return variables["params"], table
 
 
 class ScanInputConfig:
@@ -78,6 +81,12 @@ class ScanInputConfig:
   :class:`ModelConfig` and :class:`~nlosjax.models.usm.USMConfig` (frozen
   dataclasses with those three fields).
   """
+
+  #: Whether the parameter tree's shapes depend on ``setup`` (the model then runs on its
+  #: training Setup only). Declared per model family so that moving a model to a capture
+  #: costs no trace; ``tests/test_pretrained.py`` checks each declaration against the
+  #: traced parameter trees at two Setups.
+  params_depend_on_setup: ClassVar[bool] = False
 
   def with_setup(self, setup: Setup):
     """The same architecture (same parameter tree) for another capture."""
@@ -91,7 +100,13 @@ class ScanInputConfig:
     :func:`~nlosjax.physics.checks.checked` (``operators=``) so a jitted forward
     or train step takes the operators as an argument instead of constants.
     """
-    return _physics_operators(self)
+    return _traced_init(self)[1]
+
+  def param_shapes(self):
+    """The parameter tree this config's module initialises, as ``jax.ShapeDtypeStruct`` leaves
+    (the Flax ``params`` collection; traced on shapes, nothing computed; cached, and shared
+    with :meth:`physics_operators`' trace)."""
+    return _traced_init(self)[0]
 
   def replace(self, **changes):
     return dataclasses.replace(self, **changes)

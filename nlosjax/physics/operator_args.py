@@ -34,7 +34,7 @@ from typing import Any, Callable, Hashable
 import jax
 import numpy as np
 
-__all__ = ["OperatorTable", "lookup", "operators_of", "bind", "replicate"]
+__all__ = ["OperatorTable", "lookup", "operators_of", "traced_with_operators", "bind", "replicate"]
 
 
 @jax.tree_util.register_pytree_node_class
@@ -100,10 +100,20 @@ def operators_of(fn: Callable, *example_args) -> OperatorTable:
   ``example_args`` may be ``jax.ShapeDtypeStruct``; nothing but the operators
   themselves is computed. E.g. ``operators_of(model.init, key, x_shape)``.
   """
+  return traced_with_operators(fn, *example_args)[1]
+
+
+def traced_with_operators(fn: Callable, *example_args) -> tuple[Any, OperatorTable]:
+  """``(jax.eval_shape(fn, *example_args), operators_of(fn, *example_args))`` from one trace.
+
+  E.g. a module's parameter shapes and its physics operators from one trace of its
+  ``init`` (a trace of a large network's ``init`` takes about as long as compiling a
+  small program).
+  """
   recorder = _Recorder()
   with _active(recorder):
-    jax.eval_shape(fn, *example_args)
-  return OperatorTable(tuple(recorder), tuple(recorder.values()))
+    shapes = jax.eval_shape(fn, *example_args)
+  return shapes, OperatorTable(tuple(recorder), tuple(recorder.values()))
 
 
 def replicate(table: OperatorTable, sharding) -> OperatorTable:
