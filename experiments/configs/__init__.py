@@ -41,6 +41,18 @@ _ANY_TYPE = {"grid", "jitter", "compression", "dt_rank"}
 #: The value of an unset key of type ``object``: one where None is a setting of its own
 #: (``clip_norm=None``: no clipping; ``eval_batch_size=None``: the training batch; ``jitter=None``).
 UNSET = "<unset>"
+#: The whole-image recipe: the ``cpu`` preset's model and loss before it trained for the hidden
+#: objects (experiments/studies/objects/results/objects.md): width 8, the paper's whole-image losses
+#: with the object term, the checkpoint kept on the validation intensity PSNR. Key path -> value
+#: (None: the key unset, the library's default). Every real weight and the mechanism study's runs were
+#: trained with it: the ``real`` preset writes it out, ``experiments.studies.mechanisms.study_recipe``
+#: puts it back over the ``cpu`` preset's new values, and ``experiments.studies.real_preset``'s
+#: ``"objects"`` recipe takes the ``cpu`` preset's values at these keys. One description, so the
+#: three cannot drift apart.
+WHOLE_IMAGE_RECIPE = {("model", "width"): 8, ("train", "loss", "balance"): None,
+                      ("train", "loss", "object_intensity"): 3.0, ("train", "stop", "metric"): None}
+#: What :func:`get_path` returns where a key of the path is absent (None is a value).
+MISSING = object()
 
 
 def _unset(kind) -> config_dict.FieldReference:
@@ -119,6 +131,32 @@ def to_dict(config: ConfigDict) -> dict:
       continue
     out[key] = value
   return out
+
+
+def get_path(tree, path: tuple):
+  """The value at key path ``path`` (a tuple of keys, outermost first) of nested dicts or
+  ConfigDicts ``tree``, or :data:`MISSING` where a key of the path is absent."""
+  for key in path:
+    if not isinstance(tree, (dict, ConfigDict)) or key not in tree:
+      return MISSING
+    tree = tree[key]
+  return tree
+
+
+def set_path(tree, path: tuple, value) -> None:
+  """Set the value at key path ``path`` of ``tree`` (nested dicts or ConfigDicts) to ``value`` in
+  place, adding an empty section for each absent key above it."""
+  for key in path[:-1]:
+    if key not in tree:
+      tree[key] = {}
+    tree = tree[key]
+  tree[path[-1]] = value
+
+
+def del_path(tree, path: tuple) -> None:
+  """Delete the key at key path ``path`` of ``tree`` (nested dicts or ConfigDicts) in place."""
+  node = get_path(tree, path[:-1])
+  del node[path[-1]]
 
 
 def get_config(name: str = DEFAULT) -> dict:

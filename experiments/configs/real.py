@@ -60,13 +60,11 @@ def get_config() -> ConfigDict:
   # The cpu preset's independent set is drawn at the cpu Setup; this preset has none.
   config.independent = configs.skeleton().independent
   # The recipe every real weight was trained with: the cpu preset's before the objects study
-  # (width 8, the paper's whole-image losses with the object term, the checkpoint kept on the
-  # validation intensity PSNR). Whether the objects' recipe serves here is to be chosen on this
-  # preset's validation split from its committed run state.
-  config.model.width = 8
-  config.train.loss.balance = None
-  config.train.loss.object_intensity = 3.0
-  config.train.stop.metric = None
+  # (configs.WHOLE_IMAGE_RECIPE: width 8, the paper's whole-image losses with the object term, the
+  # checkpoint kept on the validation intensity PSNR). Whether the objects' recipe serves here is to
+  # be chosen on this preset's validation split from its committed run state.
+  for path, value in configs.WHOLE_IMAGE_RECIPE.items():
+    configs.set_path(config, path, value)
   # The physics layer at full time resolution with a 5.7 cm virtual wavelength
   # (docs/decisions.md, "The real preset's geometry").
   config.model.volume_time_stride = 1

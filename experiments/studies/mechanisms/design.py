@@ -6,6 +6,7 @@ import copy
 import json
 import pathlib
 
+from experiments import configs
 from experiments.studies.ablations import ROWS as ABLATION_ROWS
 from experiments.studies.ablations import row_config
 from experiments.studies.mechanisms.records import load_runs
@@ -47,10 +48,10 @@ STUDY_STOP = {"rule": "plateau", "every": 50, "patience": 4, "min_delta_db": 0.0
 #: until the preset's main job took the short schedule of ``experiments/studies/time_to_plateau.py``.
 STUDY_OPTIM = {"learning_rate": 1e-3}
 #: The model and loss the study's runs were trained with: the cpu preset's before it took the recipe
-#: for the hidden objects (experiments/studies/objects). Key path -> value (None: the key unset, the
-#: library's default). :func:`study_recipe` puts them back where a config took the preset's new ones.
-STUDY_RECIPE = {("model", "width"): 8, ("train", "loss", "balance"): None,
-                ("train", "loss", "object_intensity"): 3.0, ("train", "stop", "metric"): None}
+#: for the hidden objects (experiments/studies/objects), :data:`experiments.configs.WHOLE_IMAGE_RECIPE`.
+#: Key path -> value (None: the key unset, the library's default). :func:`study_recipe` puts them back
+#: where a config took the preset's new ones.
+STUDY_RECIPE = configs.WHOLE_IMAGE_RECIPE
 #: ``--tiny``: a few steps, validating every 2.
 TINY_STOP = {"rule": "plateau", "every": 2, "patience": 1, "min_delta_db": 0.05, "max_steps": 6}
 TINY_DESIGN = {"budgets": ("full",), "rows": ("full", "no_ssm"), "seeds": (0,)}
@@ -111,28 +112,17 @@ def study_recipe(base: dict, overrides=()) -> dict:
   """``base`` with :data:`STUDY_RECIPE` where it holds the ``cpu`` preset's own value of a key and the
   command line (``overrides``) did not set it: a study built on the ``cpu`` preset keeps training the
   recipe its committed runs were trained with, and another preset (``real``, ``paper``) is unchanged."""
-  import copy
-
-  from experiments import configs
   from experiments.cli import override_key
-  missing = object()
 
-  def get(d, path):
-    for key in path:
-      if not isinstance(d, dict) or key not in d:
-        return missing
-      d = d[key]
-    return d
-
+  get = configs.get_path
   cpu, mine, out = configs.get_config("cpu"), set(map(override_key, overrides)), copy.deepcopy(base)
   for path, value in STUDY_RECIPE.items():
-    if path in mine or get(out, path) is missing or get(out, path) != get(cpu, path):
+    if path in mine or get(out, path) is configs.MISSING or get(out, path) != get(cpu, path):
       continue
-    node = get(out, path[:-1])
     if value is None:
-      del node[path[-1]]
+      configs.del_path(out, path)
     else:
-      node[path[-1]] = value
+      configs.set_path(out, path, value)
   return out
 
 

@@ -9,7 +9,7 @@ import pathlib
 import time
 from typing import Callable
 
-from experiments import store
+from experiments import configs, store
 from nlosjax.variants import OURS, OURS_S
 
 STUDY = "real_preset"
@@ -47,27 +47,23 @@ class Run:
 #: ``Run.recipe`` -> the keys it takes from the ``cpu`` preset: ``"objects"`` is the recipe the
 #: ``cpu`` preset trains for the hidden objects (experiments/studies/objects/results/objects.md):
 #: object-balanced losses, no object term, the plateau rule and checkpoint on the validation
-#: object-balanced PSNR, width 16.
-RECIPES = {"objects": (("model", "width"), ("train", "loss", "balance"), ("train", "loss", "object_intensity"),
-                       ("train", "stop", "metric"))}
+#: object-balanced PSNR, width 16. Its keys are those of the whole-image recipe it replaces
+#: (:data:`experiments.configs.WHOLE_IMAGE_RECIPE`, the one every real weight was trained with).
+RECIPES = {"objects": tuple(configs.WHOLE_IMAGE_RECIPE)}
 
 
 def apply_recipe(config: dict, recipe: str) -> dict:
   """``config`` (a run's config dict) with the :data:`RECIPES` keys of ``recipe`` set to the ``cpu``
   preset's values; every other key as it was. Raises ValueError for an unknown recipe."""
-  from experiments import configs
   if recipe not in RECIPES:
     raise ValueError(f"unknown recipe {recipe!r}; choose one of {sorted(RECIPES)}")
   source = configs.get_config("cpu")
   out = copy.deepcopy(config)
   for path in RECIPES[recipe]:
-    value = source
-    for key in path:
-      value = value[key]
-    node = out
-    for key in path[:-1]:
-      node = node.setdefault(key, {})
-    node[path[-1]] = value
+    value = configs.get_path(source, path)
+    if value is configs.MISSING:
+      raise KeyError(path)
+    configs.set_path(out, path, value)
   return out
 
 
