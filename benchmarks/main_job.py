@@ -113,6 +113,31 @@ def verdicts(times: dict[str, dict], budget_s: float = BUDGET_S) -> tuple[list[s
   return rows, ok
 
 
+def read_phases(path: pathlib.Path) -> dict:
+  """``{"phases_s": {...}, "other_s": ...}`` of the job's ``results/phases.json``, or ``{}`` where the
+  commit run predates it."""
+  if not path.is_file():
+    return {}
+  record = json.loads(path.read_text())
+  return {"phases_s": record["phases_s"], "other_s": record["other_s"]}
+
+
+def phase_table(times: dict[str, dict]) -> list[str]:
+  """Markdown lines: where each CPU model's latest main job spent its wall time (``[]`` if no row has phases)."""
+  timed = {cpu: t for cpu, t in times.items() if "phases_s" in t}
+  if not timed:
+    return []
+  names = list(dict.fromkeys(n for t in timed.values() for n in t["phases_s"]))
+  lines = ["Where the job's time went (its `results/phases.json`: wall seconds of each step, in the"
+           " order they ran; *other* is imports, startup and what lies between the steps):", "",
+           "| CPU | commit | " + " | ".join(names) + " | other |",
+           "|---|---|" + "---:|" * (len(names) + 1)]
+  for cpu, t in timed.items():
+    cells = [f"{t['phases_s'][n]:.0f}" if n in t["phases_s"] else "—" for n in names]
+    lines.append(f"| {model_of(cpu)} | {t['commit']} | " + " | ".join(cells) + f" | {t['other_s']:.0f} |")
+  return lines + [""]
+
+
 def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--out", default="benchmarks/results/main_job.md")
@@ -152,7 +177,8 @@ def main(argv=None):
   times[cpu_model()] = {"commit": commit, "date": date, "install_s": round(install_s, 1),
                         "main_job_s": round(job_s, 1), "budget_s": BUDGET_S, "load_before": load_before,
                         "load_after": load_after, "cpu_mhz": cpu["mhz"], "cpu_cache": cpu["cache"],
-                        "compilation_cache": last_cache_line(log)}
+                        "compilation_cache": last_cache_line(log),
+                        **read_phases(clone / "runs" / "default" / "results" / "phases.json")}
   rows, ok = verdicts(times)
   lines = ["# The main job from a fresh clone, on each CPU model", ""] + facts + [
       f"- Load average before the clone: {load_before}; after the job: {load_after}", "",
@@ -163,7 +189,7 @@ def main(argv=None):
       "| CPU | clock, cache | commit | date | `pip install -e .` | `python -m experiments.train` | "
       f"load before / after | budget {BUDGET_S} s |", "|---|---|---|---|---|---|---|---|", *rows, "",
       f"This run's compilation cache (empty at the start): {times[cpu_model()]['compilation_cache'] or 'no line'}.",
-      "",
+      "", *phase_table(times),
       f"The main job is **{'within' if ok else 'not shown to be within'}** its budget of {BUDGET_S} s "
       f"(20 min on 2 cores) on every CPU model ({', '.join(CPU_MODELS)}).", "",
       f"## The main job's table from this run ({cpu_model()}; `runs/default/results/table.md`, 1 training seed)",

@@ -20,8 +20,9 @@
 
 Writes into ``workdir``: ``config.json``, ``<variant>[-seed<k>]/{checkpoints,
 metrics.jsonl, selection.json}``, and ``results/{table.md, table.json,
-comparisons.json, validation.json, comparison.png, training_curves.png, scores.npz}``
-(``scores.npz``: every method's per-frame test scores, for later comparisons).
+comparisons.json, validation.json, comparison.png, training_curves.png, scores.npz,
+phases.json}`` (``scores.npz``: every method's per-frame test scores, for later comparisons;
+``phases.json``: the wall seconds of each step above, :class:`Phases`).
 Rerunning after an interruption resumes from the checkpoints.
 
 With several processes (``jax.distributed.initialize`` first; ``experiments.train
@@ -44,7 +45,43 @@ import jax
 from nlosjax import files, train
 from nlosjax.evaluation import baselines, protocol
 
-__all__ = ["model_folder", "train_and_evaluate"]
+__all__ = ["Phases", "model_folder", "train_and_evaluate"]
+
+
+class Phases:
+  """Wall seconds of the main job's steps, in the order they ran: ``with phases("dataset"): ...``.
+
+  A name met again adds to its time (a variant's seeds are one phase each). :meth:`line`
+  is the one-line summary the job prints; ``results/phases.json`` holds :meth:`record`,
+  which ``benchmarks.main_job`` reads so that a change of the job's time can be placed.
+  """
+
+  def __init__(self, clock=time.perf_counter):
+    self._clock, self._start = clock, clock()
+    self.seconds: dict[str, float] = {}
+
+  def __call__(self, name: str):
+    import contextlib
+
+    @contextlib.contextmanager
+    def timed():
+      t0 = self._clock()
+      try:
+        yield
+      finally:
+        self.seconds[name] = self.seconds.get(name, 0.0) + self._clock() - t0
+    return timed()
+
+  def record(self) -> dict:
+    """``{"phases_s": {name: seconds}, "total_s": since construction, "other_s": total - their sum}``."""
+    total = self._clock() - self._start
+    return {"phases_s": {k: round(v, 2) for k, v in self.seconds.items()}, "total_s": round(total, 2),
+            "other_s": round(total - sum(self.seconds.values()), 2)}
+
+  def line(self) -> str:
+    r = self.record()
+    parts = [f"{k} {v:.0f} s" for k, v in r["phases_s"].items()] + [f"other {r['other_s']:.0f} s"]
+    return f"phases: {', '.join(parts)} ({r['total_s']:.0f} s in all)"
 
 
 def model_folder(variant: str, seed: int, base_seed: int) -> str:
@@ -100,11 +137,13 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
   if primary:
     files.write_text_atomic(workdir / "config.json", json.dumps(cfg.to_dict(), indent=2, default=str) + "\n")
   t0 = time.perf_counter()
+  phases = Phases()
   if cfg.data.path is None:
     raise ValueError("config data.path: the main job needs the dataset file's path")
   data_path = pathlib.Path(cfg.data.path)
   if primary:
-    train.ensure_dataset(cfg, data_path, log=log)
+    with phases("dataset"):
+      train.ensure_dataset(cfg, data_path, log=log)
   if jax.process_count() > 1:              # the others wait for process 0's dataset
     from jax.experimental import multihost_utils
     multihost_utils.sync_global_devices("nlosjax dataset ready")
@@ -123,8 +162,9 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
     for seed in range(base, base + n_seeds):
       folder = model_folder(variant, seed, base)
       seeded = dataclasses.replace(cfg, train=dataclasses.replace(tr, seed=seed))
-      mcfg, state = train.train_model(seeded, data_path, workdir, variant, folder=folder,
-                                      validate=validate, log=log, export=export)
+      with phases(f"train {variant}"):
+        mcfg, state = train.train_model(seeded, data_path, workdir, variant, folder=folder,
+                                        validate=validate, log=log, export=export)
       trained.setdefault(variant, []).append((mcfg, train.to_host(state.params)))
       if seed == base:
         logs[variant] = train.read_metrics(workdir / folder / "metrics.jsonl")
@@ -138,14 +178,17 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
   if not primary:                         # process 0 evaluates; the others are done
     return {}
   log("validation: tuning the classic methods ...")
-  settings = tune_classic(cfg, data_path, log)
+  with phases("tune classic"):
+    settings = tune_classic(cfg, data_path, log)
   best = max(settings, key=lambda m: settings[m]["psnr"])
-  learned = protocol.tune_model_thresholds(cfg, data_path, trained, log=log)
+  with phases("tune thresholds"):
+    learned = protocol.tune_model_thresholds(cfg, data_path, trained, log=log)
   thresholds = {v: c["threshold"] for v, c in learned.items()}
   validation = {"split": "val", "classic": settings, "best_classic": best,
                 "learned": learned, "checkpoints": checkpoints}
-  evaluation = protocol.evaluate(cfg, data_path, trained, split="test",
-                                 classic_settings=settings, model_thresholds=thresholds, log=log)
+  with phases("test split"):
+    evaluation = protocol.evaluate(cfg, data_path, trained, split="test",
+                                   classic_settings=settings, model_thresholds=thresholds, log=log)
   table, comparisons = protocol.tabulate(evaluation, best_classic_method=best)
   n_frames = evaluation["n_frames"]
   n_seq = len(set(evaluation["sequence"].tolist()))
@@ -154,12 +197,14 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
              f"{n_seeds} seed(s) ({base}-{base + n_seeds - 1}); "
              f"{jax.devices()[0].platform}, {jax.device_count()} device(s); "
              f"main job wall time {time.perf_counter() - t0:.0f} s.")
-  protocol.write_results(workdir / "results", table, comparisons, evaluation["images"],
-                         caption=caption, validation=validation, logs=logs, evaluation=evaluation)
+  with phases("write results"):
+    protocol.write_results(workdir / "results", table, comparisons, evaluation["images"],
+                           caption=caption, validation=validation, logs=logs, evaluation=evaluation)
   for name, path in (extra_test_sets or {}).items():
     log(f"extra test set {name}: {path} ...")
-    ev = protocol.evaluate(cfg, path, trained, split="test", classic_settings=settings,
-                           model_thresholds=thresholds, log=log)
+    with phases(f"test set {name}"):
+      ev = protocol.evaluate(cfg, path, trained, split="test", classic_settings=settings,
+                             model_thresholds=thresholds, log=log)
     t, c = protocol.tabulate(ev, best_classic_method=best)
     n_seq = len(set(ev["sequence"].tolist()))
     protocol.write_results(
@@ -169,5 +214,7 @@ def train_and_evaluate(config: train.RunConfig, workdir, *, extra_test_sets=None
                  " chosen on validation) and classic settings (tuned on validation) as the test"
                  " split. Nothing is chosen on this set."))
   log((workdir / "results" / "table.md").read_text())
+  files.write_text_atomic(workdir / "results" / "phases.json", json.dumps(phases.record(), indent=2) + "\n")
+  log(phases.line())
   log(f"results written to {workdir / 'results'} ({time.perf_counter() - t0:.0f} s in all)")
   return table

@@ -77,3 +77,23 @@ def test_the_main_job_benchmark_records_clock_cache_and_hit_rate(tmp_path):
                  "compiling saved\ntrained\nXLA compilation cache .cache/xla: 3 of 12 compiles read from it\n")
   assert main_job.last_cache_line(log) == "XLA compilation cache .cache/xla: 3 of 12 compiles read from it"
   assert main_job.last_cache_line(tmp_path / "none.log") is None
+
+
+def test_the_main_job_benchmark_tables_each_cpu_models_phases(tmp_path):
+  """Phases read from a job's ``phases.json`` (none for a commit before it), tabled by name in order."""
+  import json
+
+  from benchmarks import main_job
+  assert main_job.read_phases(tmp_path / "absent.json") == {}
+  path = tmp_path / "phases.json"
+  path.write_text(json.dumps({"phases_s": {"dataset": 98.4, "train ours_s": 180.0, "train ours": 320.2},
+                              "total_s": 660.0, "other_s": 61.4}))
+  xeon = {"commit": "new", **main_job.read_phases(path)}
+  epyc = {"commit": "old", "phases_s": {"dataset": 90.0, "test split": 30.0}, "other_s": 5.0}
+  lines = main_job.phase_table({"Intel(R) Xeon(R) Processor": xeon, "AMD EPYC": epyc,
+                                "Other": {"commit": "older"}})
+  assert lines[2] == "| CPU | commit | dataset | train ours_s | train ours | test split | other |"
+  assert lines[4] == "| Intel(R) Xeon(R) | new | 98 | 180 | 320 | — | 61 |"
+  assert lines[5] == "| AMD EPYC | old | 90 | — | — | 30 | 5 |"
+  assert len(lines) == 7 and lines[-1] == ""            # the row without phases is left out
+  assert main_job.phase_table({"AMD EPYC": {"commit": "older"}}) == []

@@ -29,6 +29,22 @@ def data_path(tmp_path_factory):
   return make_tiny_dataset(tmp_path_factory)
 
 
+def test_phases_add_a_name_met_again_and_count_the_rest_as_other():
+  """``main_job.Phases`` on a fake clock: the sums are the clock's, by hand."""
+  from experiments.main_job import Phases
+  ticks = iter([0.0, 1.0, 4.0, 4.5, 6.0, 7.0, 9.5, 10.0])
+  phases = Phases(clock=lambda: next(ticks))          # starts at 0
+  with phases("dataset"):                             # 1 -> 4
+    pass
+  with phases("train ours"):                          # 4.5 -> 6
+    pass
+  with pytest.raises(RuntimeError), phases("train ours"):   # 7 -> 9.5, timed though it raised
+    raise RuntimeError("stop")
+  record = phases.record()                            # at 10
+  assert record == {"phases_s": {"dataset": 3.0, "train ours": 4.0}, "total_s": 10.0, "other_s": 3.0}
+  assert Phases(clock=iter([0.0, 2.0, 2.0]).__next__).line() == "phases: other 2 s (2 s in all)"
+
+
 @pytest.mark.full
 def test_main_job_writes_table_and_figures(data_path, tmp_path, monkeypatch):
   from experiments.main_job import train_and_evaluate
@@ -86,6 +102,13 @@ def test_main_job_writes_table_and_figures(data_path, tmp_path, monkeypatch):
   again_table = json.loads((tmp_path / "results" / "table1_again.json").read_text())
   assert_nested_close(again_table, saved, rtol=1e-5, atol=1e-6)
   assert "Nothing is chosen" in (tmp_path / "results" / "table1_again.md").read_text()
+  # Each step's wall seconds: a phase per variant (its two seeds in one), in the order they ran.
+  phases = json.loads((tmp_path / "results" / "phases.json").read_text())
+  assert list(phases["phases_s"]) == ["dataset", "train ours_s", "train ours", "train usm",
+                                      "tune classic", "tune thresholds", "test split",
+                                      "write results", "test set again"]
+  assert all(v >= 0 for v in phases["phases_s"].values()) and phases["other_s"] >= -0.01
+  assert sum(phases["phases_s"].values()) + phases["other_s"] == pytest.approx(phases["total_s"], abs=0.05)
   rows = [json.loads(l) for l in (tmp_path / "ours" / "metrics.jsonl").read_text().splitlines()]
   assert [r["step"] for r in rows] == [1, 2]
   assert all(np.isfinite(r["loss"]) for r in rows)
