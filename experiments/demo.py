@@ -32,7 +32,10 @@ def main(argv=None):
   parser.add_argument("--scan", default=None, help="a measured scan (default: the shipped exit sign)")
   parser.add_argument("--depth-range", nargs=2, type=float, default=(0.2, 1.5), metavar=("ZMIN", "ZMAX"),
                       help="reconstruct only these depths, metres")
+  from experiments import xla_cache
+  xla_cache.add_argument(parser)
   args = parser.parse_args(argv)
+  xla_cache.enable_unless(args.no_cache)     # before anything compiles
   out = pathlib.Path(args.out)
   out.mkdir(parents=True, exist_ok=True)
 

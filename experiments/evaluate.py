@@ -40,7 +40,10 @@ def main(argv=None) -> dict:
                       help="comma-separated classic methods to include ('' for none)")
   parser.add_argument("--retune", action="store_true",
                       help="choose the classic settings on this file's val split")
+  from experiments import xla_cache
+  xla_cache.add_argument(parser)
   args = parser.parse_args(argv)
+  xla_cache.enable_unless(args.no_cache)     # before anything compiles
   from experiments.cli import one_line_errors
   with one_line_errors():           # a bad or damaged input, a full disk: one line, exit status 2
     return _run(args)

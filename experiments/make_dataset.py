@@ -126,7 +126,10 @@ def main(argv=None) -> int:
                      help="do not store the noise-free transients (data.store_clean=False)")
   parser.add_argument("--albedo", action="store_true", help="also store the albedo volumes (data.store_albedo)")
   parser.add_argument("--quiet", action="store_true", help="no progress bar")
+  from experiments import xla_cache
+  xla_cache.add_argument(parser)
   args, config, overrides = cli.parse_config(parser, argv)
+  xla_cache.enable_unless(args.no_cache)     # before anything compiles (workers inherit the folder)
 
   try:
     spec, out = build_spec(apply_flags(args, config, overrides), args.config)

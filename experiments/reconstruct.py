@@ -146,10 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
                  help="--adapt: share of the read scan points held out for stopping (0.25)")
   g.add_argument("--model-bin-factor", type=int, default=None,
                  help="capture bins per network bin (default: nearest to the trained bin width)")
-  p.add_argument("--no-cache", action="store_true",
-                 help="do not use the persistent XLA compilation cache (NLOSJAX_CACHE_DIR; default"
-                      " .cache/xla in a clone of the repository, shared with the main job and the"
-                      " tests, else ~/.cache/nlosjax/xla; NLOSJAX_CACHE=0 also switches it off)")
+  from experiments import xla_cache
+  xla_cache.add_argument(p)
   p.add_argument("--quiet", action="store_true", help="print only the timing line")
   return p
 

@@ -104,9 +104,10 @@ def main(argv=None):
                       help="host:port of process 0 for multi-process training (jax.distributed)")
   parser.add_argument("--num-processes", type=int, default=1, help="processes in all (default 1)")
   parser.add_argument("--process-id", type=int, default=0, help="this process, 0 .. N-1")
-  args, config, _ = parse_config(parser, argv)
   from experiments import xla_cache
-  xla_cache.enable(tidy=True)        # before anything compiles
+  xla_cache.add_argument(parser)
+  args, config, _ = parse_config(parser, argv)
+  xla_cache.enable_unless(args.no_cache, tidy=True)        # before anything compiles
   from nlosjax.train import TrainingPaused
   try:
     with one_line_errors():          # a bad or damaged input, a full disk: one line, exit status 2

@@ -6,9 +6,11 @@ compiled programs (XLA executables) on disk and read them back instead
 (``jax_compilation_cache_dir``). The commands of a clone share one folder, so
 a second run, or a test that builds the program another test built, reads it:
 
-* ``python -m experiments.train`` (the main job) and ``python -m experiments.reconstruct``
-  call :func:`enable` before they compile; the test suite's ``conftest.py`` calls
-  :func:`configure` before JAX is imported and its xdist workers start;
+* every command (``python -m experiments.train``, the main job; ``reconstruct``,
+  ``evaluate``, ``make_dataset``, ``demo``) calls :func:`enable` before it compiles,
+  unless given ``--no-cache`` (:func:`add_argument`, :func:`enable_unless`: for timing a
+  cold start); the test suite's ``conftest.py`` calls :func:`configure` before JAX is
+  imported and its xdist workers start;
 * the folder: ``NLOSJAX_CACHE_DIR`` if set, else ``JAX_COMPILATION_CACHE_DIR`` if set,
   else ``.cache/xla`` in the clone (git ignores it), or ``~/.cache/nlosjax/xla``
   where this module is not in a source tree;
@@ -54,7 +56,7 @@ import threading
 
 #: The folder, where the environment names one.
 DIR_ENV = "NLOSJAX_CACHE_DIR"
-#: ``"0"`` switches the cache off in every command (``--no-cache`` too, for experiments.reconstruct).
+#: ``"0"`` switches the cache off in every command (as each command's ``--no-cache`` does for one run).
 SWITCH_ENV = "NLOSJAX_CACHE"
 #: A folder where every counting process writes ``<pid>.json`` at its end (set by the test suite).
 COUNTS_ENV = "NLOSJAX_CACHE_COUNTS"
@@ -213,6 +215,22 @@ def enable(environ=None, tidy: bool = False) -> str | None:
     return _off(f"off ({e})")
   count()
   return path
+
+
+#: ``--no-cache``'s help, the same in every command.
+NO_CACHE_HELP = ("do not use the persistent XLA compilation cache (NLOSJAX_CACHE_DIR; default .cache/xla"
+                 " in a clone of the repository, shared with the main job and the tests, else"
+                 " ~/.cache/nlosjax/xla; NLOSJAX_CACHE=0 also switches it off)")
+
+
+def add_argument(parser) -> None:
+  """``--no-cache`` on ``parser`` (an argparse parser or group): one run without the cache."""
+  parser.add_argument("--no-cache", action="store_true", help=NO_CACHE_HELP)
+
+
+def enable_unless(no_cache: bool, tidy: bool = False) -> str | None:
+  """:func:`enable` unless ``no_cache`` (a command's ``--no-cache``); the folder, or None."""
+  return None if no_cache else enable(tidy=tidy)
 
 
 # --- The hit rate ---------------------------------------------------------------------------

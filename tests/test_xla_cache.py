@@ -6,6 +6,8 @@ import pathlib
 import subprocess
 import sys
 
+import pytest
+
 from experiments import xla_cache
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -118,3 +120,20 @@ def test_prune_drops_entries_unread_for_days_then_the_least_recently_read(tmp_pa
   assert xla_cache.prune(tmp_path, max_entries=2, now_ns=now) == 2
   assert sorted(p.name for p in tmp_path.glob("*-cache")) == ["a-cache", "noatime-cache"]
   assert xla_cache.prune(tmp_path / "missing") == 0
+
+
+@pytest.mark.parametrize("command", ["train", "reconstruct", "evaluate", "make_dataset", "demo"])
+def test_every_command_uses_the_cache_unless_given_no_cache(command, capsys, monkeypatch):
+  """Each command's ``--help`` offers ``--no-cache`` with the one help text, and ``enable_unless``
+  enables the cache only without it."""
+  import importlib
+  module = importlib.import_module(f"experiments.{command}")
+  with pytest.raises(SystemExit) as e:
+    module.main(["--help"])
+  assert e.value.code == 0
+  text = " ".join(capsys.readouterr().out.split())
+  assert "--no-cache" in text and " ".join(xla_cache.NO_CACHE_HELP.split()) in text
+  calls = []
+  monkeypatch.setattr(xla_cache, "enable", lambda tidy=False: calls.append(tidy) or "/the/folder")
+  assert xla_cache.enable_unless(True) is None and calls == []
+  assert xla_cache.enable_unless(False, tidy=True) == "/the/folder" and calls == [True]
