@@ -27,12 +27,22 @@ our phasor's virtual wavelength and cycles (``2 sampling_coeff x spacing``,
 5 cycles) passed to ``pf`` and as ``fbp``'s filter. y-tal's ``fk`` chooses its
 own output grid (``[T, Sx, Sy]``). Agreement: normalised cross-correlation of
 the front maximum projections (over depth, ``[H, W]``; y-tal's ``[Sx, Sy]``
-transposed onto ours), of magnitudes (our f-k's square root, as its images
-are made), over the depths at least one virtual wavelength from the wall
-(y-tal's ``pf`` divides by each voxel's distance to the scan points, so its
-voxels on and near the wall plane, NaN on it, outshine the scene). The
-algorithms differ where named: our FBP filters the backprojection with a
-Laplacian, y-tal's ``fbp`` with the phasor-field wavelet.
+transposed onto ours), of magnitudes (both f-k volumes are ``|.|^2``: the
+square root of each, amplitudes, as our f-k's images are made), over the
+depths at least one virtual wavelength from the wall (y-tal's ``pf`` divides
+by each voxel's distance to the scan points, so its voxels on and near the
+wall plane, NaN on it, outshine the scene).
+
+f-k is one algorithm on both sides, but y-tal 0.20.0's ``fk`` carries a
+Jacobian bug fixed upstream in commit e720f12 (2025-09-24, unreleased at
+0.20.0: it weights the Stolt resampling by ``|k_z|``, not ``k_z / f``) and
+weights the input by ``tau t`` where the public MATLAB code (and ours) uses
+``sqrt(tau t^2)``; the f-k NCC measures those two differences too. FBP names
+different algorithms: y-tal's ``fbp`` filters each histogram in time with the
+phasor-field wavelet, backprojects without falloff and takes ``|.|`` (the
+algorithm of our phasor), our FBP is the LCT backprojection (``t^4`` weight)
+filtered by a 3-D Laplacian of Gaussian. Its row compares times only; its NCC
+is y-tal's ``fbp`` against our phasor.
 """
 
 from __future__ import annotations
@@ -54,6 +64,8 @@ from experiments import provenance as _machine
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "peer_tal.md"
 OURS_TO_TAL = {"phasor": "pf", "fk": "fk", "fbp": "fbp"}
+#: Our method that computes each y-tal method's algorithm: the one its NCC is taken against.
+SAME_ALGORITHM = {"pf": "phasor", "fk": "fk", "fbp": "phasor"}
 CYCLES, SAMPLING_COEFF = 5.0, 2.0
 
 #: Run by y-tal's Python: ``WORKER TAL_FILE OUT.npz SPEC_JSON``; prints one JSON line of times.
@@ -104,6 +116,11 @@ def ncc(a: np.ndarray, b: np.ndarray) -> float:
   """Normalised cross-correlation of two images of one shape."""
   a, b = a - a.mean(), b - b.mean()
   return float((a * b).sum() / math.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def amplitude(volume: np.ndarray, method: str) -> np.ndarray:
+  """``volume`` as amplitudes: f-k's (ours and y-tal's, both ``|.|^2``) square-rooted, others as they are."""
+  return np.sqrt(np.maximum(volume, 0)) if method == "fk" else volume
 
 
 def front(volume: np.ndarray, depth_axis: int, first: int) -> np.ndarray:
@@ -162,23 +179,28 @@ def main(argv=None) -> int:
       tal_volumes = dict(np.load(pathlib.Path(tmp) / f"tal_{n}.npz"))
       grid_record = {"shape": list(transient.shape), "wall_size": setup.wall_size, "bin_width": setup.bin_width,
                      "ytal": theirs, "nlosjax": {}}
+      ours_fronts = {}
       for ours_name, tal_name in OURS_TO_TAL.items():
         vol, times, cold = run_ours(transient, setup, ours_name, args.repeats)
         grid_record["nlosjax"][ours_name] = {"times_s": times, "cold_s": cold}
+        first = math.ceil(spec["wavelength"] / setup.depth_bin_length)       # a wavelength from the wall
+        ours_fronts[ours_name] = front(amplitude(vol, ours_name), 0, first)    # [H, W]
         t = theirs.get(tal_name, {"error": f"not run (above --ytal-fbp-max-grid {args.ytal_fbp_max_grid})"})
         if "error" in t:
           rows.append((n, ours_name, tal_name, min(times), None, None, t["error"]))
           continue
         tal_warm = min(t["times_s"][1:]) if len(t["times_s"]) > 1 else t["times_s"][0]
-        first = math.ceil(spec["wavelength"] / setup.depth_bin_length)       # a wavelength from the wall
-        ours_front = front(np.sqrt(np.maximum(vol, 0)) if ours_name == "fk" else vol, 0, first)    # [H, W]
-        tal_vol = tal_volumes[tal_name]
+        tal_vol = amplitude(tal_volumes[tal_name], tal_name)
         tal_front = front(tal_vol, 0 if tal_name == "fk" else 2, first).T    # [Sx, Sy] -> [H, W]
-        agreement = ncc(ours_front, tal_front)
-        grid_record["nlosjax"][ours_name]["ncc_front"] = agreement
+        agreement = ncc(ours_fronts[SAME_ALGORITHM[tal_name]], tal_front)
+        if SAME_ALGORITHM[tal_name] == ours_name:
+          grid_record["nlosjax"][ours_name]["ncc_front"] = agreement
+        else:                                    # fbp: the NCC of the pair of names, a different algorithm each
+          grid_record["nlosjax"][ours_name]["ncc_front_different_algorithm"] = ncc(ours_fronts[ours_name], tal_front)
+          grid_record["nlosjax"][SAME_ALGORITHM[tal_name]][f"ncc_front_ytal_{tal_name}"] = agreement
         rows.append((n, ours_name, tal_name, min(times), tal_warm, agreement, ""))
         print(f"{n}x{n} {ours_name}: ours {min(times):.3f} s, y-tal {tal_name} {tal_warm:.3f} s,"
-              f" NCC {agreement:.3f}", flush=True)
+              f" NCC {agreement:.3f} against our {SAME_ALGORITHM[tal_name]}", flush=True)
       record["grids"][str(n)] = grid_record
   command = "python -m benchmarks.peer_tal" + "".join(
       f" --{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
@@ -193,9 +215,12 @@ def main(argv=None) -> int:
   for n, ours_name, tal_name, ours_t, tal_t, agreement, error in rows:
     if error:
       lines.append(f"| {n} x {n} | {ours_name} | {tal_name} | {ours_t:.3f} | {error} | — | — |")
-    else:
+    elif SAME_ALGORITHM[tal_name] == ours_name:
       lines.append(f"| {n} x {n} | {ours_name} | {tal_name} | {ours_t:.3f} | {tal_t:.3f} | {tal_t / ours_t:.1f}x |"
                    f" {agreement:.3f} |")
+    else:
+      lines.append(f"| {n} x {n} | {ours_name} | {tal_name} (a different algorithm: times only) | {ours_t:.3f} |"
+                   f" {tal_t:.3f} | {tal_t / ours_t:.1f}x | {agreement:.3f} against our {SAME_ALGORITHM[tal_name]} |")
   lines += ["", "Times are the best of the warm runs, both libraries measured in this one run; a machine with"
             " other jobs (load average above) slows both."]
   text = "\n".join(lines) + "\n"
