@@ -69,8 +69,10 @@ def curves(records: dict[str, pathlib.Path] | None = None, root: pathlib.Path = 
     c = json.loads(path.read_text())
     if c.get("stop_reason") is None:                 # a run still training
       continue
+    # Replayed on the score the run stopped on: the whole-image PSNR, or its rule's metric
+    # (the objects recipe's object-balanced PSNR), recorded as each point's "score".
     out[str(path.parent.relative_to(root))] = {
-        "points": [(int(p["step"]), float(p["val_psnr"]), float(p["time_s"]), float(p["val_s"]))
+        "points": [(int(p["step"]), float(p.get("score", p["val_psnr"])), float(p["time_s"]), float(p["val_s"]))
                    for p in c["curve"]],
         "rule": c["rule"], "stop_reason": c["stop_reason"]}
   return out

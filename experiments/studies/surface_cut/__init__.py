@@ -30,6 +30,7 @@ import sys
 import numpy as np
 
 from experiments import provenance
+from nlosjax.variants import OURS, OURS_S
 
 #: This study's results folder.
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
@@ -118,7 +119,7 @@ def measure(data_path: pathlib.Path, log=print) -> tuple[dict, dict, np.ndarray,
   data = protocol.load_split(cfg, data_path, "val", batch_size=cfg.train.eval_batch)
   per_frame = {}
   try:
-    for variant in ("ours", "ours_s"):
+    for variant in (OURS, OURS_S):
       mcfg, params, _ = inference.load_pretrained("cpu", variant)
       im = protocol.model_images(mcfg, params, data["loader"])
       per_frame[variant] = frame_scores(im["intensity"], im["depth"], data["depth"])
@@ -205,7 +206,7 @@ def figure(per_frame: dict, chosen: dict, path: pathlib.Path) -> None:
     c = mean_curve(s)
     r = [c[t]["recall"] for t in sorted(c)]
     p = [c[t]["precision"] for t in sorted(c)]
-    ax.plot(r, p, "-o" if m in ("ours", "ours_s") else "--.", label=label(m), ms=3)
+    ax.plot(r, p, "-o" if m in (OURS, OURS_S) else "--.", label=label(m), ms=3)
     if m in chosen:
       ax.plot(c[chosen[m]]["recall"], c[chosen[m]]["precision"], "k*", ms=8)
   ax.set(xlabel="object recall", ylabel="surface precision",
@@ -228,7 +229,7 @@ def main(argv=None) -> int:
   xla_cache.enable()
   data_path = pathlib.Path(args.data)
   per_frame, chosen, sequence, options = measure(data_path)
-  verdict = compare(per_frame, chosen, sequence, ("ours", "ours_s"))
+  verdict = compare(per_frame, chosen, sequence, (OURS, OURS_S))
   command = ("python -m experiments.studies.surface_cut " + " ".join(sys.argv[1:] if argv is None else argv)).strip()
   results = pathlib.Path(args.results)
   results.mkdir(parents=True, exist_ok=True)
