@@ -35,6 +35,7 @@ job refuses, before any data exist, when one would not fit
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import pathlib
@@ -60,17 +61,13 @@ class Phases:
     self._clock, self._start = clock, clock()
     self.seconds: dict[str, float] = {}
 
+  @contextlib.contextmanager
   def __call__(self, name: str):
-    import contextlib
-
-    @contextlib.contextmanager
-    def timed():
-      t0 = self._clock()
-      try:
-        yield
-      finally:
-        self.seconds[name] = self.seconds.get(name, 0.0) + self._clock() - t0
-    return timed()
+    t0 = self._clock()
+    try:
+      yield
+    finally:
+      self.seconds[name] = self.seconds.get(name, 0.0) + self._clock() - t0
 
   def record(self) -> dict:
     """``{"phases_s": {name: seconds}, "total_s": since construction, "other_s": total - their sum}``."""

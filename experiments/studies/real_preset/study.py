@@ -183,10 +183,8 @@ def train_run(run: Run, *, deadline: float | None, allow_data_change: bool = Fal
   export = train.StateExport(state_folder(run), data_digest=digest, data_fingerprint=fingerprint,
                              deadline=deadline, allow_data_change=allow_data_change)
   _record_invocation(run, digest)
-  # The whole-image PSNR as one number, or every validation score where the run stops on another
-  # (the objects recipe: the object-balanced PSNR).
-  validate = (protocol.validation_psnr if typed.train.stop.metric == "psnr" else protocol.validation_scores)(
-      typed, data_path)
+  # Every validation score, as the main job: the run's train.stop.metric decides among them.
+  validate = protocol.validation_scores(typed, data_path)
   wd = workdir(run)
   wd.mkdir(parents=True, exist_ok=True)
   (wd / "config.json").write_text(json.dumps(config, indent=2, default=str) + "\n")

@@ -111,6 +111,7 @@ def measure(data_path: pathlib.Path, log=print) -> tuple[dict, dict, np.ndarray,
   from experiments.main_job import tune_classic
   from nlosjax import inference, train
   from nlosjax.evaluation import baselines, protocol
+  from nlosjax.evaluation.protocol import surface_cut
   d = configs.get_config("cpu")
   d["data"]["path"] = str(data_path)
   cfg = train.RunConfig.from_dict(d)
@@ -132,7 +133,6 @@ def measure(data_path: pathlib.Path, log=print) -> tuple[dict, dict, np.ndarray,
       per_frame[method] = frame_scores(intensity, depth, data["depth"])
       _, direct = baselines.classic_images(data["measurement"], data["setup"], data["stride"], method,
                                            s["options"], threshold=s["threshold"])
-      from nlosjax.evaluation.protocol import surface_cut
       if not np.array_equal(surface_cut(intensity, depth, s["threshold"]), direct):
         raise AssertionError(f"{method}: the cut at {s['threshold']} differs from intensity_depth's")
       log(f"{method}: scored at {len(THRESHOLDS)} thresholds")
